@@ -1,0 +1,36 @@
+"""groupcanon: equivariance for any graph-neural-network layer by canonicalization.
+
+    f_v = rho_out(g_v) [ M( rho_in(g_v^-1) F ) ]_v
+
+Public surface: :class:`Group`, :class:`FeatureType`, :class:`FieldType`, :class:`Canonicalize`, and the
+submodules :mod:`groups`, :mod:`features`, :mod:`frames` and :mod:`testing`.
+"""
+
+from . import features, frames, groups
+from .canonicalize import Canonicalize, CanonicalizedLayer, globalize, localize
+from .features import FeatureType, FieldType
+from .group import Group
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Canonicalize",
+    "CanonicalizedLayer",
+    "FeatureType",
+    "FieldType",
+    "Group",
+    "features",
+    "frames",
+    "globalize",
+    "groups",
+    "localize",
+    "testing",
+]
+
+
+def __getattr__(name):  # import the testing kit (and hypothesis) only when asked for
+    if name == "testing":
+        import importlib
+
+        return importlib.import_module(".testing", __name__)
+    raise AttributeError(f"module 'groupcanon' has no attribute {name!r}")

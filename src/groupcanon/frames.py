@@ -1,0 +1,56 @@
+"""Frames from geometry: build group elements that transform with the scene.
+
+A frame ``g_v`` must satisfy ``frame(g . scene) = g . frame(scene)`` for the wrapped layers to be equivariant.
+Degenerate inputs (a zero heading vector) have no well-defined frame; these helpers then fall back to a fixed
+axis, which is finite and differentiable but not equivariant at that measure-zero configuration.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["planar_frame", "rotation_from_vectors", "se2xr_frame", "se3_frame"]
+
+
+def _safe_normalize(v: Tensor, fallback: Tensor, eps: float) -> Tensor:
+    n = v.norm(dim=-1, keepdim=True)
+    ok = n > eps
+    return torch.where(ok, v / torch.where(ok, n, torch.ones_like(n)), fallback.expand_as(v))
+
+
+def planar_frame(heading: Tensor, eps: float = 1e-12) -> Tensor:
+    """SO(2) elements ``(*batch, 2) = (cos, sin)`` from planar heading vectors ``(*batch, 2)`` (first 2 used)."""
+    fallback = heading.new_tensor([1.0, 0.0])
+    return _safe_normalize(heading[..., :2], fallback, eps)
+
+
+def se2xr_frame(heading: Tensor, position: Tensor, eps: float = 1e-12) -> Tensor:
+    """SE2xR elements ``(*batch, 5)`` from a heading (its horizontal part sets the yaw) and a 3-D position.
+
+    For a quadrotor with attitude ``R`` (body to world), ``heading = R[..., :, 0]`` (the body x axis) gives the
+    yaw frame; it is equivariant because a rotation about z rotates the horizontal part of the body x axis.
+    """
+    return torch.cat((planar_frame(heading, eps), position), dim=-1)
+
+
+def rotation_from_vectors(a: Tensor, b: Tensor, eps: float = 1e-12) -> Tensor:
+    """SO(3) matrices ``(*batch, 3, 3)`` by Gram-Schmidt: first axis along ``a``, second in the ``a, b`` plane.
+
+    The third axis is the cross product, so ``det = +1`` always (never a reflection).
+    """
+    e1 = _safe_normalize(a, a.new_tensor([1.0, 0.0, 0.0]), eps)
+    b_perp = b - (b * e1).sum(-1, keepdim=True) * e1
+    # fallback second axis: any unit vector orthogonal to e1
+    helper = torch.where(
+        e1[..., :1].abs() < 0.9, a.new_tensor([1.0, 0.0, 0.0]), a.new_tensor([0.0, 1.0, 0.0])
+    )
+    alt = torch.linalg.cross(e1, helper)
+    e2 = _safe_normalize(b_perp, _safe_normalize(alt, a.new_tensor([0.0, 1.0, 0.0]), eps), eps)
+    e3 = torch.linalg.cross(e1, e2)
+    return torch.stack((e1, e2, e3), dim=-1)
+
+
+def se3_frame(a: Tensor, b: Tensor, position: Tensor, eps: float = 1e-12) -> Tensor:
+    """SE3 elements ``(*batch, 3, 4)`` from two direction vectors and a position."""
+    return torch.cat((rotation_from_vectors(a, b, eps), position.unsqueeze(-1)), dim=-1)

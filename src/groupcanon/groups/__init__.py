@@ -1,0 +1,11 @@
+"""Built-in groups. Every group documents its element layout in its docstring."""
+
+from .cyclic import Cyclic
+from .product import Product
+from .se2 import SE2, SE2xR
+from .so2 import SO2
+from .so3 import SE3, SO3
+from .translation import Translation
+from .trivial import Trivial
+
+__all__ = ["SE2", "SE3", "SO2", "SO3", "Cyclic", "Product", "SE2xR", "Translation", "Trivial"]

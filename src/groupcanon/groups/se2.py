@@ -1,0 +1,149 @@
+"""SE(2) and SE(2) x R: planar rotations (about z) with 2-D or 3-D translations.
+
+Element layouts:
+    SE2:   ``(*batch, 4) = (cos theta, sin theta, tx, ty)``
+    SE2xR: ``(*batch, 5) = (cos theta, sin theta, tx, ty, tz)``
+
+``g = (theta, t)`` acts on points by ``p -> R_z(theta) p + t`` and on vectors by ``v -> R_z(theta) v``.
+SE2xR is the paper's symmetry group G-bar of a quadrotor under gravity: rotations about the world z axis and
+all 3-D translations (a subgroup of SE(3), isomorphic to SE(2) x R).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..group import Group
+from ._util import (
+    angle_to_cs,
+    complex_conj,
+    complex_mul,
+    gaussian,
+    identity_cs,
+    rotate2d,
+    rotmat2d,
+    special_cs,
+    uniform_angle,
+)
+
+__all__ = ["SE2", "SE2xR"]
+
+
+class _PlanarRigid(Group):
+    """Rotation about z stored as ``(cos, sin)``, followed by a ``space_dim``-vector translation."""
+
+    has_translation = True
+
+    def __init__(self, translation_scale: float = 10.0):
+        if not translation_scale >= 0:
+            raise ValueError(f"translation_scale must be >= 0, got {translation_scale!r}")
+        self.translation_scale = float(translation_scale)
+
+    @property
+    def element_shape(self) -> tuple[int, ...]:
+        return (2 + self.space_dim,)
+
+    def _rot(self, cs: Tensor, v: Tensor) -> Tensor:
+        if self.space_dim == 2:
+            return rotate2d(cs, v)
+        xy = rotate2d(cs, v[..., :2])
+        return torch.cat((xy, v[..., 2:].expand(*xy.shape[:-1], v.shape[-1] - 2)), dim=-1)
+
+    def identity(self, *batch, dtype=None, device=None) -> Tensor:
+        cs = identity_cs(batch, dtype, device)
+        return torch.cat((cs, cs.new_zeros(*batch, self.space_dim)), dim=-1)
+
+    def compose(self, a: Tensor, b: Tensor) -> Tensor:
+        cs = complex_mul(a[..., :2], b[..., :2])
+        t = self._rot(a[..., :2], b[..., 2:]) + a[..., 2:]
+        return torch.cat((cs, t), dim=-1)
+
+    def inverse(self, a: Tensor) -> Tensor:
+        cs = complex_conj(a[..., :2])
+        return torch.cat((cs, -self._rot(cs, a[..., 2:])), dim=-1)
+
+    def sample(self, *batch, generator=None, dtype=None, device=None) -> Tensor:
+        cs = angle_to_cs(uniform_angle(batch, generator, dtype, device))
+        t = gaussian(batch, self.space_dim, self.translation_scale, generator, dtype, device)
+        return torch.cat((cs, t), dim=-1)
+
+    def exp(self, xi: Tensor) -> Tensor:
+        """``xi = (theta, u)`` ``(*batch, 1 + space_dim)``; the translation is ``V(theta) u`` (left Jacobian)."""
+        theta = xi[..., 0]
+        u = xi[..., 1:]
+        small = theta.abs() < 1e-4
+        safe = torch.where(small, torch.ones_like(theta), theta)
+        a = torch.where(small, 1 - theta**2 / 6, torch.sin(safe) / safe)  # sin(t)/t
+        b = torch.where(small, theta / 2 - theta**3 / 24, (1 - torch.cos(safe)) / safe)  # (1-cos t)/t
+        x, y = u[..., 0], u[..., 1]
+        txy = torch.stack((a * x - b * y, b * x + a * y), dim=-1)
+        t = txy if self.space_dim == 2 else torch.cat((txy, u[..., 2:]), dim=-1)
+        return torch.cat((angle_to_cs(theta), t), dim=-1)
+
+    def log(self, g: Tensor) -> Tensor:
+        theta = torch.atan2(g[..., 1], g[..., 0])
+        small = theta.abs() < 1e-4
+        safe = torch.where(small, torch.ones_like(theta), theta)
+        # Inverse of V(theta) = [[a, -b], [b, a]]: V^-1 = [[a, b], [-b, a]] / (a^2 + b^2).
+        a = torch.where(small, 1 - theta**2 / 6, torch.sin(safe) / safe)
+        b = torch.where(small, theta / 2 - theta**3 / 24, (1 - torch.cos(safe)) / safe)
+        n = a * a + b * b
+        x, y = g[..., 2], g[..., 3]
+        uxy = torch.stack(((a * x + b * y) / n, (-b * x + a * y) / n), dim=-1)
+        u = uxy if self.space_dim == 2 else torch.cat((uxy, g[..., 4:]), dim=-1)
+        return torch.cat((theta.unsqueeze(-1), u), dim=-1)
+
+    def matrix(self, g: Tensor) -> Tensor:
+        """Homogeneous matrix ``(*batch, d+1, d+1)``."""
+        d = self.space_dim
+        m = torch.zeros(*g.shape[:-1], d + 1, d + 1, dtype=g.dtype, device=g.device)
+        m[..., :d, :d] = self.rotation(g)
+        m[..., :d, d] = g[..., 2:]
+        m[..., d, d] = 1
+        return m
+
+    def special_elements(self, dtype=None, device=None) -> Tensor:
+        cs = special_cs(dtype, device)
+        t = torch.zeros(cs.shape[0], self.space_dim, dtype=cs.dtype, device=device)
+        t[:, 0] = torch.linspace(-1, 1, cs.shape[0], dtype=cs.dtype, device=device) * self.translation_scale
+        return torch.cat((cs, t), dim=-1)
+
+    def rotation(self, g: Tensor) -> Tensor:
+        r2 = rotmat2d(g[..., :2])
+        if self.space_dim == 2:
+            return r2
+        r = torch.zeros(*g.shape[:-1], 3, 3, dtype=g.dtype, device=g.device)
+        r[..., :2, :2] = r2
+        r[..., 2, 2] = 1
+        return r
+
+    def translation(self, g: Tensor) -> Tensor:
+        return g[..., 2:]
+
+    def rotate(self, g: Tensor, v: Tensor) -> Tensor:
+        return self._rot(g[..., :2], v)
+
+    def transform(self, g: Tensor, p: Tensor) -> Tensor:
+        return self._rot(g[..., :2], p) + g[..., 2:]
+
+    def planar_rotation(self, g: Tensor) -> Tensor:
+        return g[..., :2]
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(translation_scale={self.translation_scale:g})"
+
+
+class SE2(_PlanarRigid):
+    """Rigid motions of the plane. Layout ``(*batch, 4) = (cos theta, sin theta, tx, ty)``."""
+
+    space_dim = 2
+
+
+class SE2xR(_PlanarRigid):
+    """Rotations about z and 3-D translations. Layout ``(*batch, 5) = (cos theta, sin theta, tx, ty, tz)``.
+
+    This is the symmetry of a quadrotor swarm under gravity (the paper's G-bar).
+    """
+
+    space_dim = 3

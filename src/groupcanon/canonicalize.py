@@ -32,6 +32,7 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
+from torch_geometric.utils import scatter
 
 from .features import FieldType, Point
 from .group import Group, check_element_shape
@@ -55,9 +56,7 @@ def globalize(field_type: FieldType, frames: Tensor, x: Tensor) -> Tensor:
 def _as_pair(value, what: str):
     if isinstance(value, (tuple, list)):
         if len(value) != 2:
-            raise ValueError(
-                f"{what} given as a sequence must be a (source, target) pair, got {len(value)} items"
-            )
+            raise ValueError(f"{what} given as a sequence must be a (source, target) pair, got {len(value)} items")
         return value[0], value[1], True
     return value, value, False
 
@@ -84,7 +83,8 @@ class Canonicalize:
         mode: ``"pair"``, ``"ego"``, ``"node"`` or ``"auto"`` (from the layer's ``forward`` signature).
         self_loops: pair mode only: add one edge per receiver from its own canonicalized features (the
             self loop that GATv2Conv / PointTransformerConv would add by index, which is wrong on the expanded
-            graph; construct those layers with ``add_self_loops=False`` and use this instead).
+            graph; construct those layers with ``add_self_loops=False`` and use this instead). A loop's
+            ``edge_attr`` is the mean of the receiver's incoming attributes, as PyG's ``fill_value="mean"``.
         check_finite: raise if ``x``, ``frames`` or ``pos`` hold NaN or inf. Off by default because the check
             synchronizes with the device; without it non-finite inputs propagate (never silently replaced).
     """
@@ -110,9 +110,7 @@ class Canonicalize:
             if t.group != group:
                 raise ValueError(f"{name} is a FieldType of {t.group}, but Canonicalize was given {group}")
         if edge_type is not None and (not isinstance(edge_type, FieldType) or edge_type.group != group):
-            raise ValueError(
-                "edge_type must be a FieldType of the same group (or None for invariant edge_attr)"
-            )
+            raise ValueError("edge_type must be a FieldType of the same group (or None for invariant edge_attr)")
         if mode not in _MODES:
             raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
         if pos_type is None and group.space_dim is not None:
@@ -156,7 +154,11 @@ class CanonicalizedLayer(nn.Module):
         self.layer = layer
         self.spec = spec
         self.mode = _detect_mode(layer) if spec.mode == "auto" else spec.mode
-        self._identity = isinstance(spec.group, Trivial)
+        # trivial group: run the raw layer as is (but not when self_loops must add edges the raw layer lacks)
+        # (ego mode keeps the ego-graph path so that degree-normalizing layers see the same graph for every group)
+        self._identity = isinstance(spec.group, Trivial) and (
+            self.mode == "node" or (self.mode == "pair" and not spec.self_loops)
+        )
         if self.mode == "pair" and getattr(layer, "add_self_loops", False):
             raise ValueError(
                 f"{type(layer).__name__} adds self loops by node index, which connects the wrong rows of the "
@@ -239,6 +241,8 @@ class CanonicalizedLayer(nn.Module):
         num_edges = edge_index.shape[1]
         if edge_attr is not None and edge_attr.shape[0] != num_edges:
             raise ValueError(f"edge_attr has {edge_attr.shape[0]} rows, edge_index has {num_edges} edges")
+        if edge_attr is not None and spec.edge_type is not None:
+            spec.edge_type.check(edge_attr, "edge_attr")
         if spec.check_finite:
             p_src, p_dst, _ = _as_pair(pos, "pos")
             self._check_finite(x_src=x_src, x_dst=x_dst, frames=frames, pos_src=p_src, pos_dst=p_dst)
@@ -270,6 +274,8 @@ class CanonicalizedLayer(nn.Module):
             raise ValueError(f"{self.group} has no action on positions: give pos_type to Canonicalize")
         p_src, p_dst, _ = _as_pair(pos, "pos")
         pt = self.spec.pos_type
+        pt.check(p_src, "pos")
+        pt.check(p_dst, "pos")
         return pt.act(inv_e, p_src[src]), pt.act(inv, p_dst)
 
     def _forward_pair(self, x_src, x_dst, edge_index, frames, pos, edge_attr, kwargs):
@@ -286,13 +292,23 @@ class CanonicalizedLayer(nn.Module):
         if spec.self_loops:
             nodes = torch.arange(n_dst, device=src.device)
             rows = torch.cat((rows, num_edges + nodes))
-            dst = torch.cat((dst, nodes))
-            xs = torch.cat((xs, spec.src_type.act(inv, x_dst) if spec.src_type != spec.dst_type else xd))
+            edge_dst, dst = dst, torch.cat((dst, nodes))
+            # the loop carries the receiver's own features, localized with their own (target) type: acting with
+            # the source type on them would not be equivariant when the two types differ
+            if xd.shape[-1] != xs.shape[-1]:
+                raise ValueError(
+                    f"self_loops=True feeds each receiver's own features as a source row, but source rows have "
+                    f"{xs.shape[-1]} channels and target rows {xd.shape[-1]}"
+                )
+            xs = torch.cat((xs, xd))
             if pos_pair is not None:
                 pos_pair = (torch.cat((pos_pair[0], pos_pair[1])), pos_pair[1])
             if "edge_attr" in kwargs:
+                # like PyG's add_self_loops(fill_value="mean"): the mean of the receiver's incoming attributes
+                # (already in its frame, so the fill is equivariant); zeros for receivers without edges
                 ea = kwargs["edge_attr"]
-                kwargs["edge_attr"] = torch.cat((ea, ea.new_zeros(n_dst, *ea.shape[1:])))
+                loop_attr = scatter(ea, edge_dst, dim=0, dim_size=n_dst, reduce="mean")
+                kwargs["edge_attr"] = torch.cat((ea, loop_attr))
         if pos_pair is not None:
             kwargs["pos"] = pos_pair
         return self.layer(x=(xs, xd), edge_index=torch.stack((rows, dst)), **kwargs)

@@ -98,8 +98,7 @@ class _BuiltinType(FeatureType):
     def _bound_group(self) -> Group:
         if self.group is None:
             raise RuntimeError(
-                f"{self!r} is not bound to a group: put it in a FieldType(G, [...]) "
-                f"or construct it with group=G"
+                f"{self!r} is not bound to a group: put it in a FieldType(G, [...]) or construct it with group=G"
             )
         return self.group
 
@@ -273,16 +272,17 @@ class OnFactor(_BuiltinType):
             self._check(group)
             self.group = group
             self.feature = feature.bind(group.groups[self.index])
-        self.dim = self.feature.dim
+
+    @property
+    def dim(self) -> int:  # read from the wrapped type: Rotation() only has a dimension once bound
+        return self.feature.dim
 
     def _check(self, group: Group) -> None:
         factors = getattr(group, "groups", None)
         if factors is None:
             raise ValueError(f"OnFactor needs a groups.Product, got {group}")
         if not 0 <= self.index < len(factors):
-            raise ValueError(
-                f"{group} has {len(factors)} factors, OnFactor index {self.index} is out of range"
-            )
+            raise ValueError(f"{group} has {len(factors)} factors, OnFactor index {self.index} is out of range")
         self.feature.bind(factors[self.index])
 
     def bind(self, group: Group) -> FeatureType:
@@ -290,7 +290,6 @@ class OnFactor(_BuiltinType):
         bound = copy.copy(self)
         bound.group = group
         bound.feature = self.feature.bind(group.groups[self.index])
-        bound.dim = bound.feature.dim
         return bound
 
     def act(self, g: Tensor, x: Tensor) -> Tensor:
@@ -299,6 +298,28 @@ class OnFactor(_BuiltinType):
 
     def __repr__(self) -> str:
         return f"OnFactor({self.index}, {self.feature!r})"
+
+
+def _fuse(features: Sequence[FeatureType], slices: Sequence[slice]) -> list[tuple[FeatureType, slice]]:
+    """The action plan of a direct sum: its non-invariant fields, with adjacent built-in ``Vector`` (or ``Point``)
+    fields of the same dimension and group merged into one multi-copy field (one kernel instead of several)."""
+    plan: list[tuple[FeatureType, slice]] = []
+    for f, s in zip(features, slices):
+        if f.invariant:
+            continue
+        if plan:
+            prev, ps = plan[-1]
+            if (
+                type(prev) is type(f)
+                and type(f) in (Vector, Point)
+                and prev.d == f.d
+                and prev.group == f.group
+                and ps.stop == s.start
+            ):
+                plan[-1] = (type(f)(f.d, n=prev.n + f.n, group=f.group), slice(ps.start, s.stop))
+                continue
+        plan.append((f, s))
+    return plan
 
 
 class FieldType:
@@ -336,6 +357,7 @@ class FieldType:
         self.dim = o
         self._slices = tuple(slice(a, a + f.dim) for a, f in zip(offsets, self.features))
         self.invariant = all(f.invariant for f in self.features)
+        self._plan = _fuse(self.features, self._slices)
 
     # ------------------------------------------------------------------ access
     def __len__(self) -> int:
@@ -361,9 +383,7 @@ class FieldType:
 
     def split(self, x: Tensor) -> dict[str | int, Tensor]:
         """All fields of ``x``, keyed by name (or index for unnamed fields)."""
-        return {
-            (n if n is not None else i): x[..., s] for i, (n, s) in enumerate(zip(self.names, self._slices))
-        }
+        return {(n if n is not None else i): x[..., s] for i, (n, s) in enumerate(zip(self.names, self._slices))}
 
     def __add__(self, other: FieldType) -> FieldType:
         if not isinstance(other, FieldType):
@@ -383,9 +403,7 @@ class FieldType:
         if not isinstance(x, Tensor):
             raise TypeError(f"{what} must be a torch.Tensor, got {type(x).__name__}")
         if x.dim() == 0 or x.shape[-1] != self.dim:
-            raise ValueError(
-                f"{what} have shape {tuple(x.shape)}, expected (*batch, {self.dim}) for {self!r}"
-            )
+            raise ValueError(f"{what} have shape {tuple(x.shape)}, expected (*batch, {self.dim}) for {self!r}")
 
     def act(self, g: Tensor, x: Tensor) -> Tensor:
         """``rho(g) x``: ``x`` ``(*batch, dim)``, ``g`` ``(*batch, *G.element_shape)``; batch dims broadcast."""
@@ -401,10 +419,13 @@ class FieldType:
             ) from None
         if self.invariant:
             return x.expand(*batch, self.dim)
-        if len(self.features) == 1:
-            return self.features[0].act(g, x)
-        parts = [f.act(g, x[..., s]) for f, s in zip(self.features, self._slices)]
-        return torch.cat([p.expand(*batch, p.shape[-1]) for p in parts], dim=-1)
+        if len(self._plan) == 1 and self._plan[0][1] == slice(0, self.dim):
+            return self._plan[0][0].act(g, x)
+        # invariant channels are copied once; only the transformed fields are computed and written over them
+        out = x.expand(*batch, self.dim).clone()
+        for f, s in self._plan:
+            out[..., s] = f.act(g, x[..., s])
+        return out
 
     def __repr__(self) -> str:
         items = [f"{n}={f!r}" if n else repr(f) for n, f in zip(self.names, self.features)]

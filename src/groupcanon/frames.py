@@ -42,9 +42,7 @@ def rotation_from_vectors(a: Tensor, b: Tensor, eps: float = 1e-12) -> Tensor:
     e1 = _safe_normalize(a, a.new_tensor([1.0, 0.0, 0.0]), eps)
     b_perp = b - (b * e1).sum(-1, keepdim=True) * e1
     # fallback second axis: any unit vector orthogonal to e1
-    helper = torch.where(
-        e1[..., :1].abs() < 0.9, a.new_tensor([1.0, 0.0, 0.0]), a.new_tensor([0.0, 1.0, 0.0])
-    )
+    helper = torch.where(e1[..., :1].abs() < 0.9, a.new_tensor([1.0, 0.0, 0.0]), a.new_tensor([0.0, 1.0, 0.0]))
     alt = torch.linalg.cross(e1, helper)
     e2 = _safe_normalize(b_perp, _safe_normalize(alt, a.new_tensor([0.0, 1.0, 0.0]), eps), eps)
     e3 = torch.linalg.cross(e1, e2)

@@ -1,6 +1,7 @@
 """Built-in groups. Every group documents its element layout in its docstring."""
 
 from .cyclic import Cyclic
+from .o2 import O2
 from .product import Product
 from .se2 import SE2, SE2xR
 from .so2 import SO2
@@ -8,4 +9,4 @@ from .so3 import SE3, SO3
 from .translation import Translation
 from .trivial import Trivial
 
-__all__ = ["SE2", "SE3", "SO2", "SO3", "Cyclic", "Product", "SE2xR", "Translation", "Trivial"]
+__all__ = ["O2", "SE2", "SE3", "SO2", "SO3", "Cyclic", "Product", "SE2xR", "Translation", "Trivial"]

@@ -42,7 +42,7 @@ def angle_to_cs(theta: Tensor) -> Tensor:
 
 def uniform_angle(batch, generator, dtype, device) -> Tensor:
     """Haar-uniform angles in [0, 2 pi), shape ``batch``."""
-    u = torch.rand(*batch, generator=generator, dtype=default_dtype(dtype), device=device)
+    u = torch.rand(tuple(batch), generator=generator, dtype=default_dtype(dtype), device=device)  # batch may be ()
     return 2 * math.pi * u
 
 

@@ -74,9 +74,7 @@ class Product(Group):
         return self._map(lambda G, x: G.inverse(x), a)
 
     def sample(self, *batch, generator=None, dtype=None, device=None) -> Tensor:
-        return self.pack(
-            [G.sample(*batch, generator=generator, dtype=dtype, device=device) for G in self.groups]
-        )
+        return self.pack([G.sample(*batch, generator=generator, dtype=dtype, device=device) for G in self.groups])
 
     def matrix(self, g: Tensor) -> Tensor:
         """Block-diagonal matrix of the factors' matrices."""

@@ -21,9 +21,7 @@ def skew(w: Tensor) -> Tensor:
     """``[w]_x`` ``(*batch, 3, 3)`` with ``[w]_x v = w x v``."""
     z = torch.zeros_like(w[..., 0])
     x, y, zz = w[..., 0], w[..., 1], w[..., 2]
-    return torch.stack(
-        (torch.stack((z, -zz, y), -1), torch.stack((zz, z, -x), -1), torch.stack((-y, x, z), -1)), -2
-    )
+    return torch.stack((torch.stack((z, -zz, y), -1), torch.stack((zz, z, -x), -1), torch.stack((-y, x, z), -1)), -2)
 
 
 def _quat_to_rotmat(q: Tensor) -> Tensor:

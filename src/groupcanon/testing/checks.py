@@ -47,9 +47,7 @@ def _scale(*ts: Tensor) -> float:
 
 
 def _fail(law: str, err: float, tol: float, detail: str = "") -> None:
-    raise AssertionError(
-        f"{law}: max error {err:.3e} > tolerance {tol:.1e}" + (f" ({detail})" if detail else "")
-    )
+    raise AssertionError(f"{law}: max error {err:.3e} > tolerance {tol:.1e}" + (f" ({detail})" if detail else ""))
 
 
 def _samples(group: Group, n: int, dtype, device, generator) -> Tensor:
@@ -198,9 +196,7 @@ def check_action_laws(
     worst = 0.0
     ax = ft.act(a, x)
     if ax.shape != x.shape or ax.dtype != x.dtype or ax.device != x.device:
-        _fail(
-            f"{ft!r}: act keeps shape/dtype/device", float("inf"), s, f"{tuple(x.shape)} -> {tuple(ax.shape)}"
-        )
+        _fail(f"{ft!r}: act keeps shape/dtype/device", float("inf"), s, f"{tuple(x.shape)} -> {tuple(ax.shape)}")
     laws = {
         "identity act(e, x) = x": (ft.act(e, x), x),
         "compatibility act(a, act(b, x)) = act(a.b, x)": (
@@ -208,9 +204,10 @@ def check_action_laws(
             ft.act(group.compose(a, b), x),
         ),
         "inverse act(a^-1, act(a, x)) = x": (ft.act(group.inverse(a), ax), x),
-        "broadcast act(a_0, x) = act(a_0 repeated, x)": (
-            ft.act(a[0], x),
-            ft.act(a[:1].expand(nb, *a.shape[1:]), x),
+        # the last element: a[0] is the identity when the special elements are mixed in first
+        "broadcast act(a_k, x) = act(a_k repeated, x)": (
+            ft.act(a[-1], x),
+            ft.act(a[-1:].expand(nb, *a.shape[1:]), x),
         ),
     }
     for law, (lhs, rhs) in laws.items():
@@ -266,8 +263,10 @@ def equivariance_error(
     kwargs = dict(kwargs or {})
     args = list(args)
     if g is None:
-        ref = next((v for v in list(args) + list(kwargs.values()) if isinstance(v, Tensor)), None)
-        dtype = ref.dtype if ref is not None and ref.is_floating_point() else torch.get_default_dtype()
+        # the first floating-point input sets dtype and device (not an edge_index that happens to come first)
+        floats = (v for v in list(args) + list(kwargs.values()) if isinstance(v, Tensor) and v.is_floating_point())
+        ref = next(floats, None)
+        dtype = ref.dtype if ref is not None else torch.get_default_dtype()
         device = ref.device if ref is not None else None
         gen = generator or torch.Generator(device=device or "cpu").manual_seed(0)
         g = _samples(group, n_samples, dtype, device, gen)
@@ -335,9 +334,7 @@ def assert_equivariant(
     return err
 
 
-def assert_invariant(
-    fn: Callable, group: Group, args: Sequence = (), kwargs: Mapping | None = None, **options
-):
+def assert_invariant(fn: Callable, group: Group, args: Sequence = (), kwargs: Mapping | None = None, **options):
     """Assert ``fn(g . inputs) == fn(inputs)``: :func:`assert_equivariant` with invariant outputs."""
     options.pop("out_types", None)
     return assert_equivariant(fn, group, args, kwargs, out_types=None, **options)

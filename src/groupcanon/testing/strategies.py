@@ -13,6 +13,7 @@ tried.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -58,7 +59,7 @@ def elements(
         if not batch:
             pick = int(torch.randint(0, sp.shape[0], (), generator=gen))
             return sp[pick].to(device)
-        flat = rand.reshape(-1, *group.element_shape)
+        flat = rand.reshape(math.prod(batch), *group.element_shape)  # not -1: Trivial elements are empty
         use = torch.rand(flat.shape[0], generator=gen) < 0.5
         idx = torch.randint(0, sp.shape[0], (flat.shape[0],), generator=gen)
         flat = torch.where(use.view(-1, *([1] * len(group.element_shape))), sp[idx], flat)
@@ -79,9 +80,7 @@ def features(
     dtype = default_dtype(dtype)
 
     def make(seed: int) -> torch.Tensor:
-        return (scale * torch.randn(*batch, field_type.dim, generator=_generator(seed), dtype=dtype)).to(
-            device
-        )
+        return (scale * torch.randn(*batch, field_type.dim, generator=_generator(seed), dtype=dtype)).to(device)
 
     return seeds().map(make)
 
@@ -104,6 +103,8 @@ def graphs(
     """Random directed graphs with ``min_nodes..max_nodes`` nodes and in-degree at most ``max_degree``.
 
     Isolated nodes (no incoming edge) occur naturally and are part of the contract being tested.
+    ``min_edges``: at least this many edges where ``max_degree`` and the node count allow it (the in-degree bound
+    always holds).
     """
 
     @st.composite
@@ -111,7 +112,9 @@ def graphs(
         n = draw(st.integers(min_value=min_nodes, max_value=max_nodes))
         seed = draw(seeds())
         gen = _generator(seed)
-        deg = torch.randint(0, max_degree + 1, (n,), generator=gen)
+        # a lower bound on the in-degree gives min_edges without ever exceeding max_degree
+        lo = min(max_degree, -(-min_edges // n)) if n else 0
+        deg = torch.randint(lo, max_degree + 1, (n,), generator=gen)
         src, dst = [], []
         for v in range(n):
             cand = torch.randperm(n, generator=gen)
@@ -120,12 +123,7 @@ def graphs(
             k = min(int(deg[v]), cand.numel())
             src.append(cand[:k])
             dst.append(torch.full((k,), v, dtype=torch.long))
-        edge_index = (
-            torch.stack((torch.cat(src), torch.cat(dst))) if n else torch.zeros(2, 0, dtype=torch.long)
-        )
-        if edge_index.shape[1] < min_edges and n > 1:
-            extra = torch.stack((torch.arange(1, n), torch.zeros(n - 1, dtype=torch.long)))
-            edge_index = torch.unique(torch.cat((edge_index, extra), dim=1), dim=1)
+        edge_index = torch.stack((torch.cat(src), torch.cat(dst))) if n else torch.zeros(2, 0, dtype=torch.long)
         return Graph(n, edge_index.long())
 
     return build()

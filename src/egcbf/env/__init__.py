@@ -1,0 +1,21 @@
+"""The swarm environment: config, batched state, reset/step, safety masks, obstacles, LiDAR, sampling."""
+
+from .lidar import LidarScan, lidar_scan, ray_directions
+from .obstacles import Obstacles, sample_obstacles
+from .sampling import sample_separated_points
+from .swarm import EnvConfig, NonFiniteStateError, StepInfo, SwarmEnv, SwarmState, safety_masks
+
+__all__ = [
+    "EnvConfig",
+    "LidarScan",
+    "NonFiniteStateError",
+    "Obstacles",
+    "StepInfo",
+    "SwarmEnv",
+    "SwarmState",
+    "lidar_scan",
+    "ray_directions",
+    "safety_masks",
+    "sample_obstacles",
+    "sample_separated_points",
+]

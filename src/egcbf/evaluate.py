@@ -1,0 +1,159 @@
+"""Evaluation: run a controller on batches of episodes and compute the paper's metrics.
+
+Every episode ``e`` of a swarm size ``N`` is sampled from its own seed ``episode_seed(seed, N, e)``, so results do
+not depend on how episodes are batched. Episodes are simulated ``batch`` at a time (vectorized over
+environments and agents).
+
+A controller is any callable ``controller(state, config) -> (u, info)`` with ``u`` ``(B, N, 4)`` and ``info`` a
+dict that may hold ``qp_ms`` (solve time of this step, ms), ``num_slack`` / ``num_failed`` (QP counts) and ``u_ref``
+(the nominal control it started from; computed here if absent).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from .control.nominal import nominal_control
+from .env import EnvConfig, SwarmEnv, SwarmState
+from .env.obstacles import Obstacles
+from .metrics import EpisodeStats, summarize
+
+__all__ = ["EpisodeRecord", "concat_states", "episode_seed", "evaluate", "run_episodes"]
+
+Controller = Callable[[SwarmState, EnvConfig], tuple[Tensor, dict]]
+
+
+def episode_seed(seed: int, num_agents: int, episode: int) -> int:
+    """The reset seed of episode ``episode`` for swarm size ``num_agents`` (independent of batching)."""
+    return (int(seed) * 1_000_003 + int(num_agents) * 10_007 + int(episode)) % (2**62)
+
+
+def concat_states(states: Sequence[SwarmState]) -> SwarmState:
+    """Stack single- or multi-environment states along the environment dimension."""
+    obs = Obstacles(
+        torch.cat([s.obstacles.centers for s in states]), torch.cat([s.obstacles.radii for s in states])
+    )
+    return SwarmState(torch.cat([s.x for s in states]), torch.cat([s.goals for s in states]), obs, states[0].t)
+
+
+@dataclass
+class EpisodeRecord:
+    """Trajectory of the first episode of a batch, for rendering (CPU tensors)."""
+
+    positions: list[Tensor] = field(default_factory=list)  # T x (N, 3)
+    collided: list[Tensor] = field(default_factory=list)  # T x (N,)
+    goals: Tensor | None = None
+    centers: Tensor | None = None
+    radii: Tensor | None = None
+
+
+def run_episodes(
+    controller: Controller,
+    config: EnvConfig,
+    seeds: Sequence[int],
+    *,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype = torch.float32,
+    record: bool = False,
+    progress: tqdm | None = None,
+) -> tuple[EpisodeStats, dict, EpisodeRecord | None]:
+    """Simulate ``len(seeds)`` episodes together; returns their stats, timing lists and (optionally) the record
+    of the first episode."""
+    single = dataclasses.replace(config, num_envs=1)
+    env1 = SwarmEnv(single, device=device, dtype=dtype)
+    state = concat_states([env1.reset(s) for s in seeds])
+    env = SwarmEnv(dataclasses.replace(config, num_envs=len(seeds)), device=device, dtype=dtype)
+    stats = EpisodeStats(len(seeds), config.num_agents, device=device)
+    timing = {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0}
+    rec = None
+    if record:
+        rec = EpisodeRecord(goals=state.goals[0].cpu(), centers=state.obstacles.centers[0].cpu(),
+                            radii=state.obstacles.radii[0].cpu())
+        rec.positions.append(state.positions[0].detach().cpu().clone())
+        rec.collided.append(torch.zeros(config.num_agents, dtype=torch.bool))
+    for _ in range(config.max_steps):
+        t0 = time.perf_counter()
+        u, info = controller(state, env.config)
+        u_ref = info.get("u_ref")
+        if u_ref is None:  # the reward compares u with the nominal control at the same state
+            u_ref = nominal_control(state.x, state.goals, config.params)
+        state, step_info = env.step(state, u)
+        timing["step_ms"].append(1e3 * (time.perf_counter() - t0))
+        stats.update(step_info, u=step_info.u, u_ref=u_ref.to(step_info.u.dtype))
+        if "qp_ms" in info:
+            timing["qp_ms"].append(float(info["qp_ms"]))
+        timing["num_slack"] += int(info.get("num_slack", 0))
+        timing["num_failed"] += int(info.get("num_failed", 0))
+        if rec is not None:
+            rec.positions.append(state.positions[0].detach().cpu().clone())
+            rec.collided.append(step_info.collision[0].detach().cpu().clone())
+        if progress is not None:
+            progress.update(1)
+    return stats, timing, rec
+
+
+def evaluate(
+    make_controller: Callable[[EnvConfig], Controller],
+    num_agents: Sequence[int],
+    *,
+    area_size: float = 4.0,
+    num_obstacles: int = 0,
+    episodes: int = 50,
+    seed: int = 0,
+    batch: int | None = None,
+    max_agents_per_batch: int = 4096,
+    max_steps: int | None = None,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype = torch.float32,
+    record: bool = False,
+    show_progress: bool = True,
+    env_overrides: dict | None = None,
+) -> tuple[list[dict], dict[int, EpisodeRecord]]:
+    """Evaluate a controller at each swarm size; returns one metrics row per size (see ``docs/metrics.md``) and
+    the recorded first episode per size (if ``record``)."""
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    rows, records = [], {}
+    for n in num_agents:
+        overrides = dict(env_overrides or {})
+        if max_steps is not None:
+            overrides["max_steps"] = max_steps
+        config = EnvConfig(num_agents=n, area_size=area_size, num_obstacles=num_obstacles, **overrides)
+        controller = make_controller(config)
+        b = batch or max(1, min(episodes, max_agents_per_batch // n))
+        seeds = [episode_seed(seed, n, e) for e in range(episodes)]
+        per_episode, timing = [], {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0}
+        bar = tqdm(total=episodes * config.max_steps, desc=f"N={n}", unit="step", disable=not show_progress,
+                   leave=False)
+        for k in range(0, episodes, b):
+            chunk = seeds[k : k + b]
+            stats, t, rec = run_episodes(
+                controller, config, chunk, device=device, dtype=dtype, record=record and k == 0, progress=None
+            )
+            bar.update(len(chunk) * config.max_steps)
+            per_episode.append(stats.per_episode())
+            for key in ("step_ms", "qp_ms"):
+                # per-episode time: a batch step serves len(chunk) episodes at once
+                timing[key].extend(v / len(chunk) for v in t[key])
+            timing["num_slack"] += t["num_slack"]
+            timing["num_failed"] += t["num_failed"]
+            if rec is not None:
+                records[n] = rec
+        bar.close()
+        pooled = {k: torch.cat([p[k] for p in per_episode]) for k in per_episode[0]}
+        row = summarize(pooled, num_agents=n)
+        row["step_ms_median"] = statistics.median(timing["step_ms"])
+        if timing["qp_ms"]:
+            row["qp_ms_median"] = statistics.median(timing["qp_ms"])
+            row["qp_slack_steps"] = timing["num_slack"]
+            row["qp_failed"] = timing["num_failed"]
+        rows.append(row)
+    return rows, records

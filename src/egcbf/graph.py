@@ -1,0 +1,272 @@
+"""SwarmState -> SwarmGraph: the bipartite message-passing graph the CBF and policy networks read.
+
+Receivers are the agents (all ``M = B * N`` agents of all environments, flattened env-major: agent ``i`` of
+environment ``b`` is row ``b * N + i``). Senders are agents, goals and LiDAR hits, stacked in ``x_src``::
+
+    rows [0, M)          agents   (x_src[:M] == x_dst)
+    rows [M, 2M)         goals    (goal of agent a is row M + a)
+    rows [2M, 2M + H)    LiDAR hits that are valid (hit_owner[h] = the agent that sensed it)
+
+Edges ``sender -> receiver`` (row 0 sender index into ``x_src``, row 1 receiver index into ``x_dst``):
+
+* agent -> agent if ``||p_j - p_i|| < comm_radius`` (strict), ``j != i``, same environment (cell-list search);
+* goal -> its agent, always;
+* hit -> the agent that sensed it, for each valid hit (within the LiDAR range).
+
+They are sorted by (receiver, sender), so each receiver's edges are contiguous and the order depends only on the
+edge set. ``edge_kind`` is ``KIND_AGENT`` / ``KIND_GOAL`` / ``KIND_HIT`` (the sender's kind).
+
+Features carry no absolute position, so that the graph is invariant to translations by construction:
+
+* nodes (:data:`NODE_TYPE`, 18 channels): ``kind`` one-hot (agent, goal, hit) | ``v`` world velocity |
+  ``R`` attitude (body-to-world, row-major) | ``w`` body angular velocity. Goals and hits have ``v = 0``,
+  ``R = 0`` (the zero matrix, not the identity, so that the group action ``R -> R_z R`` keeps it fixed) and
+  ``w = 0``.
+* edges (:data:`EDGE_TYPE`): ``dp = p_sender - p_receiver`` (world frame); for goal edges it is rescaled to norm
+  ``<= comm_radius`` (GCBF+), so a far goal looks like one at the edge of the neighbourhood.
+
+``frames`` are the agents' SE2xR frames ``se2xr_frame(R[:, 0], p)`` (yaw of the body x axis, position). With
+``groupcanon.Canonicalize(SE2xR(), in_type=(NODE_TYPE, NODE_TYPE), edge_type=EDGE_TYPE, ...)`` every receiver
+sees its neighbourhood in its own frame, which is invariant under a global SE2xR transform of the scene (tested).
+
+Everything is differentiable with respect to the state (the topology is not): gradients of a network output
+with respect to ``state.x`` flow through the features, edge vectors and frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import torch
+from torch import Tensor
+
+from groupcanon import FieldType
+from groupcanon.features import Rotation, Scalar, Vector
+from groupcanon.frames import se2xr_frame
+from groupcanon.groups import SE2xR
+
+from .dynamics.quadrotor import ROT, W
+from .dynamics.quadrotor import V as VEL
+from .env.lidar import LidarScan, lidar_scan
+from .env.swarm import EnvConfig, SwarmState
+from .neighbors import radius_neighbors
+
+__all__ = [
+    "EDGE_TYPE",
+    "GROUP",
+    "KIND_AGENT",
+    "KIND_GOAL",
+    "KIND_HIT",
+    "NODE_DIM",
+    "NODE_TYPE",
+    "SwarmGraph",
+    "build_graph",
+    "refresh_graph",
+]
+
+GROUP = SE2xR()
+NODE_TYPE = FieldType(GROUP, {"kind": Scalar(3), "v": Vector(3), "R": Rotation(), "w": Scalar(3)})
+EDGE_TYPE = FieldType(GROUP, {"dp": Vector(3)})
+NODE_DIM = NODE_TYPE.dim  # 18
+KIND_AGENT, KIND_GOAL, KIND_HIT = 0, 1, 2
+
+
+@dataclass
+class SwarmGraph:
+    """The bipartite graph of a batch of swarms (see the module doc for the layout).
+
+    Attributes:
+        x_src: ``(N_src, 18)`` sender features (:data:`NODE_TYPE`), ``N_src = 2M + H``.
+        x_dst: ``(M, 18)`` receiver (agent) features; equal to ``x_src[:M]``.
+        edge_index: ``(2, E)`` long, (sender row in ``x_src``, receiver row in ``x_dst``).
+        edge_attr: ``(E, 3)`` :data:`EDGE_TYPE`: sender position minus receiver position (goal edges clipped).
+        edge_kind: ``(E,)`` long, the sender's kind.
+        frames: ``(M, 5)`` SE2xR frames of the agents.
+        pos_src: ``(N_src, 3)`` world positions of the senders; ``pos_dst`` ``(M, 3)`` of the agents.
+        src_kind: ``(N_src,)`` long kind of each sender.
+        batch: ``(M,)`` environment of each agent; ``src_batch`` ``(N_src,)`` of each sender.
+        hit_owner: ``(H,)`` the agent (row of ``x_dst``) that sensed each hit node.
+        num_envs, num_agents: ``B`` and ``N`` (``M = B * N``); comm_radius: the goal-clipping radius.
+    """
+
+    x_src: Tensor
+    x_dst: Tensor
+    edge_index: Tensor
+    edge_attr: Tensor
+    edge_kind: Tensor
+    frames: Tensor
+    pos_src: Tensor
+    pos_dst: Tensor
+    src_kind: Tensor
+    batch: Tensor
+    src_batch: Tensor
+    hit_owner: Tensor
+    num_envs: int
+    num_agents: int
+    comm_radius: float
+
+    @property
+    def num_dst(self) -> int:
+        return self.x_dst.shape[0]
+
+    @property
+    def num_src(self) -> int:
+        return self.x_src.shape[0]
+
+    @property
+    def num_edges(self) -> int:
+        return self.edge_index.shape[1]
+
+    @property
+    def goal_offset(self) -> int:
+        return self.num_dst
+
+    @property
+    def hit_offset(self) -> int:
+        return 2 * self.num_dst
+
+    @property
+    def num_hits(self) -> int:
+        return self.hit_owner.shape[0]
+
+    def to(self, *args, **kwargs) -> SwarmGraph:
+        """Move (and for floating tensors cast) every tensor, like ``Tensor.to``; index tensors stay long."""
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, Tensor):
+                v = v.to(*args, **kwargs) if v.is_floating_point() else v.to(device=_device_of(args, kwargs, v))
+            out[f.name] = v
+        return SwarmGraph(**out)
+
+
+def _device_of(args, kwargs, like: Tensor):
+    if "device" in kwargs:
+        return kwargs["device"]
+    for a in args:
+        if isinstance(a, (str, torch.device)):
+            return a
+        if isinstance(a, Tensor):
+            return a.device
+    return like.device
+
+
+def _agent_features(x: Tensor) -> Tensor:
+    """``(M, 18)`` node features of agents from states ``(M, 18)``."""
+    kind = torch.zeros(x.shape[0], 3, dtype=x.dtype, device=x.device)
+    kind[:, KIND_AGENT] = 1
+    return torch.cat((kind, x[:, VEL], x[:, ROT], x[:, W]), dim=-1)
+
+
+def _static_features(num: int, kind: int, like: Tensor) -> Tensor:
+    f = torch.zeros(num, NODE_DIM, dtype=like.dtype, device=like.device)
+    f[:, kind] = 1
+    return f
+
+
+def _clip_norm(v: Tensor, max_norm: float) -> Tensor:
+    n = v.norm(dim=-1, keepdim=True)
+    scale = max_norm / torch.where(n > max_norm, n, torch.full_like(n, max_norm))
+    return v * scale
+
+
+def _frames(x: Tensor) -> Tensor:
+    body_x = x[:, ROT].reshape(-1, 3, 3)[:, :, 0]
+    return se2xr_frame(body_x, x[:, 0:3])
+
+
+def _edge_attr(pos_src: Tensor, pos_dst: Tensor, edge_index: Tensor, edge_kind: Tensor, comm: float) -> Tensor:
+    dp = pos_src[edge_index[0]] - pos_dst[edge_index[1]]
+    is_goal = (edge_kind == KIND_GOAL)[:, None]
+    return torch.where(is_goal, _clip_norm(dp, comm), dp)
+
+
+def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None = None) -> SwarmGraph:
+    """Build the :class:`SwarmGraph` of ``state`` (all environments of the batch at once).
+
+    Args:
+        state: the swarm state (``B`` environments of ``N`` agents).
+        config: the environment config (comm radius, LiDAR pattern and range).
+        lidar: a precomputed scan of ``state`` (e.g. from :meth:`SwarmEnv.lidar`); cast here if ``None``.
+    """
+    x = state.x
+    b, n, _ = x.shape
+    m = b * n
+    device = x.device
+    xf = x.reshape(m, -1)
+    p = xf[:, 0:3]
+    if lidar is None:
+        body_x = x[..., ROT].reshape(b, n, 3, 3)[..., :, 0]
+        lidar = lidar_scan(
+            x[..., 0:3],
+            body_x,
+            state.obstacles,
+            n_rays=config.n_rays,
+            max_range=config.resolved_lidar_range,
+            max_hits=config.lidar_max_hits,
+        )
+    valid = lidar.valid.reshape(m, -1)
+    owner, _slot = valid.nonzero(as_tuple=True)  # row-major: owner-major, closest first
+    hit_pos = lidar.points.reshape(m, -1, 3)[valid]  # same order as nonzero
+    h = owner.shape[0]
+
+    agent_feat = _agent_features(xf)
+    x_src = torch.cat((agent_feat, _static_features(m, KIND_GOAL, xf), _static_features(h, KIND_HIT, xf)))
+    pos_src = torch.cat((p, state.goals.reshape(m, 3).to(p.dtype), hit_pos))
+    agent_ids = torch.arange(m, device=device)
+    batch = agent_ids // n
+    src_kind = torch.cat(
+        (
+            torch.full((m,), KIND_AGENT, device=device),
+            torch.full((m,), KIND_GOAL, device=device),
+            torch.full((h,), KIND_HIT, device=device),
+        )
+    )
+    src_batch = torch.cat((batch, batch, batch[owner]))
+
+    aa = radius_neighbors(p, config.comm_radius, batch, sort=False)
+    goal_e = torch.stack((agent_ids + m, agent_ids))
+    hit_e = torch.stack((torch.arange(h, device=device) + 2 * m, owner))
+    edge_index = torch.cat((aa, goal_e, hit_e), dim=1)
+    n_src = 2 * m + h
+    perm = torch.argsort(edge_index[1] * n_src + edge_index[0])
+    edge_index = edge_index[:, perm]
+    edge_kind = src_kind[edge_index[0]]
+    edge_attr = _edge_attr(pos_src, p, edge_index, edge_kind, config.comm_radius)
+
+    return SwarmGraph(
+        x_src=x_src,
+        x_dst=agent_feat,
+        edge_index=edge_index,
+        edge_attr=edge_attr,
+        edge_kind=edge_kind,
+        frames=_frames(xf),
+        pos_src=pos_src,
+        pos_dst=p,
+        src_kind=src_kind,
+        batch=batch,
+        src_batch=src_batch,
+        hit_owner=owner,
+        num_envs=b,
+        num_agents=n,
+        comm_radius=float(config.comm_radius),
+    )
+
+
+def refresh_graph(graph: SwarmGraph, x: Tensor) -> SwarmGraph:
+    """The same graph (same edges, goals and LiDAR hit points) with new agent states ``x`` ``(B, N, 18)``.
+
+    This is GCBF+'s way of evaluating ``h`` at the next state for the ``h-dot`` loss: the topology and the world
+    positions of goals and hits are kept, the agent features, agent positions, frames and edge vectors are
+    recomputed from ``x`` (differentiably).
+    """
+    m = graph.num_dst
+    xf = x.reshape(m, -1)
+    p = xf[:, 0:3]
+    agent_feat = _agent_features(xf)
+    x_src = torch.cat((agent_feat, graph.x_src[m:].to(xf.dtype)))
+    pos_src = torch.cat((p, graph.pos_src[m:].to(p.dtype)))
+    edge_attr = _edge_attr(pos_src, p, graph.edge_index, graph.edge_kind, graph.comm_radius)
+    return replace(
+        graph, x_src=x_src, x_dst=agent_feat, pos_src=pos_src, pos_dst=p, edge_attr=edge_attr, frames=_frames(xf)
+    )

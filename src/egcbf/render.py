@@ -1,0 +1,159 @@
+"""Rendering of swarm episodes: a 3-D animation (GIF) and a top-down still (PNG).
+
+Inputs are plain arrays (numpy or torch, CPU or GPU) so that any trajectory can be drawn:
+
+    trajectory   (T, N, 3)  agent positions over time (world frame, metres)
+    goals        (N, 3)     goal positions
+    centers      (K, 3)     sphere obstacle centres,  radii (K,)
+    collided     (T, N)     optional collision mask (agents drawn red while colliding)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["render_gif", "render_topdown"]
+
+
+def _np(a) -> np.ndarray | None:
+    if a is None:
+        return None
+    if hasattr(a, "detach"):
+        a = a.detach().cpu().numpy()
+    return np.asarray(a, dtype=float)
+
+
+def _validate(trajectory, goals, centers, radii, collided):
+    traj = _np(trajectory)
+    if traj is None or traj.ndim != 3 or traj.shape[-1] != 3:
+        raise ValueError(f"trajectory must be (T, N, 3), got {None if traj is None else traj.shape}")
+    goals = _np(goals)
+    if goals is not None and goals.shape != traj.shape[1:]:
+        raise ValueError(f"goals must be (N, 3) = {traj.shape[1:]}, got {goals.shape}")
+    centers = np.zeros((0, 3)) if centers is None else _np(centers).reshape(-1, 3)
+    radii = np.zeros((0,)) if radii is None else _np(radii).reshape(-1)
+    if centers.shape[0] != radii.shape[0]:
+        raise ValueError(f"{centers.shape[0]} obstacle centres but {radii.shape[0]} radii")
+    coll = None if collided is None else _np(collided).astype(bool)
+    if coll is not None and coll.shape != traj.shape[:2]:
+        raise ValueError(f"collided must be (T, N) = {traj.shape[:2]}, got {coll.shape}")
+    if not np.isfinite(traj).all():
+        raise ValueError("trajectory contains NaN or inf")
+    return traj, goals, centers, radii, coll
+
+
+def _sphere(ax, c, r, **kw):
+    u, v = np.mgrid[0 : 2 * np.pi : 16j, 0 : np.pi : 9j]
+    ax.plot_surface(
+        c[0] + r * np.cos(u) * np.sin(v), c[1] + r * np.sin(u) * np.sin(v), c[2] + r * np.cos(v), **kw
+    )
+
+
+def render_gif(
+    path: str | Path,
+    trajectory,
+    goals=None,
+    centers=None,
+    radii=None,
+    collided=None,
+    *,
+    area_size: float | None = None,
+    fps: int = 15,
+    max_frames: int = 90,
+    title: str = "",
+    trail: int = 12,
+) -> Path:
+    """Write a 3-D animation of the episode to ``path`` (GIF) and return the path.
+
+    At most ``max_frames`` frames are drawn (time steps are sub-sampled evenly); each agent leaves a short
+    trail; colliding agents are red; goals are green crosses; obstacles grey spheres.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    traj, goals, centers, radii, coll = _validate(trajectory, goals, centers, radii, collided)
+    T, N, _ = traj.shape
+    frames = np.unique(np.linspace(0, T - 1, min(T, max_frames)).round().astype(int))
+    lo = 0.0 if area_size is not None else float(traj.min())
+    hi = float(area_size) if area_size is not None else float(traj.max())
+    fig = plt.figure(figsize=(5, 5), dpi=80)
+    ax = fig.add_subplot(projection="3d")
+
+    def draw(k):
+        t = frames[k]
+        ax.cla()
+        ax.set_xlim(lo, hi)
+        ax.set_ylim(lo, hi)
+        ax.set_zlim(lo, hi)
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_zlabel("z [m]")
+        ax.set_title(f"{title}  t = {t}".strip())
+        for c, r in zip(centers, radii):
+            _sphere(ax, c, r, color="0.5", alpha=0.35, linewidth=0)
+        if goals is not None:
+            ax.scatter(*goals.T, marker="x", color="tab:green", s=12, depthshade=False)
+        t0 = max(0, t - trail)
+        if N <= 256:
+            for i in range(N):
+                ax.plot(*traj[t0 : t + 1, i].T, color="tab:blue", alpha=0.35, linewidth=0.8)
+        colors = np.where(coll[t], "tab:red", "tab:blue") if coll is not None else "tab:blue"
+        ax.scatter(*traj[t].T, c=colors, s=10, depthshade=False)
+        return ()
+
+    anim = FuncAnimation(fig, draw, frames=len(frames), blit=False)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    anim.save(path, writer=PillowWriter(fps=fps))
+    plt.close(fig)
+    return path
+
+
+def render_topdown(
+    path: str | Path,
+    trajectory,
+    goals=None,
+    centers=None,
+    radii=None,
+    collided=None,
+    *,
+    area_size: float | None = None,
+    title: str = "",
+) -> Path:
+    """Write a top-down (x-y) still of the whole episode: paths, start (circle), end (dot), goals (cross),
+    obstacles (grey discs of their radius), collision points (red)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    traj, goals, centers, radii, coll = _validate(trajectory, goals, centers, radii, collided)
+    fig, ax = plt.subplots(figsize=(5.5, 5.5), dpi=100)
+    for c, r in zip(centers, radii):
+        ax.add_patch(plt.Circle(c[:2], r, color="0.6", alpha=0.6))
+    ax.plot(traj[:, :, 0], traj[:, :, 1], color="tab:blue", alpha=0.4, linewidth=0.8)
+    ax.scatter(traj[0, :, 0], traj[0, :, 1], facecolors="none", edgecolors="tab:blue", s=14, label="start")
+    ax.scatter(traj[-1, :, 0], traj[-1, :, 1], color="tab:blue", s=8, label="end")
+    if goals is not None:
+        ax.scatter(goals[:, 0], goals[:, 1], marker="x", color="tab:green", s=18, label="goal")
+    if coll is not None and coll.any():
+        t, i = np.nonzero(coll)
+        ax.scatter(traj[t, i, 0], traj[t, i, 1], color="tab:red", s=10, label="collision")
+    if area_size is not None:
+        ax.set_xlim(0, area_size)
+        ax.set_ylim(0, area_size)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=7)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -1,0 +1,1 @@
+"""Adapters from other equivariance libraries (optional extras): :mod:`groupcanon.compat.escnn`."""

@@ -1,0 +1,173 @@
+"""LiDAR: analytic hits, the closest-k selection, and equivariance under SE2xR (rays in each agent's yaw frame)."""
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from egcbf.env.lidar import lidar_scan, ray_directions
+from egcbf.env.obstacles import Obstacles
+from groupcanon.groups import SE2xR
+from groupcanon.testing import strategies as gst
+
+G = SE2xR()
+F64 = torch.float64
+
+
+def _heading(yaw):
+    return torch.stack((torch.cos(yaw), torch.sin(yaw), torch.zeros_like(yaw)), dim=-1)
+
+
+def _brute(pos, yaw, centers, radii, n_rays, rng, hits):
+    """Dense reference: every agent x ray x obstacle, sorted distances of the closest `hits` rays."""
+    d = ray_directions(n_rays, dtype=F64)
+    c, s = torch.cos(yaw)[..., None], torch.sin(yaw)[..., None]
+    dw = torch.stack((c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2].expand_as(c * d[:, 0])), -1)
+    oc = pos[:, :, None, :] - centers[:, None, :, :]  # B N K 3
+    proj = torch.einsum("bnrx,bnkx->bnrk", dw, oc)
+    c0 = oc.square().sum(-1)[:, :, None, :] - radii[:, None, None, :].square()
+    disc = proj.square() - c0
+    sq = disc.clamp(min=0).sqrt()
+    t = (-proj - sq).clamp(min=0)
+    ok = (disc >= 0) & (-proj + sq >= 0) & (t <= rng)
+    t = torch.where(ok, t, torch.full_like(t, math.inf))
+    t = torch.cat((t, t.new_full((*t.shape[:-1], 1), math.inf)), -1).amin(-1)  # B N R (K may be 0)
+    return t.sort(-1).values[..., :hits]
+
+
+@st.composite
+def scenes(draw, max_envs=2, max_agents=6, max_obs=5):
+    b = draw(st.integers(1, max_envs))
+    n = draw(st.integers(1, max_agents))
+    k = draw(st.integers(0, max_obs))
+    gen = torch.Generator().manual_seed(draw(st.integers(0, 2**31 - 1)))
+    pos = torch.rand(b, n, 3, generator=gen, dtype=F64) * 2
+    yaw = (torch.rand(b, n, generator=gen, dtype=F64) * 2 - 1) * math.pi
+    centers = torch.rand(b, k, 3, generator=gen, dtype=F64) * 2
+    radii = 0.05 + 0.25 * torch.rand(b, k, generator=gen, dtype=F64)
+    return pos, yaw, Obstacles(centers, radii)
+
+
+def test_ray_pattern():
+    d = ray_directions(32, dtype=F64)
+    assert d.shape == (32 * 16 + 2, 3)
+    assert torch.allclose(d.norm(dim=-1), torch.ones(d.shape[0], dtype=F64))
+    assert torch.equal(d[-2], torch.tensor([0.0, 0.0, 1.0], dtype=F64))
+    assert torch.equal(d[-1], torch.tensor([0.0, 0.0, -1.0], dtype=F64))
+    with pytest.raises(ValueError, match="n_rays"):
+        ray_directions(1)
+
+
+def test_hand_made_hit_straight_up_and_inside():
+    pos = torch.zeros(1, 2, 3, dtype=F64)
+    pos[0, 1] = torch.tensor([5.0, 5.0, 0.5])  # second agent inside the second sphere
+    obs = Obstacles(
+        torch.tensor([[[0.0, 0.0, 0.5], [5.0, 5.0, 0.5]]], dtype=F64), torch.tensor([[0.1, 0.2]], dtype=F64)
+    )
+    scan = lidar_scan(pos, _heading(torch.zeros(1, 2, dtype=F64)), obs, n_rays=32, max_range=1.0, max_hits=16)
+    assert scan.points.shape == (1, 2, 16, 3) and scan.valid.shape == (1, 2, 16)
+    # the up ray hits the bottom of the first sphere at distance 0.4, the closest of all hits
+    assert scan.distance[0, 0, 0] == pytest.approx(0.4, abs=1e-12)
+    assert torch.allclose(scan.points[0, 0, 0], torch.tensor([0.0, 0.0, 0.4], dtype=F64), atol=1e-12)
+    assert scan.valid[0, 0].all()  # many rays hit: 16 kept
+    assert (scan.distance[0, 0].diff() >= 0).all()
+    # inside an obstacle: every ray reports distance 0
+    assert scan.valid[0, 1].all() and (scan.distance[0, 1] == 0).all()
+    assert torch.equal(scan.points[0, 1], pos[0, 1].expand(16, 3))
+
+
+def test_out_of_range_and_no_obstacles():
+    pos = torch.zeros(1, 1, 3, dtype=F64)
+    obs = Obstacles(torch.tensor([[[0.0, 0.0, 2.0]]], dtype=F64), torch.tensor([[0.5]], dtype=F64))
+    h = _heading(torch.zeros(1, 1, dtype=F64))
+    scan = lidar_scan(pos, h, obs, n_rays=8, max_range=1.0, max_hits=4)
+    assert not scan.valid.any() and torch.isinf(scan.distance).all()
+    assert torch.equal(scan.points, pos[:, :, None].expand(1, 1, 4, 3))  # invalid slots hold the agent position
+    scan = lidar_scan(pos, h, obs, n_rays=8, max_range=1.6, max_hits=4)
+    assert scan.valid[0, 0, 0] and scan.distance[0, 0, 0] == pytest.approx(1.5)
+    empty = Obstacles(torch.zeros(1, 0, 3, dtype=F64), torch.zeros(1, 0, dtype=F64))
+    assert not lidar_scan(pos, h, empty, n_rays=8).valid.any()
+    # more hits requested than rays: padded with invalid slots
+    few = lidar_scan(
+        pos, h, Obstacles(torch.zeros(1, 1, 3, dtype=F64), torch.ones(1, 1, dtype=F64)), n_rays=2, max_hits=8
+    )
+    assert few.valid.shape == (1, 1, 8) and few.valid.sum() == 4  # 2 azimuths x 1 elevation + up + down
+
+
+@given(scene=scenes())
+def test_matches_dense_reference(scene):
+    pos, yaw, obs = scene
+    scan = lidar_scan(pos, _heading(yaw), obs, n_rays=16, max_range=0.8, max_hits=10)
+    ref = _brute(pos, yaw, obs.centers, obs.radii, 16, 0.8, 10)
+    assert torch.equal(torch.isinf(scan.distance), torch.isinf(ref))
+    fin = torch.isfinite(ref)
+    assert torch.allclose(scan.distance[fin], ref[fin], atol=1e-12)
+    # every valid hit lies on (or, for an agent inside, within) the surface of some sphere, within range
+    if obs.num_obstacles:
+        sd = obs.surface_distance(scan.points.reshape(pos.shape[0], -1, 3)).amin(-1).reshape(scan.valid.shape)
+        assert (sd[scan.valid] < 1e-9).all()
+    assert ((scan.points - pos[:, :, None]).norm(dim=-1)[scan.valid] <= 0.8 + 1e-12).all()
+
+
+@given(scene=scenes(), g=gst.elements(G, batch=(2,)))
+def test_equivariant_under_se2xr(scene, g):
+    pos, yaw, obs = scene
+    b = pos.shape[0]
+    g = g[:b]
+    theta = torch.atan2(g[:, 1], g[:, 0])
+    pos2 = G.transform(g[:, None], pos)
+    obs2 = Obstacles(G.transform(g[:, None], obs.centers), obs.radii)
+    kw = {"n_rays": 16, "max_range": 1.0, "max_hits": 12}
+    s1 = lidar_scan(pos, _heading(yaw), obs, **kw)
+    s2 = lidar_scan(pos2, _heading(yaw + theta[:, None]), obs2, **kw)
+    assert torch.equal(s1.valid, s2.valid)
+    assert torch.allclose(s1.distance[s1.valid], s2.distance[s2.valid], atol=1e-9)
+    moved = G.transform(g[:, None, None], s1.points)
+    assert torch.allclose(moved, s2.points, atol=1e-9)
+
+
+def test_world_fixed_rays_would_not_be_equivariant():
+    """Sanity check of the design choice: rotating the scene but not the ray pattern changes the hits."""
+    pos = torch.zeros(1, 1, 3, dtype=F64)
+    obs = Obstacles(torch.tensor([[[0.6, 0.1, 0.05]]], dtype=F64), torch.tensor([[0.2]], dtype=F64))
+    h0 = _heading(torch.zeros(1, 1, dtype=F64))
+    g = torch.tensor([[math.cos(0.1), math.sin(0.1), 0.0, 0.0, 0.0]], dtype=F64)
+    obs2 = Obstacles(G.transform(g[:, None], obs.centers), obs.radii)
+    s1 = lidar_scan(pos, h0, obs, n_rays=16)
+    s2 = lidar_scan(pos, h0, obs2, n_rays=16)  # heading not rotated
+    assert not torch.allclose(G.transform(g[:, None, None], s1.points)[s1.valid], s2.points[s2.valid], atol=1e-6)
+
+
+def test_differentiable_and_float32():
+    pos = torch.tensor([[[0.0, 0.0, 0.0]]], requires_grad=True)
+    obs = Obstacles(torch.tensor([[[0.0, 0.0, 0.5]]]), torch.tensor([[0.1]]))
+    scan = lidar_scan(pos, _heading(torch.zeros(1, 1)), obs, n_rays=8, max_hits=4)
+    assert scan.points.dtype == torch.float32
+    scan.distance[scan.valid].sum().backward()
+    assert torch.isfinite(pos.grad).all() and pos.grad.abs().sum() > 0
+
+
+@given(scene=scenes(max_obs=45), margin=st.floats(0.0, 1.0))
+@settings(max_examples=15)
+def test_near_pairs_cells_equal_dense(scene, margin):
+    pos, _, obs = scene
+    dense = obs.near_pairs(pos, margin, method="dense")
+    cells = obs.near_pairs(pos, margin, method="cells")
+    for a, b in zip(dense, cells):
+        assert torch.equal(a, b)
+    inside = obs.inside(pos, margin, method="cells")
+    ref = (obs.surface_distance(pos) < margin).any(-1) if obs.num_obstacles else torch.zeros_like(inside)
+    assert torch.equal(inside, ref)
+
+
+@given(scene=scenes(max_envs=1, max_agents=4, max_obs=45))
+@settings(max_examples=10)
+def test_many_obstacles_matches_dense_reference(scene):
+    pos, yaw, obs = scene  # more than DENSE_MAX_OBSTACLES: the cell-list path finds the pairs
+    scan = lidar_scan(pos, _heading(yaw), obs, n_rays=8, max_range=1.0, max_hits=6)
+    ref = _brute(pos, yaw, obs.centers, obs.radii, 8, 1.0, 6)
+    assert torch.equal(torch.isinf(scan.distance), torch.isinf(ref))
+    fin = torch.isfinite(ref)
+    assert torch.allclose(scan.distance[fin], ref[fin], atol=1e-12)

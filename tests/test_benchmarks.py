@@ -1,0 +1,23 @@
+"""The benchmark script keeps working: a quick smoke run, rendered to a temporary file (docs/ is not touched)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_benchmark_quick_runs(tmp_path):
+    out = tmp_path / "benchmarks.md"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "run.py"), "--quick", "--output", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 0, f"benchmarks/run.py --quick exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    assert "wrapped/raw ratio" in proc.stdout
+    text = out.read_text()  # the markdown section is rendered (to a temporary file, not docs/)
+    assert "<!-- groupcanon:begin -->" in text and "<!-- groupcanon:end -->" in text
+    assert "| N | E | pass |" in text and "roma Rigid" in text

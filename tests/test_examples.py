@@ -1,0 +1,18 @@
+"""The examples run as scripts and exit 0 (each checks its own equivariance claims and exits non-zero if one fails)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+@pytest.mark.parametrize("script", ["custom_group.py", "wrap_pyg_layer.py"])
+def test_example_runs(script):
+    proc = subprocess.run(
+        [sys.executable, str(EXAMPLES / script)], capture_output=True, text=True, timeout=300, cwd=EXAMPLES.parent
+    )
+    assert proc.returncode == 0, f"{script} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    assert "OK" in proc.stdout

@@ -1,6 +1,9 @@
-"""Command line: ``egcbf eval`` (evaluate a controller over swarm sizes) and ``egcbf demo`` (the main job).
+"""Command line: ``egcbf eval`` (evaluate a controller over swarm sizes), ``egcbf train`` (learn a graph CBF and
+policy) and ``egcbf demo`` (the main job).
 
     egcbf eval --controller ccbf --num-agents 8,16,64 --area 4 --obstacles 0 --episodes 50 --seed 0 --out runs/ccbf
+    egcbf train --algo egcbf+ --steps 300 --out runs/egcbf+          # CPU recipe; --preset paper --device cuda
+    egcbf eval --checkpoint runs/egcbf+ --num-agents 8,16,64 --out runs/egcbf+/eval
 """
 
 from __future__ import annotations
@@ -65,7 +68,12 @@ def _machine() -> dict:
                 break
     except OSError:
         pass
-    return {"cpu": cpu, "threads": torch.get_num_threads(), "torch": torch.__version__, "python": sys.version.split()[0]}
+    return {
+        "cpu": cpu,
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "python": sys.version.split()[0],
+    }
 
 
 def _render(records: dict, out: Path, area: float, tag: str) -> list[Path]:
@@ -96,12 +104,27 @@ def eval_cmd(
     device: Annotated[str, typer.Option(help="cpu | cuda")] = "cpu",
     dtype: Annotated[str, typer.Option(help="float32 | float64")] = "float32",
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    checkpoint: Annotated[
+        Path | None,
+        typer.Option(help="evaluate a trained policy: a checkpoint directory or a run directory (newest checkpoint)"),
+    ] = None,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json."""
     from .control.controllers import CONTROLLERS, make_controller
     from .evaluate import evaluate
 
-    if controller not in CONTROLLERS:
+    env_overrides = None
+    if checkpoint is not None:  # a learned policy: everything it needs is in the checkpoint directory
+        from .train import find_checkpoint, load_controller
+
+        try:
+            ckpt = find_checkpoint(checkpoint)
+        except FileNotFoundError as err:
+            raise typer.BadParameter(str(err)) from None
+        learned, train_cfg = load_controller(ckpt, device=_device(device), dtype=_DTYPES.get(dtype, torch.float32))
+        controller = train_cfg.algo
+        env_overrides = dict(train_cfg.env_overrides)  # the sensing the policy was trained with (radii, LiDAR)
+    elif controller not in CONTROLLERS:
         raise typer.BadParameter(f"--controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
     if dtype not in _DTYPES:
         raise typer.BadParameter(f"--dtype must be one of {sorted(_DTYPES)}")
@@ -111,7 +134,7 @@ def eval_cmd(
     dev = _device(device)
     t0 = time.time()
     rows, records = evaluate(
-        lambda cfg: make_controller(controller, cfg),
+        (lambda cfg: learned) if checkpoint is not None else (lambda cfg: make_controller(controller)),
         sizes,
         area_size=area,
         num_obstacles=obstacles,
@@ -123,12 +146,14 @@ def eval_cmd(
         dtype=_DTYPES[dtype],
         record=render,
         show_progress=progress,
+        env_overrides=env_overrides,
     )
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(rows, indent=2) + "\n")
     meta = {
         "command": " ".join(["egcbf", *sys.argv[1:]]),
         "controller": controller,
+        "checkpoint": None if checkpoint is None else str(ckpt),
         "area": area,
         "obstacles": obstacles,
         "episodes": episodes,
@@ -168,6 +193,69 @@ def demo(
         dtype="float32",
         progress=True,
     )
+
+
+@app.command()
+def train(
+    algo: Annotated[str, typer.Option(help="gcbf | gcbf+ | egcbf | egcbf+")] = "egcbf+",
+    out: Annotated[Path, typer.Option(help="run directory (config, logs, metrics.csv, checkpoints)")] = Path(
+        "runs/train"
+    ),
+    config: Annotated[
+        Path | None, typer.Option(help="JSON file of TrainConfig fields overriding the preset (may set 'preset')")
+    ] = None,
+    preset: Annotated[str | None, typer.Option(help="cpu (default) | paper | tiny")] = None,
+    steps: Annotated[int | None, typer.Option(help="number of updates (default: the config's)")] = None,
+    device: Annotated[str | None, typer.Option(help="cpu | cuda (default: the config's)")] = None,
+    seed: Annotated[int | None, typer.Option(help="seed (default: the config's)")] = None,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="continue the run in OUT from its newest checkpoint")
+    ] = False,
+    threads: Annotated[int | None, typer.Option(help="torch CPU threads (default: torch's)")] = None,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+) -> None:
+    """Train GCBF, GCBF+, EGCBF or EGCBF+ (one learner; the group and the reference controller differ)."""
+    from .config import METHODS, PRESETS, TrainConfig
+    from .train import train as run_training
+
+    if algo not in METHODS:
+        raise typer.BadParameter(f"--algo must be one of {sorted(METHODS)}, got {algo!r}")
+    if resume:
+        if config is not None or preset is not None or seed is not None or device is not None:
+            raise typer.BadParameter("--resume continues the saved config: only --steps and --threads may change")
+        if threads is not None:
+            torch.set_num_threads(threads)
+        try:
+            run_training(TrainConfig(), out, resume=True, steps=steps, progress=progress)
+        except FileNotFoundError as err:
+            raise typer.BadParameter(str(err)) from None
+        return
+    fields = {}
+    if config is not None:
+        try:
+            fields = json.loads(config.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise typer.BadParameter(f"--config {config}: {err}") from None
+        file_algo = fields.pop("algo", algo)
+        if file_algo != algo:
+            raise typer.BadParameter(f"--config says algo {file_algo!r} but --algo is {algo!r}")
+        fields.pop("reference", None)
+    name = preset or fields.pop("preset", "cpu")
+    fields.pop("preset", None)
+    if name not in PRESETS:
+        raise typer.BadParameter(f"--preset must be one of {PRESETS}, got {name!r}")
+    for key, value in (("steps", steps), ("device", device), ("seed", seed), ("num_threads", threads)):
+        if value is not None:
+            fields[key] = value
+    try:
+        cfg = TrainConfig.preset(algo, name, **fields)
+    except (TypeError, ValueError) as err:
+        raise typer.BadParameter(str(err)) from None
+    _device(cfg.device)
+    try:
+        run_training(cfg, out, progress=progress)
+    except FileExistsError as err:
+        raise typer.BadParameter(str(err)) from None
 
 
 def main() -> None:  # pragma: no cover

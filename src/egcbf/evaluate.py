@@ -38,9 +38,7 @@ def episode_seed(seed: int, num_agents: int, episode: int) -> int:
 
 def concat_states(states: Sequence[SwarmState]) -> SwarmState:
     """Stack single- or multi-environment states along the environment dimension."""
-    obs = Obstacles(
-        torch.cat([s.obstacles.centers for s in states]), torch.cat([s.obstacles.radii for s in states])
-    )
+    obs = Obstacles(torch.cat([s.obstacles.centers for s in states]), torch.cat([s.obstacles.radii for s in states]))
     return SwarmState(torch.cat([s.x for s in states]), torch.cat([s.goals for s in states]), obs, states[0].t)
 
 
@@ -75,8 +73,9 @@ def run_episodes(
     timing = {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0}
     rec = None
     if record:
-        rec = EpisodeRecord(goals=state.goals[0].cpu(), centers=state.obstacles.centers[0].cpu(),
-                            radii=state.obstacles.radii[0].cpu())
+        rec = EpisodeRecord(
+            goals=state.goals[0].cpu(), centers=state.obstacles.centers[0].cpu(), radii=state.obstacles.radii[0].cpu()
+        )
         rec.positions.append(state.positions[0].detach().cpu().clone())
         rec.collided.append(torch.zeros(config.num_agents, dtype=torch.bool))
     for _ in range(config.max_steps):
@@ -131,8 +130,9 @@ def evaluate(
         b = batch or max(1, min(episodes, max_agents_per_batch // n))
         seeds = [episode_seed(seed, n, e) for e in range(episodes)]
         per_episode, timing = [], {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0}
-        bar = tqdm(total=episodes * config.max_steps, desc=f"N={n}", unit="step", disable=not show_progress,
-                   leave=False)
+        bar = tqdm(
+            total=episodes * config.max_steps, desc=f"N={n}", unit="step", disable=not show_progress, leave=False
+        )
         for k in range(0, episodes, b):
             chunk = seeds[k : k + b]
             stats, t, rec = run_episodes(
@@ -151,7 +151,7 @@ def evaluate(
         pooled = {k: torch.cat([p[k] for p in per_episode]) for k in per_episode[0]}
         row = summarize(pooled, num_agents=n)
         row["step_ms_median"] = statistics.median(timing["step_ms"])
-        if timing["qp_ms"]:
+        if timing["qp_ms"] and max(timing["qp_ms"]) > 0:  # controllers without a QP report 0
             row["qp_ms_median"] = statistics.median(timing["qp_ms"])
             row["qp_slack_steps"] = timing["num_slack"]
             row["qp_failed"] = timing["num_failed"]

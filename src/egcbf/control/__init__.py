@@ -6,7 +6,9 @@ from .nominal import (
     GOAL_TYPE,
     NominalGains,
     desired_heading,
+    nominal_acceleration,
     nominal_control,
+    track_acceleration,
 )
 
 __all__ = [
@@ -15,5 +17,7 @@ __all__ = [
     "GOAL_TYPE",
     "NominalGains",
     "desired_heading",
+    "nominal_acceleration",
     "nominal_control",
+    "track_acceleration",
 ]

@@ -152,35 +152,47 @@ def desired_heading(R: Tensor) -> Tensor:
     return torch.stack((hx / n, hy / n, torch.zeros_like(hx)), dim=-1)
 
 
-def nominal_control(
+def nominal_acceleration(
     x: Tensor,
     goal: Tensor,
-    params: QuadrotorParams = DEFAULT_PARAMS,
     gains: NominalGains = DEFAULT_GAINS,
     max_position_error: float = DEFAULT_MAX_POSITION_ERROR,
-    clip: bool = True,
 ) -> Tensor:
-    """Body-frame control ``u = (tau, F3)`` ``(*batch, 4)`` regulating ``x`` ``(*batch, 18)`` to hover at ``goal``
-    ``(*batch, 3)`` (batch dims broadcast).
+    """Position loop: the desired acceleration ``a = -k_x clip(p - goal) - k_v v`` ``(*batch, 3)``, world frame.
 
-    SE(2) x R equivariant: ``nominal_control(phi_g x, g . goal) == nominal_control(x, goal)`` (the output is
-    invariant because it is expressed in the body frame). ``clip=False`` returns the unclipped command.
+    Gravity is not included (hover is ``a = 0``); the position error is clipped to norm ``max_position_error``.
+    Equivariant: ``a`` rotates with the scene (a ``Vector(3)``).
     """
-    p, R, v, w = unpack(x)
+    p, _, v, _ = unpack(x)
     _check_last(goal, 3, "goal")
     if not (math.isfinite(max_position_error) and max_position_error > 0):
         raise ValueError(f"max_position_error must be finite and > 0, got {max_position_error!r}")
-    c = consts(params, x)
-    k = _gain_tensors(gains, params, x.dtype, x.device)
-    g = params.gravity
-
-    # position loop: desired specific force (m/s^2), world frame
+    k = _gain_tensors(gains, DEFAULT_PARAMS, x.dtype, x.device)
     ex = p - goal
     n = torch.linalg.vector_norm(ex, dim=-1, keepdim=True)
     ex = ex * (max_position_error / n.clamp_min(max_position_error))
-    a = -k.kx * ex - k.kv * v
-    fz = (a[..., 2:] + g).clamp_min(gains.min_lift * g)
-    fh = a[..., :2]
+    return -k.kx * ex - k.kv * v
+
+
+def track_acceleration(
+    x: Tensor,
+    accel: Tensor,
+    params: QuadrotorParams = DEFAULT_PARAMS,
+    gains: NominalGains = DEFAULT_GAINS,
+    clip: bool = True,
+) -> Tensor:
+    """Attitude loop: body-frame ``u = (tau, F3)`` ``(*batch, 4)`` tracking the world acceleration ``accel``.
+
+    Desired specific force ``F / m = accel + g e3``, limited to ``F_z >= min_lift g`` and tilt ``<= max_tilt``;
+    ``b3d = F / |F|``, heading held (:func:`desired_heading`), ``tau = -K_R e_R - K_w w + w x J w``,
+    ``F3 = m F . R e3`` (Lee et al. 2010, set-point form). Clipped to the actuators if ``clip``.
+    """
+    _, R, _, w = unpack(x)
+    c = consts(params, x)
+    k = _gain_tensors(gains, params, x.dtype, x.device)
+    g = params.gravity
+    fz = (accel[..., 2:] + g).clamp_min(gains.min_lift * g)
+    fh = accel[..., :2]
     lim = fz * math.tan(gains.max_tilt)
     fh = fh * (lim / torch.linalg.vector_norm(fh, dim=-1, keepdim=True).clamp_min(lim))
     force = torch.cat((fh, fz), dim=-1)
@@ -201,3 +213,21 @@ def nominal_control(
     batch = torch.broadcast_shapes(tau.shape[:-1], thrust.shape[:-1])
     u = torch.cat((tau.expand(*batch, 3), thrust.expand(*batch, 1)), dim=-1)
     return clip_control(u, params) if clip else u
+
+
+def nominal_control(
+    x: Tensor,
+    goal: Tensor,
+    params: QuadrotorParams = DEFAULT_PARAMS,
+    gains: NominalGains = DEFAULT_GAINS,
+    max_position_error: float = DEFAULT_MAX_POSITION_ERROR,
+    clip: bool = True,
+) -> Tensor:
+    """Body-frame control ``u = (tau, F3)`` ``(*batch, 4)`` regulating ``x`` ``(*batch, 18)`` to hover at ``goal``
+    ``(*batch, 3)`` (batch dims broadcast): :func:`track_acceleration` of :func:`nominal_acceleration`.
+
+    SE(2) x R equivariant: ``nominal_control(phi_g x, g . goal) == nominal_control(x, goal)`` (the output is
+    invariant because it is expressed in the body frame). ``clip=False`` returns the unclipped command.
+    """
+    a = nominal_acceleration(x, goal, gains, max_position_error)
+    return track_acceleration(x, a, params, gains, clip)

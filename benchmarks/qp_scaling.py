@@ -1,0 +1,211 @@
+"""Per-step solve time of the hand-crafted CBF-QP baselines (cCBF-QP, dCBF-QP) against the number of agents.
+
+For each N (default 8, 16, 64, 128, 256, 512) in the fixed arena l = 4 m without obstacles (density N / 64 per m^3,
+8 per m^3 at N = 512), a closed-loop rollout of ``--steps`` control steps from a seeded reset is run with each
+controller; the controller's own wall time per step (``info["qp_ms"]``: nominal acceleration, neighbour search,
+constraint and QP assembly, solve, checks; not the attitude loop or the simulator) is recorded and the median
+reported, with the number of CBF rows, the steps whose QP needed slack and the failed solves.
+
+Solver comparison (centralized QP): on ``--snapshots`` states of the cCBF-QP rollout, the same assembled sparse QP
+is solved by every installed solver (PIQP, ProxQP sparse, OSQP, Clarabel; native Python APIs, same tolerance
+1e-7, no warm start) and the median solve time (setup + solve) is reported, with the largest distance to PIQP's
+solution. The per-agent QPs are solved by the vectorized interior-point method and by proxsuite's
+``dense.BatchQP`` + ``solve_in_parallel`` on the same states.
+
+    .venv/bin/python benchmarks/qp_scaling.py                 # writes docs/benchmarks.md (a few minutes, 2 cores)
+    .venv/bin/python benchmarks/qp_scaling.py --sizes 8 64 --steps 10 --no-write
+
+Results go to ``docs/benchmarks.md`` between ``<!-- qp-scaling:begin -->`` and ``<!-- qp-scaling:end -->``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import platform
+import re
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from egcbf.control.barriers import build_constraints, split_for_agents
+from egcbf.control.cbf_qp import CentralizedCBFQP, DecentralizedCBFQP
+from egcbf.control.qp import (
+    SOLVERS,
+    assemble_centralized,
+    assemble_decentralized,
+    solve_dense_batch,
+    solve_dense_batch_ipm,
+    solve_sparse,
+)
+from egcbf.env import EnvConfig, SwarmEnv
+
+BEGIN, END = "<!-- qp-scaling:begin -->", "<!-- qp-scaling:end -->"
+SIZES = (8, 16, 64, 128, 256, 512)
+
+
+def rollout(ctrl, n: int, area: float, steps: int, seed: int, snapshots: int):
+    cfg = EnvConfig(num_agents=n, area_size=area, num_obstacles=0, num_envs=1, max_steps=steps)
+    env = SwarmEnv(cfg, dtype=torch.float64)
+    state = env.reset(seed)
+    ms, cpu, rows, slack, failed, coll = [], [], [], 0, 0, torch.zeros(1, n, dtype=torch.bool)
+    keep = set(np.linspace(steps // 4, steps - 1, snapshots).astype(int).tolist()) if snapshots else set()
+    snaps = []
+    for t in range(steps):
+        if t in keep:
+            snaps.append(state)
+        u, info = ctrl(state, cfg)
+        ms.append(info["qp_ms"])
+        cpu.append(info["qp_cpu_ms"])
+        rows.append(info["num_constraints"])
+        slack += info["num_slack"] > 0
+        failed += info["num_failed"]
+        state, si = env.step(state, u)
+        coll |= si.collision
+    return (
+        {
+            "ms": statistics.median(ms),
+            "p90": float(np.percentile(ms, 90)),
+            "cpu": statistics.median(cpu),
+            "rows": statistics.median(rows),
+            "slack_steps": slack,
+            "failed": failed,
+            "collided": int(coll.sum()),
+        },
+        snaps,
+        cfg,
+    )
+
+
+def solver_comparison(ctrl: CentralizedCBFQP, snaps, cfg, solvers) -> dict:
+    """Median solve time per solver on the centralized QPs of ``snaps`` (and the dense per-agent solvers)."""
+    times = {s: [] for s in solvers}
+    dev = {s: 0.0 for s in solvers}
+    dense = {"ipm": [], "proxsuite-batch": []}
+    for state in snaps:
+        prep = ctrl._prepare(state, cfg)
+        cons = build_constraints(prep.p[0], prep.v[0], prep.barrier, bounds=prep.bounds)
+        qp = assemble_centralized(prep.a_nom[0], cons, prep.bC[0], prep.blo[0], prep.bhi[0], ctrl.config.penalty)
+        ref = None
+        for s in solvers:
+            res = solve_sparse(qp, s, eps_abs=1e-7, max_iter=1000)
+            times[s].append(res.solve_ms if res.ok else float("nan"))
+            if ref is None and res.ok:
+                ref = res.x
+            elif res.ok:
+                dev[s] = max(dev[s], float(np.abs(res.x - ref).max()))
+        owner, normal, rhs = split_for_agents(cons)
+        n = prep.p.shape[1]
+        dq = assemble_decentralized(
+            prep.a_nom[0], owner, normal, rhs, prep.bC[0], prep.blo[0], prep.bhi[0], ctrl.config.penalty
+        )
+        t0 = time.perf_counter()
+        solve_dense_batch_ipm(dq)
+        dense["ipm"].append(1e3 * (time.perf_counter() - t0))
+        t0 = time.perf_counter()
+        solve_dense_batch(dq, eps_abs=1e-9)
+        dense["proxsuite-batch"].append(1e3 * (time.perf_counter() - t0))
+        del n
+    out = {s: (statistics.median(v) if v else float("nan"), dev[s]) for s, v in times.items()}
+    out.update({k: (statistics.median(v), 0.0) for k, v in dense.items() if v})
+    return out
+
+
+def installed_solvers() -> list[str]:
+    mods = {"piqp": "piqp", "proxsuite": "proxsuite", "osqp": "osqp", "clarabel": "clarabel"}
+    return [s for s in SOLVERS if importlib.util.find_spec(mods[s]) is not None]
+
+
+def render(rows: list[dict], comp: dict[int, dict], args, solvers) -> str:
+    cpu = platform.processor() or platform.machine()
+    lines = [
+        f"Measured {time.strftime('%Y-%m-%d')} on {cpu}, {os.cpu_count()} CPU cores (shared with other jobs, so "
+        f"expect noise), Python {platform.python_version()}, torch {torch.__version__}, "
+        f"{torch.get_num_threads()} torch thread(s). Arena l = {args.area:g} m, no obstacles, {args.steps} "
+        f"closed-loop steps from reset (seed {args.seed}), float64. Time = the controller's wall time per step "
+        "(nominal acceleration, neighbour search, rows, assembly, solve, checks).",
+        "",
+        "| N | density (1/m^3) | cCBF-QP median ms | p90 ms | CPU ms | CBF rows | slack steps | failed | "
+        "dCBF-QP median ms | p90 ms | CPU ms | slack steps | failed |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        c, d = r["ccbf"], r["dcbf"]
+        lines.append(
+            f"| {r['N']} | {r['N'] / args.area**3:.3g} | {c['ms']:.1f} | {c['p90']:.1f} | {c['cpu']:.1f} | "
+            f"{c['rows']:.0f} | {c['slack_steps']} | {c['failed']} | {d['ms']:.1f} | {d['p90']:.1f} | "
+            f"{d['cpu']:.1f} | {d['slack_steps']} | {d['failed']} |"
+        )
+    if comp:
+        names = [*solvers, "ipm", "proxsuite-batch"]
+        lines += [
+            "",
+            f"Solver comparison (median ms per solve over {args.snapshots} states of the cCBF-QP rollout; sparse "
+            "solvers on the centralized QP, setup + solve, tolerance 1e-7, in brackets the largest difference from "
+            "PIQP's solution; the last two columns: all per-agent QPs of the decentralized split, one batch):",
+            "",
+            "| N | " + " | ".join(names) + " |",
+            "|---|" + "---|" * len(names),
+        ]
+        for n, c in comp.items():
+            cells = []
+            for s in names:
+                t, dv = c.get(s, (float("nan"), 0.0))
+                cells.append(f"{t:.1f}" + (f" ({dv:.0e})" if s in solvers and s != solvers[0] else ""))
+            lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_section(path: Path, body: str) -> None:
+    block = f"{BEGIN}\n{body}\n{END}"
+    if path.exists():
+        text = path.read_text()
+        if BEGIN in text and END in text:
+            text = re.sub(re.escape(BEGIN) + r".*?" + re.escape(END), lambda _: block, text, flags=re.S)
+        else:
+            text = text.rstrip("\n") + "\n\n## CBF-QP baselines: solve time\n\n" + block + "\n"
+    else:
+        text = "# Benchmarks\n\n## CBF-QP baselines: solve time\n\n" + block + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=list(SIZES))
+    ap.add_argument("--area", type=float, default=4.0)
+    ap.add_argument("--steps", type=int, default=60)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--snapshots", type=int, default=3, help="states per N for the solver comparison (0: skip)")
+    ap.add_argument("--compare-sizes", type=int, nargs="+", default=[64, 256, 512])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"))
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    solvers = installed_solvers()
+    rows, comp = [], {}
+    for n in args.sizes:
+        snapshots = args.snapshots if n in args.compare_sizes else 0
+        cc = CentralizedCBFQP()
+        c, snaps, cfg = rollout(cc, n, args.area, args.steps, args.seed, snapshots)
+        d, _, _ = rollout(DecentralizedCBFQP(), n, args.area, args.steps, args.seed, 0)
+        rows.append({"N": n, "ccbf": c, "dcbf": d})
+        print(f"N={n}: ccbf {c}  dcbf {d}", flush=True)
+        if snaps:
+            comp[n] = solver_comparison(cc, snaps, cfg, solvers)
+            print(f"  solvers: {comp[n]}", flush=True)
+    body = render(rows, comp, args, solvers)
+    print(body)
+    if not args.no_write:
+        write_section(Path(args.out), body)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,61 @@
+"""Controllers with one call signature, for evaluation: ``u, info = controller(state, env_config)``.
+
+``state`` is an :class:`egcbf.env.SwarmState` (``B`` environments of ``N`` agents), ``env_config`` its
+:class:`egcbf.env.EnvConfig`; ``u`` ``(B, N, 4)`` body-frame ``(tau, F3)`` in ``state.x``'s dtype and device, clipped
+to the actuators; ``info`` a dict with at least ``qp_ms`` (wall time of the controller's optimization, 0 for the
+nominal controller), ``num_slack`` and ``num_failed`` (QPs that needed slack / fell back; 0 for the nominal one).
+
+    ctrl = make_controller("ccbf")            # "nominal", "ccbf", "dcbf"
+    u, info = ctrl(state, env.config)
+"""
+
+from __future__ import annotations
+
+import time
+
+from torch import Tensor
+
+from .cbf_qp import CBFQPConfig, CentralizedCBFQP, DecentralizedCBFQP
+from .nominal import DEFAULT_GAINS, DEFAULT_MAX_POSITION_ERROR, NominalGains, nominal_control
+
+__all__ = [
+    "CONTROLLERS",
+    "CBFQPConfig",
+    "CentralizedCBFQP",
+    "DecentralizedCBFQP",
+    "NominalController",
+    "make_controller",
+]
+
+
+class NominalController:
+    """The equivariant geometric nominal controller (:func:`egcbf.control.nominal.nominal_control`), no safety."""
+
+    name = "nominal"
+
+    def __init__(self, gains: NominalGains = DEFAULT_GAINS, max_position_error: float = DEFAULT_MAX_POSITION_ERROR):
+        self.gains = gains
+        self.max_position_error = max_position_error
+
+    def __call__(self, state, env_config) -> tuple[Tensor, dict]:
+        t0 = time.perf_counter()
+        u = nominal_control(state.x, state.goals, env_config.params, self.gains, self.max_position_error)
+        info = {"qp_ms": 0.0, "num_slack": 0, "num_failed": 0, "ctrl_ms": 1e3 * (time.perf_counter() - t0)}
+        return u, info
+
+
+CONTROLLERS = {"nominal": NominalController, "ccbf": CentralizedCBFQP, "dcbf": DecentralizedCBFQP}
+
+
+def make_controller(name: str, **kwargs):
+    """Controller by name: ``"nominal"``, ``"ccbf"`` (centralized CBF-QP), ``"dcbf"`` (decentralized CBF-QP).
+
+    Keyword arguments go to the constructor: for the CBF-QPs a ``config=CBFQPConfig(...)`` and/or overrides of its
+    fields or of :class:`egcbf.control.barriers.BarrierConfig`'s (e.g. ``make_controller("ccbf", kind="hocbf",
+    solver="proxsuite")``); for the nominal controller ``gains`` and ``max_position_error``.
+    """
+    try:
+        cls = CONTROLLERS[name]
+    except KeyError:
+        raise ValueError(f"unknown controller {name!r}; choose one of {sorted(CONTROLLERS)}") from None
+    return cls(**kwargs)

@@ -37,21 +37,21 @@ $(ESCNN_STAMP): pyproject.toml requirements/torch.txt requirements/escnn.txt req
 test: test-core test-escnn
 
 test-core: $(STAMP)
-	$(PY) -m ruff check src tests examples benchmarks
+	$(PY) -m ruff check src tests examples benchmarks docs/*.py
 	$(PY) -m pytest -n 2 -q $(PYTEST_ARGS)
 
 test-escnn: $(ESCNN_STAMP)
 	$(ESCNN_PY) -m pytest -q -m escnn tests/groupcanon/test_escnn_adapter.py
 
 demo: $(STAMP)
-	$(PY) examples/wrap_pyg_layer.py
+	$(VENV)/bin/egcbf demo --out out/demo
 
 lint: $(STAMP)
-	$(PY) -m ruff check src tests examples benchmarks
-	$(PY) -m ruff format --check src tests examples benchmarks
+	$(PY) -m ruff check src tests examples benchmarks docs/*.py
+	$(PY) -m ruff format --check src tests examples benchmarks docs/*.py
 
 format: $(STAMP)
-	$(PY) -m ruff format src tests examples benchmarks
+	$(PY) -m ruff format src tests examples benchmarks docs/*.py
 	$(PY) -m ruff check --fix src tests examples benchmarks
 
 bench: $(STAMP)

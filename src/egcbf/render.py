@@ -46,9 +46,7 @@ def _validate(trajectory, goals, centers, radii, collided):
 
 def _sphere(ax, c, r, **kw):
     u, v = np.mgrid[0 : 2 * np.pi : 16j, 0 : np.pi : 9j]
-    ax.plot_surface(
-        c[0] + r * np.cos(u) * np.sin(v), c[1] + r * np.sin(u) * np.sin(v), c[2] + r * np.cos(v), **kw
-    )
+    ax.plot_surface(c[0] + r * np.cos(u) * np.sin(v), c[1] + r * np.sin(u) * np.sin(v), c[2] + r * np.cos(v), **kw)
 
 
 def render_gif(

@@ -1,8 +1,9 @@
 """Quadrotor dynamics: symmetry, control-affine form, integrator, SO(3) preservation, physics sanity, input checks.
 
 Tolerances: float64 identities hold to 1e-10 relative to max(1, |value|) (observed ~1e-16; 1e-9 for step); float32
-to 1e-5 relative (1e-4 for step; observed ~1e-7). Symmetry: g = (Rz, t) acts by p -> Rz p + t, R -> Rz R, v -> Rz v, w -> w and trivially on
-the body-frame control; on a state derivative it acts without translation (STATE_TANGENT_TYPE).
+to 1e-5 relative (1e-4 for step; observed ~1e-7). Symmetry: g = (Rz, t) acts by p -> Rz p + t, R -> Rz R,
+v -> Rz v, w -> w and trivially on the body-frame control; on a state derivative it acts without translation
+(STATE_TANGENT_TYPE).
 """
 
 from __future__ import annotations

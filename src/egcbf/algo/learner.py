@@ -1,0 +1,317 @@
+"""``GraphCBFLearner``: one learner for GCBF, GCBF+, EGCBF and EGCBF+ (the group and the reference are parameters).
+
+One update (GCBF+'s scheme):
+
+1. roll out ``rollout_envs`` fresh episodes of ``rollout_steps`` steps with the current policy
+   ``u = clip(u_nom + action_scale * pi(G))`` and label them (:func:`egcbf.algo.labels.finite_horizon_labels`);
+2. draw ``memory_trajectories`` older trajectories and ``unsafe_samples`` unsafe graphs (with replacement) from
+   the buffers, then add the new rollout to both buffers;
+3. compute the reference control of every graph: ``u_nom`` (GCBF, EGCBF) or ``u_QP`` from the centralized QP
+   with the *target* CBF (GCBF+, EGCBF+; :mod:`egcbf.algo.qp`);
+4. ``epochs`` passes over the data in shuffled minibatches of ``batch_size`` graphs: the loss of
+   :func:`egcbf.algo.loss.cbf_loss`, gradients of both networks, clipping to ``max_grad_norm`` per network, one
+   AdamW step each;
+5. soft update of the target CBF: ``phi_tgt <- tau phi + (1 - tau) phi_tgt``.
+
+All randomness comes from the config's seed: network initialization from ``torch.manual_seed(seed)``, episode
+resets from ``(seed, update)`` (:func:`rollout_seed`), buffer sampling and shuffling from ``self.generator``
+(saved in checkpoints), so a run is reproducible and a resumed run continues exactly.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections import defaultdict
+
+import torch
+from torch import Tensor
+from torch.func import functional_call
+
+from ..config import TrainConfig
+from ..control.nominal import nominal_control
+from ..dynamics import quadrotor as dyn
+from ..env import EnvConfig, SwarmEnv, SwarmState
+from ..graph import SwarmGraph, build_graph, refresh_graph
+from ..nn import CBFNet, ModelConfig, PolicyNet
+from .actions import normalize, policy_control, unnormalize
+from .buffer import Samples, TrajectoryBuffer, UnsafeBuffer
+from .labels import finite_horizon_labels
+from .loss import cbf_loss
+from .qp import cbf_lie_derivatives, solve_cbf_qp
+
+__all__ = ["DTYPES", "GraphCBFLearner", "LearnedController", "rollout_seed"]
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def rollout_seed(seed: int, update: int) -> int:
+    """The reset seed of the rollout of update ``update`` (a pure function: resuming needs no RNG state)."""
+    return (int(seed) * 7_919_317 + 104_729 * (int(update) + 1)) % (2**62)
+
+
+class LearnedController:
+    """A trained policy as an evaluation controller: ``u, info = ctrl(state, env_config)``.
+
+    Builds the graph of ``state`` (casting LiDAR), runs the policy and returns the applied control
+    ``clip(u_nom + action_scale * u_max * pi)`` in physical units; ``info["u_ref"]`` is the nominal control.
+    """
+
+    name = "learned"
+
+    def __init__(self, policy: PolicyNet, model_config: ModelConfig):
+        self.policy = policy
+        self.model_config = model_config
+
+    @torch.no_grad()
+    def __call__(self, state: SwarmState, env_config: EnvConfig) -> tuple[Tensor, dict]:
+        t0 = time.perf_counter()
+        p = next(self.policy.parameters())
+        s = state if state.x.dtype == p.dtype and state.x.device == p.device else state.to(p.device, dtype=p.dtype)
+        graph = build_graph(s, env_config)
+        u, u_nom = act(self.policy, self.model_config, graph, s, env_config.params)
+        u = u.to(state.x.dtype).to(state.x.device)
+        info = {"u_ref": u_nom.to(u), "num_slack": 0, "num_failed": 0, "ctrl_ms": 1e3 * (time.perf_counter() - t0)}
+        return u, info
+
+
+def act(
+    policy: PolicyNet, model_config: ModelConfig, graph: SwarmGraph, state: SwarmState, params: dyn.QuadrotorParams
+) -> tuple[Tensor, Tensor]:
+    """The policy's control ``(B, N, 4)`` in physical units, and the nominal control it started from."""
+    b, n, _ = state.x.shape
+    residual = policy(graph).view(b, n, 4)
+    u_nom = nominal_control(state.x, state.goals, params)
+    u = unnormalize(policy_control(residual, u_nom, model_config.action_scale, params), params)
+    return u, u_nom
+
+
+class GraphCBFLearner:
+    """Networks, target CBF, optimizers, buffers and the update of one method (module doc).
+
+    ``GraphCBFLearner(TrainConfig.preset("egcbf+", "cpu"))``; ``info = learner.update()`` once per training step;
+    ``learner.controller()`` for evaluation; ``state_dicts()`` / ``load_state_dicts()`` for checkpoints.
+    """
+
+    def __init__(self, config: TrainConfig, device: str | torch.device | None = None, dtype: torch.dtype | None = None):
+        self.config = config
+        self.device = torch.device(device if device is not None else config.device)
+        self.dtype = dtype or DTYPES[config.dtype]
+        self.env_config = config.env_config()
+        self.params = self.env_config.params
+        torch.manual_seed(config.seed)
+        self.cbf = CBFNet(config.model).to(self.device, self.dtype)
+        self.policy = PolicyNet(config.model).to(self.device, self.dtype)
+        self.cbf_target = copy.deepcopy(self.cbf).requires_grad_(False)
+        self.opt_cbf = torch.optim.AdamW(self.cbf.parameters(), lr=config.lr_cbf, weight_decay=config.weight_decay)
+        self.opt_policy = torch.optim.AdamW(
+            self.policy.parameters(), lr=config.lr_policy, weight_decay=config.weight_decay
+        )
+        self.buffer = TrajectoryBuffer(config.buffer_trajectories)
+        self.unsafe_buffer = UnsafeBuffer(config.unsafe_buffer_size)
+        self.generator = torch.Generator().manual_seed(config.seed + 1)
+        self.step = 0
+
+    # ------------------------------------------------------------------------------------------------ acting
+    def controller(self) -> LearnedController:
+        return LearnedController(self.policy, self.config.model)
+
+    @torch.no_grad()
+    def collect(self, seed: int) -> Samples:
+        """Roll out ``rollout_envs`` episodes of ``rollout_steps`` steps from ``reset(seed)`` with the current
+        policy; returns labelled samples ``(B, L, ...)`` (one row per trajectory)."""
+        cfg = self.env_config
+        env = SwarmEnv(cfg, device=self.device, dtype=self.dtype)
+        state = env.reset(seed)
+        unsafe = env.info(state).unsafe
+        xs, pts, valid, uns = [], [], [], []
+        for _ in range(self.config.rollout_steps):
+            scan = env.lidar(state)
+            graph = build_graph(state, cfg, lidar=scan)
+            xs.append(state.x)
+            pts.append(scan.points)
+            valid.append(scan.valid)
+            uns.append(unsafe)
+            u, _ = act(self.policy, self.config.model, graph, state, self.params)
+            state, info = env.step(state, u)
+            unsafe = info.unsafe
+        unsafe_t = torch.stack(uns)  # (L, B, N)
+        safe_t, unsafe_t = finite_horizon_labels(unsafe_t, self.config.horizon, self.config.truncated_safe)
+        length = len(xs)
+
+        def per_traj(t: Tensor) -> Tensor:  # (B, ...) -> (B, L, ...)
+            return t[:, None].expand(t.shape[0], length, *t.shape[1:]).contiguous()
+
+        return Samples(
+            x=torch.stack(xs, 1),
+            goals=per_traj(state.goals),
+            centers=per_traj(state.obstacles.centers),
+            radii=per_traj(state.obstacles.radii),
+            hit_points=torch.stack(pts, 1),
+            hit_valid=torch.stack(valid, 1),
+            safe=safe_t.transpose(0, 1).contiguous(),
+            unsafe=unsafe_t.transpose(0, 1).contiguous(),
+        )
+
+    # --------------------------------------------------------------------------------------------- targets
+    @torch.no_grad()
+    def reference(self, data: Samples) -> tuple[Tensor, dict]:
+        """The normalized reference control ``(S, N, 4)`` of every sample, and QP statistics (empty for nominal)."""
+        cfg = self.config
+        u_nom = nominal_control(data.x, data.goals, self.params)
+        if cfg.reference == "nominal":
+            return normalize(u_nom, self.params), {}
+        out, stats = [], defaultdict(float)
+        t0 = time.perf_counter()
+        for k in range(0, len(data), cfg.qp_chunk):
+            chunk = data[k : k + cfg.qp_chunk]
+            graph = chunk.graph(self.env_config)
+            h, lf, lg = cbf_lie_derivatives(self.cbf_target, graph, chunk.x, self.params)
+            res = solve_cbf_qp(
+                h, lf, lg, u_nom[k : k + cfg.qp_chunk], alpha=cfg.qp_alpha, params=self.params,
+                slack_linear=cfg.qp_slack_linear, slack_quadratic=cfg.qp_slack_quadratic, tol=cfg.qp_tol,
+                max_iter=cfg.qp_max_iter, chunk=cfg.qp_chunk,
+            )  # fmt: skip
+            out.append(res.u.to(self.dtype))
+            s = res.stats()
+            for key in ("num_slack", "num_failed", "num_constraints"):
+                stats[key] += s[key]
+            stats["max_slack"] = max(stats["max_slack"], s["max_slack"])
+            stats["iterations"] = max(stats["iterations"], res.iterations)
+        stats["ms"] = 1e3 * (time.perf_counter() - t0)
+        return torch.cat(out), dict(stats)
+
+    # ------------------------------------------------------------------------------------------------ loss
+    def loss(self, batch: Samples, u_ref: Tensor) -> dict[str, Tensor]:
+        """The loss terms of a minibatch ``(S, ...)`` against its normalized reference controls ``(S, N, 4)``."""
+        cfg, env_cfg = self.config, self.env_config
+        graph = batch.graph(env_cfg)
+        s, n = batch.x.shape[:2]
+        h = self.cbf(graph)
+        residual = self.policy(graph).view(s, n, 4)
+        u_nom = nominal_control(batch.x, batch.goals, self.params)
+        u = policy_control(residual, u_nom, cfg.model.action_scale, self.params)
+        x_next = dyn.step(batch.x, unnormalize(u, self.params), env_cfg.dt, self.params, env_cfg.substeps,
+                          env_cfg.integrator)  # fmt: skip
+        graph_next = refresh_graph(graph, x_next)
+        h_next = self.cbf(graph_next)
+        frozen = {k: v.detach() for k, v in self.cbf.named_parameters()}
+        h_next_frozen = functional_call(self.cbf, frozen, (graph_next,))
+        return cbf_loss(
+            h, h_next, batch.safe.reshape(-1), batch.unsafe.reshape(-1), u.reshape(-1, 4), u_ref.reshape(-1, 4),
+            env_cfg.dt, gamma=cfg.gamma, alpha=cfg.alpha, eta_d=cfg.eta_d, eta_c=cfg.eta_c, eta_safe=cfg.eta_safe,
+            eta_unsafe=cfg.eta_unsafe, control=cfg.control_loss, h_next_frozen=h_next_frozen,
+        )  # fmt: skip
+
+    def train_step(self, batch: Samples, u_ref: Tensor) -> dict[str, float]:
+        """One gradient step of both networks on a minibatch; returns the loss terms and gradient norms."""
+        terms = self.loss(batch, u_ref)
+        self.opt_cbf.zero_grad(set_to_none=True)
+        self.opt_policy.zero_grad(set_to_none=True)
+        terms["total"].backward()
+        gn_cbf = torch.nn.utils.clip_grad_norm_(self.cbf.parameters(), self.config.max_grad_norm)
+        gn_pol = torch.nn.utils.clip_grad_norm_(self.policy.parameters(), self.config.max_grad_norm)
+        self.opt_cbf.step()
+        self.opt_policy.step()
+        out = {k: float(v.detach()) for k, v in terms.items()}
+        out["grad_norm_cbf"], out["grad_norm_policy"] = float(gn_cbf), float(gn_pol)
+        return out
+
+    @torch.no_grad()
+    def soft_update_target(self) -> None:
+        tau = self.config.target_tau
+        for pt, p in zip(self.cbf_target.parameters(), self.cbf.parameters()):
+            pt.lerp_(p, tau)
+
+    # ---------------------------------------------------------------------------------------------- update
+    def assemble(self, rollout: Samples) -> Samples:
+        """Step 2 of the update: the training data of this update (and the rollout stored in the buffers)."""
+        cfg = self.config
+        memory = self.buffer.sample(cfg.memory_trajectories, self.generator)
+        unsafe = self.unsafe_buffer.sample(cfg.unsafe_samples, self.generator)
+        self.buffer.append(rollout)
+        flat = rollout.flatten()
+        self.unsafe_buffer.add(flat)
+        return Samples.cat([flat, None if memory is None else memory.flatten(), unsafe])
+
+    def fit(self, data: Samples, u_ref: Tensor, epochs: int | None = None) -> dict[str, float]:
+        """Step 4: ``epochs`` shuffled passes in minibatches; returns the mean of each term over the last epoch."""
+        cfg = self.config
+        n = len(data)
+        last: dict[str, list[float]] = defaultdict(list)
+        for _ in range(cfg.epochs if epochs is None else epochs):
+            last.clear()
+            perm = torch.randperm(n, generator=self.generator).to(data.x.device)
+            for idx in torch.tensor_split(perm, max(1, n // cfg.batch_size)):
+                for k, v in self.train_step(data[idx], u_ref[idx]).items():
+                    last[k].append(v)
+        return {k: sum(v) / len(v) for k, v in last.items()}
+
+    def update(self) -> dict[str, float]:
+        """One training update (module doc); returns losses, label counts, QP statistics and timings."""
+        t0 = time.perf_counter()
+        rollout = self.collect(rollout_seed(self.config.seed, self.step))
+        t1 = time.perf_counter()
+        data = self.assemble(rollout)
+        u_ref, qp = self.reference(data)
+        t2 = time.perf_counter()
+        info = {f"loss/{k}": v for k, v in self.fit(data, u_ref).items()}
+        self.soft_update_target()
+        self.step += 1
+        t3 = time.perf_counter()
+        labelled = data.safe | data.unsafe
+        info.update(
+            {
+                "data/graphs": float(len(data)),
+                "data/safe": float(data.safe.sum()),
+                "data/unsafe": float(data.unsafe.sum()),
+                "data/unlabelled": float((~labelled).sum()),
+                "data/rollout_unsafe_frac": float(rollout.unsafe.any(1).float().mean()),
+                "buffer/trajectories": float(len(self.buffer)),
+                "buffer/unsafe": float(len(self.unsafe_buffer)),
+                "time/rollout_s": t1 - t0,
+                "time/reference_s": t2 - t1,
+                "time/fit_s": t3 - t2,
+                "time/update_s": t3 - t0,
+            }
+        )
+        info.update({f"qp/{k}": float(v) for k, v in qp.items()})
+        return info
+
+    # ------------------------------------------------------------------------------------------ checkpoints
+    def weights(self) -> dict[str, Tensor]:
+        """All network weights, prefixed ``cbf.``, ``policy.``, ``cbf_target.`` (for safetensors)."""
+        out = {}
+        for prefix, net in (("cbf", self.cbf), ("policy", self.policy), ("cbf_target", self.cbf_target)):
+            out.update({f"{prefix}.{k}": v.detach().contiguous() for k, v in net.state_dict().items()})
+        return out
+
+    def load_weights(self, weights: dict[str, Tensor]) -> None:
+        for prefix, net in (("cbf", self.cbf), ("policy", self.policy), ("cbf_target", self.cbf_target)):
+            sd = {k[len(prefix) + 1 :]: v for k, v in weights.items() if k.startswith(prefix + ".")}
+            net.load_state_dict(sd)
+
+    def training_state(self) -> dict:
+        """Optimizer states and the sampling generator's state (for ``torch.save``; loads with weights_only)."""
+        return {
+            "opt_cbf": self.opt_cbf.state_dict(),
+            "opt_policy": self.opt_policy.state_dict(),
+            "generator": self.generator.get_state(),
+            "step": self.step,
+        }
+
+    def load_training_state(self, state: dict) -> None:
+        self.opt_cbf.load_state_dict(state["opt_cbf"])
+        self.opt_policy.load_state_dict(state["opt_policy"])
+        self.generator.set_state(state["generator"])
+        self.step = int(state["step"])
+
+    def buffers(self) -> dict[str, Tensor]:
+        return {**self.buffer.state_dict(), **self.unsafe_buffer.state_dict()}
+
+    def load_buffers(self, sd: dict[str, Tensor]) -> None:
+        self.buffer.load_state_dict(sd)
+        self.unsafe_buffer.load_state_dict(sd)
+        for buf in (self.buffer, self.unsafe_buffer):
+            if buf.data is not None:
+                buf.data = buf.data.to(self.device)

@@ -1,0 +1,261 @@
+"""Typed training configuration: one dataclass, two presets, JSON round trip.
+
+    cfg = TrainConfig.preset("egcbf+", "cpu")          # or "paper"
+    cfg = TrainConfig.from_json(path)                   # what every checkpoint stores beside its weights
+
+The four methods are points of one grid (``METHODS``): the symmetry group of the networks times the reference
+controller of the control loss::
+
+    gcbf   = (trivial, nominal)    gcbf+  = (trivial, qp)
+    egcbf  = (se2xr,   nominal)    egcbf+ = (se2xr,   qp)
+
+``algo`` names the point; ``model.group`` and ``reference`` are set from it (and checked against it when a config
+file gives them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .env import EnvConfig
+from .nn.models import ModelConfig
+
+__all__ = ["METHODS", "PRESETS", "TrainConfig"]
+
+#: method name -> (group of the networks, reference controller of the control loss)
+METHODS: dict[str, tuple[str, str]] = {
+    "gcbf": ("trivial", "nominal"),
+    "gcbf+": ("trivial", "qp"),
+    "egcbf": ("se2xr", "nominal"),
+    "egcbf+": ("se2xr", "qp"),
+}
+PRESETS = ("cpu", "paper", "tiny")
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run needs; saved as JSON beside every checkpoint.
+
+    Method: ``algo`` (one of :data:`METHODS`), ``reference`` (``"nominal"`` or ``"qp"``, set from ``algo``),
+    ``model`` (:class:`egcbf.nn.ModelConfig`, its ``group`` set from ``algo``).
+
+    Training environment: ``num_agents``, ``area_size``, ``num_obstacles`` and ``env_overrides`` (any other
+    :class:`egcbf.env.EnvConfig` field, e.g. ``{"comm_radius": 1.0}``); the episode length of the rollouts is
+    ``rollout_steps``.
+
+    Data (GCBF+): every update rolls out ``rollout_envs`` environments for ``rollout_steps`` steps with the
+    current policy (fresh episodes), labels them with look-ahead ``horizon`` (``truncated_safe``: see
+    :mod:`egcbf.algo.labels`), and trains on those graphs plus ``memory_trajectories`` trajectories drawn from the
+    last ``buffer_trajectories`` ones plus ``unsafe_samples`` graphs drawn with replacement from the last
+    ``unsafe_buffer_size`` graphs with an unsafe agent.
+
+    Optimization: ``epochs`` passes over that data in minibatches of ``batch_size`` graphs; AdamW
+    (``lr_cbf``, ``lr_policy``, ``weight_decay``), gradient norm clipped to ``max_grad_norm`` per network.
+
+    Loss (:func:`egcbf.algo.loss.cbf_loss`): ``gamma``, ``alpha``, ``eta_d``, ``eta_c``, ``eta_safe``,
+    ``eta_unsafe``, ``control_loss`` (``"squared"`` or ``"norm"``).
+
+    QP target (:mod:`egcbf.algo.qp`): ``qp_alpha`` (the constraint's class-K slope; GCBF+ uses 0.1 alpha),
+    ``qp_slack_linear``/``qp_slack_quadratic`` (slack cost ``w1 s + w2 s^2 / 2``), ``qp_tol``, ``qp_max_iter``,
+    ``qp_chunk`` (environments per batched solve), ``target_tau`` (soft update of the target CBF after each update).
+
+    Run: ``steps`` (updates), ``seed``, ``device``, ``dtype``, ``deterministic``
+    (``torch.use_deterministic_algorithms``), ``num_threads`` (0: leave torch's default), ``eval_interval``,
+    ``eval_episodes``, ``eval_num_agents``, ``eval_area_size``, ``eval_num_obstacles``, ``eval_max_steps``
+    (periodic evaluation rollouts; ``eval_*=None``: the training values, 256-step episodes),
+    ``checkpoint_interval``, ``keep_checkpoints`` (0: keep all), ``save_buffers`` (store the replay buffers in
+    checkpoints so that ``--resume`` continues bit for bit).
+    """
+
+    algo: str = "egcbf+"
+    reference: str = "qp"
+    model: ModelConfig = field(default_factory=ModelConfig)
+    # training environment
+    num_agents: int = 8
+    area_size: float = 2.0
+    num_obstacles: int = 5
+    env_overrides: dict[str, Any] = field(default_factory=dict)
+    # data
+    rollout_envs: int = 4
+    rollout_steps: int = 128
+    horizon: int = 32
+    truncated_safe: bool = True
+    buffer_trajectories: int = 64
+    memory_trajectories: int = 4
+    unsafe_buffer_size: int = 256
+    unsafe_samples: int = 256
+    # optimization
+    epochs: int = 2
+    batch_size: int = 128
+    lr_cbf: float = 1e-4
+    lr_policy: float = 1e-5
+    weight_decay: float = 1e-3
+    max_grad_norm: float = 2.0
+    # loss
+    gamma: float = 0.02
+    alpha: float = 1.0
+    eta_d: float = 0.2
+    eta_c: float = 1.0
+    eta_safe: float = 1.0
+    eta_unsafe: float = 1.0
+    control_loss: str = "squared"
+    # QP target
+    qp_alpha: float = 0.1
+    qp_slack_linear: float = 1e3
+    qp_slack_quadratic: float = 10.0
+    qp_tol: float = 1e-8
+    qp_max_iter: int = 50
+    qp_chunk: int = 1024
+    target_tau: float = 0.5
+    # run
+    steps: int = 1000
+    seed: int = 0
+    device: str = "cpu"
+    dtype: str = "float32"
+    deterministic: bool = True
+    num_threads: int = 0
+    eval_interval: int = 10
+    eval_episodes: int = 8
+    eval_num_agents: int | None = None
+    eval_area_size: float | None = None
+    eval_num_obstacles: int | None = None
+    eval_max_steps: int | None = None
+    checkpoint_interval: int = 25
+    keep_checkpoints: int = 3
+    save_buffers: bool = True
+
+    def __post_init__(self) -> None:
+        if isinstance(self.model, dict):
+            self.model = ModelConfig(**self.model)
+        if self.algo not in METHODS:
+            raise ValueError(f"TrainConfig.algo must be one of {sorted(METHODS)}, got {self.algo!r}")
+        group, reference = METHODS[self.algo]
+        if self.reference != reference or self.model.group != group:
+            raise ValueError(
+                f"TrainConfig: algo {self.algo!r} means group={group!r}, reference={reference!r}, but the config "
+                f"has group={self.model.group!r}, reference={self.reference!r}"
+            )
+
+        def need(ok: bool, name: str, what: str) -> None:
+            if not ok:
+                raise ValueError(f"TrainConfig.{name} must be {what}, got {getattr(self, name)!r}")
+
+        for name in ("rollout_envs", "rollout_steps", "buffer_trajectories", "unsafe_buffer_size", "epochs",
+                     "batch_size", "steps", "eval_interval", "eval_episodes", "checkpoint_interval", "qp_max_iter",
+                     "qp_chunk"):  # fmt: skip
+            v = getattr(self, name)
+            need(isinstance(v, int) and not isinstance(v, bool) and v >= 1, name, "an integer >= 1")
+        for name in ("horizon", "memory_trajectories", "unsafe_samples", "keep_checkpoints", "num_threads"):
+            v = getattr(self, name)
+            need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, name, "an integer >= 0")
+        for name in ("lr_cbf", "lr_policy", "max_grad_norm", "qp_tol", "qp_slack_quadratic"):
+            v = getattr(self, name)
+            need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, name, "a finite number > 0")
+        for name in ("weight_decay", "gamma", "alpha", "eta_d", "eta_c", "eta_safe", "eta_unsafe", "qp_alpha",
+                     "qp_slack_linear"):  # fmt: skip
+            v = getattr(self, name)
+            need(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0, name, "a finite number >= 0")
+        need(0 <= self.target_tau <= 1, "target_tau", "in [0, 1]")
+        need(self.control_loss in ("squared", "norm"), "control_loss", "'squared' or 'norm'")
+        need(self.dtype in ("float32", "float64"), "dtype", "'float32' or 'float64'")
+        self.env_config()  # validates the environment fields
+
+    # ------------------------------------------------------------------------------------------- derived
+    @property
+    def group(self) -> str:
+        return self.model.group
+
+    def env_config(self, **changes) -> EnvConfig:
+        """The training environment's :class:`EnvConfig` (``num_envs = rollout_envs``), with ``changes``."""
+        kw = dict(self.env_overrides)
+        kw.update(
+            num_agents=self.num_agents,
+            area_size=self.area_size,
+            num_obstacles=self.num_obstacles,
+            num_envs=self.rollout_envs,
+            max_steps=self.rollout_steps,
+        )
+        kw.update(changes)
+        return EnvConfig(**kw)
+
+    def eval_env_config(self) -> EnvConfig:
+        """The evaluation environment (training values where the ``eval_*`` fields are ``None``)."""
+        ch = {"num_envs": self.eval_episodes}
+        for f, key in (("eval_num_agents", "num_agents"), ("eval_area_size", "area_size"),
+                       ("eval_num_obstacles", "num_obstacles")):  # fmt: skip
+            if getattr(self, f) is not None:
+                ch[key] = getattr(self, f)
+        ch["max_steps"] = self.eval_max_steps if self.eval_max_steps is not None else EnvConfig().max_steps
+        return self.env_config(**ch)
+
+    # ------------------------------------------------------------------------------------------- presets
+    @classmethod
+    def preset(cls, algo: str, name: str = "cpu", **changes) -> TrainConfig:
+        """The config of method ``algo`` under preset ``name``:
+
+        * ``"cpu"``: the default CPU recipe (8 agents, ``l = 2``, 5 obstacles; 4 environments x 128 steps per
+          update, 2 epochs of ~10 minibatches of 128 graphs; the paper's learning rates and loss constants);
+        * ``"paper"``: GCBF+'s CrazyFlie settings, which the paper says it follows (16 environments x 256-step
+          episodes per update, buffers of 512 trajectories and 256 unsafe graphs, 8 epochs x 48 minibatches of
+          256 graphs, 1000 updates, ``eta_c = 3e-5``) with the paper's ``gamma = 0.02``, ``eta_d = 0.2``,
+          ``alpha = 1``; for a GPU;
+        * ``"tiny"``: a seconds-long smoke configuration (tests).
+
+        ``changes`` override fields (``model`` may be a dict of :class:`ModelConfig` overrides).
+        """
+        if algo not in METHODS:
+            raise ValueError(f"unknown algo {algo!r}; choose one of {sorted(METHODS)}")
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
+        group, reference = METHODS[algo]
+        model = {"group": group}
+        base: dict[str, Any] = {"num_threads": 1}  # small matrices: one thread is as fast, and never oversubscribes
+        if name == "paper":
+            model.update(hidden=128, head_hidden=256)
+            base.update(
+                rollout_envs=16, rollout_steps=256, buffer_trajectories=512, memory_trajectories=16,
+                unsafe_buffer_size=256, unsafe_samples=16 * 256, epochs=8, batch_size=256, eta_c=3e-5,
+                steps=1000, eval_interval=10, eval_episodes=32, checkpoint_interval=10, keep_checkpoints=0,
+                device="cuda", num_threads=0,
+            )  # fmt: skip
+        elif name == "tiny":
+            model.update(hidden=16, heads=2, head_hidden=16)
+            base.update(
+                num_agents=3, area_size=1.5, num_obstacles=1, env_overrides={"n_rays": 8, "lidar_max_hits": 4},
+                rollout_envs=2, rollout_steps=12, horizon=4, buffer_trajectories=8, memory_trajectories=2,
+                unsafe_buffer_size=16, unsafe_samples=8, epochs=1, batch_size=8, steps=4, eval_interval=2,
+                eval_episodes=2, eval_max_steps=12, checkpoint_interval=2, lr_cbf=1e-3, lr_policy=1e-3,
+            )  # fmt: skip
+        model.update(changes.pop("model", {}) or {})
+        base.update(changes)
+        return cls(algo=algo, reference=reference, model=ModelConfig(**model), **base)
+
+    # ------------------------------------------------------------------------------------------- JSON
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        d = dict(d)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown TrainConfig fields: {unknown}")
+        if isinstance(d.get("model"), dict):
+            d["model"] = ModelConfig(**d["model"])
+        return cls(**d)
+
+    def to_json(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def from_json(cls, path: str | Path) -> TrainConfig:
+        return cls.from_dict(json.loads(Path(path).read_text()))
+
+    def replace(self, **changes) -> TrainConfig:
+        return dataclasses.replace(self, **changes)

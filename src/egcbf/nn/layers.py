@@ -1,0 +1,68 @@
+"""The graph transformer layer of the paper (its "Graphormer" block), written as a plain, unconstrained layer.
+
+    f_v' = mu( f_v + A(F)_v ),   A(F)_v = sum_{u in N(v)} softmax_u( q_v . k_{uv} ) v_{uv}
+
+One layer reads the bipartite graph of :mod:`egcbf.graph` (senders: agents, goals, LiDAR hits; receivers:
+agents) and returns one feature vector per receiver:
+
+* node encoder: an MLP on the raw 18 node channels (kind one-hot, v, R, w), shared by senders and receivers;
+* edge encoder: an MLP on ``[dp, |dp|]`` (the relative position of the sender and its length);
+* local multi-head attention over each receiver's incoming edges: ``torch_geometric.nn.TransformerConv`` with the
+  encoded edge as ``edge_dim`` input (keys and values see the edge), no root weight (the residual is explicit);
+* residual ``z = f_v + A(F)_v`` and a feed-forward block with its own residual, ``out = z + FF(LayerNorm(z))``.
+
+The layer has no notion of a group: equivariance is added from outside by :class:`groupcanon.Canonicalize`,
+which feeds it every neighbourhood already expressed in the receiver's frame (see :mod:`egcbf.nn.models`).
+Its ``forward`` takes a ``(x_src, x_dst)`` pair, as Canonicalize's ``pair`` mode calls it.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import torch
+from torch import Tensor, nn
+from torch_geometric.nn import TransformerConv
+
+__all__ = ["GraphTransformerLayer", "mlp"]
+
+
+def mlp(sizes: list[int], act: type[nn.Module] = nn.SiLU, last_act: bool = False) -> nn.Sequential:
+    """A plain MLP ``sizes[0] -> ... -> sizes[-1]`` with ``act`` between layers (and after the last if asked)."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(itertools.pairwise(sizes)):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2 or last_act:
+            layers.append(act())
+    return nn.Sequential(*layers)
+
+
+class GraphTransformerLayer(nn.Module):
+    """Encoders + local attention + residual + feed-forward (module doc).
+
+    Args:
+        node_dim: raw node channels (18 for :data:`egcbf.graph.NODE_TYPE`).
+        edge_dim: raw edge channels (3: the relative position ``dp``); ``|dp|`` is appended inside.
+        hidden: width of every hidden representation and of the output.
+        heads: attention heads (``hidden`` must be divisible by ``heads``).
+    """
+
+    def __init__(self, node_dim: int, edge_dim: int, hidden: int = 64, heads: int = 4):
+        super().__init__()
+        if hidden % heads:
+            raise ValueError(f"hidden ({hidden}) must be divisible by heads ({heads})")
+        self.node_dim, self.edge_dim, self.hidden, self.heads = node_dim, edge_dim, hidden, heads
+        self.node_enc = mlp([node_dim, hidden, hidden], last_act=True)
+        self.edge_enc = mlp([edge_dim + 1, hidden, hidden], last_act=True)
+        self.attn = TransformerConv(
+            hidden, hidden // heads, heads=heads, concat=True, edge_dim=hidden, root_weight=False
+        )
+        self.norm = nn.LayerNorm(hidden)
+        self.ff = mlp([hidden, 2 * hidden, hidden])
+
+    def forward(self, x: tuple[Tensor, Tensor], edge_index: Tensor, edge_attr: Tensor) -> Tensor:
+        x_src, x_dst = x
+        h_src, h_dst = self.node_enc(x_src), self.node_enc(x_dst)
+        e = self.edge_enc(torch.cat((edge_attr, edge_attr.norm(dim=-1, keepdim=True)), dim=-1))
+        z = h_dst + self.attn((h_src, h_dst), edge_index, edge_attr=e)
+        return z + self.ff(self.norm(z))

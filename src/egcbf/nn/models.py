@@ -1,0 +1,170 @@
+"""The CBF and policy networks: one graph transformer layer made equivariant by canonicalization, plus an MLP head.
+
+Both follow the paper (Architecture & Training)::
+
+    h_phi(G_i)    = m_phi2 ( phi_{g_i^-1} M_phi1(G_i) )                    (invariant scalar, tanh-bounded)
+    pi_theta(G_i) = psi_{g_i} m_theta2 ( phi_{g_i^-1} M_theta1(G_i) )      (body-frame control residual)
+
+``M`` is :class:`~egcbf.nn.layers.GraphTransformerLayer` wrapped with ``groupcanon.Canonicalize`` over the group
+named in the config: ``"se2xr"`` (EGCBF, EGCBF+) or ``"trivial"`` (GCBF, GCBF+). It is the *same code*: with the
+trivial group every action is the identity, so the layer sees world-frame features and the network is the
+ordinary non-equivariant GNN. The layer's output type is ``Scalar(hidden)`` (invariant features expressed in the
+receiver's frame), so the heads are plain MLPs and both outputs are invariant: the CBF value by construction, the
+policy output because the control ``u = (tau, F3)`` lives in the body frame, on which SE(2) x R acts trivially
+(``psi_g(u) = u``; :data:`egcbf.dynamics.quadrotor.CONTROL_TYPE`). Equivalently the policy is equivariant as a map
+from world-frame states to body-frame controls.
+
+CBF and policy are separate networks (GCBF+), each with its own graph layer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import Tensor, nn
+
+from groupcanon import Canonicalize, FieldType, Group
+from groupcanon.features import Rotation, Scalar, Vector
+from groupcanon.groups import SE2xR, Trivial
+
+from ..graph import NODE_DIM, SwarmGraph
+from .layers import GraphTransformerLayer, mlp
+
+__all__ = [
+    "GROUPS",
+    "CBFNet",
+    "GraphEncoder",
+    "ModelConfig",
+    "PolicyNet",
+    "edge_type",
+    "frames_for",
+    "make_group",
+    "node_type",
+]
+
+GROUPS = {"se2xr": SE2xR, "trivial": Trivial}
+
+
+def make_group(name: str) -> Group:
+    """The group of a config name: ``"se2xr"`` or ``"trivial"``."""
+    try:
+        return GROUPS[name]()
+    except KeyError:
+        raise ValueError(f"unknown group {name!r}; choose one of {sorted(GROUPS)}") from None
+
+
+def node_type(group: Group) -> FieldType:
+    """:data:`egcbf.graph.NODE_TYPE` declared over ``group`` (kind one-hot, world velocity, attitude, body rate)."""
+    return FieldType(group, {"kind": Scalar(3), "v": Vector(3), "R": Rotation(3), "w": Scalar(3)})
+
+
+def edge_type(group: Group) -> FieldType:
+    """:data:`egcbf.graph.EDGE_TYPE` declared over ``group`` (the relative position, a vector)."""
+    return FieldType(group, {"dp": Vector(3)})
+
+
+def frames_for(group: Group, graph: SwarmGraph) -> Tensor:
+    """The receivers' frames as elements of ``group``: the graph's SE2xR frames, or identities of another group."""
+    if isinstance(group, SE2xR):
+        return graph.frames
+    if isinstance(group, Trivial):
+        return group.identity(graph.num_dst, dtype=graph.x_dst.dtype, device=graph.x_dst.device)
+    raise ValueError(f"no frames for {group}: the swarm graph carries SE2xR frames")
+
+
+@dataclass
+class ModelConfig:
+    """Architecture of the CBF and policy networks.
+
+    Attributes:
+        group: ``"se2xr"`` (equivariant: EGCBF, EGCBF+) or ``"trivial"`` (GCBF, GCBF+).
+        hidden: width of the graph layer (encoders, attention, output).
+        heads: attention heads.
+        head_hidden: width of the two hidden layers of the MLP heads.
+        self_loops: let each receiver attend to itself as well (Canonicalize's ``self_loops``); off by default
+            because every agent always has its goal edge and the residual already carries its own features.
+        action_scale: the policy output ``tanh(.)`` in ``[-1, 1]^4`` is multiplied by this (in units of the
+            actuator box) and added to the nominal control (GCBF+: 2, so the residual can cross the whole box).
+        policy_init_scale: the last layer of the policy head is initialised with weights scaled by this and zero
+            bias, so that an untrained policy stays close to the nominal controller.
+    """
+
+    group: str = "se2xr"
+    hidden: int = 64
+    heads: int = 4
+    head_hidden: int = 64
+    self_loops: bool = False
+    action_scale: float = 2.0
+    policy_init_scale: float = 0.1
+
+    def __post_init__(self) -> None:
+        make_group(self.group)
+        if self.hidden < 1 or self.heads < 1 or self.hidden % self.heads:
+            raise ValueError(f"ModelConfig: hidden ({self.hidden}) must be a positive multiple of heads ({self.heads})")
+        if self.head_hidden < 1:
+            raise ValueError(f"ModelConfig.head_hidden must be >= 1, got {self.head_hidden}")
+        if not self.action_scale > 0:
+            raise ValueError(f"ModelConfig.action_scale must be > 0, got {self.action_scale}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class GraphEncoder(nn.Module):
+    """The canonicalized graph transformer layer: ``SwarmGraph -> (M, hidden)`` invariant agent features."""
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        self.group = make_group(config.group)
+        nt, et = node_type(self.group), edge_type(self.group)
+        out = FieldType(self.group, [Scalar(config.hidden)])
+        canon = Canonicalize(
+            self.group, in_type=(nt, nt), out_type=out, edge_type=et, mode="pair", self_loops=config.self_loops
+        )
+        self.layer = canon(GraphTransformerLayer(NODE_DIM, 3, config.hidden, config.heads))
+
+    def forward(self, graph: SwarmGraph) -> Tensor:
+        frames = frames_for(self.group, graph)
+        return self.layer((graph.x_src, graph.x_dst), graph.edge_index, frames=frames, edge_attr=graph.edge_attr)
+
+
+class CBFNet(nn.Module):
+    """The graph CBF ``h_i = tanh(m(M(G_i)))`` in ``(-1, 1)``: one invariant scalar per agent, ``(M,)``."""
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        self.config = config
+        self.encoder = GraphEncoder(config)
+        self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, 1])
+
+    def raw(self, graph: SwarmGraph) -> Tensor:
+        """The pre-``tanh`` value ``(M,)``."""
+        return self.head(self.encoder(graph)).squeeze(-1)
+
+    def forward(self, graph: SwarmGraph) -> Tensor:
+        return torch.tanh(self.raw(graph))
+
+
+class PolicyNet(nn.Module):
+    """The policy residual ``pi_i = tanh(m(M(G_i)))`` in ``[-1, 1]^4`` (body frame, in units of the actuator box).
+
+    The applied control is ``clip(u_nom + action_scale * u_max * pi)``: see :func:`egcbf.algo.actions.policy_control`.
+    """
+
+    def __init__(self, config: ModelConfig, action_dim: int = 4):
+        super().__init__()
+        self.config = config
+        self.encoder = GraphEncoder(config)
+        self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, action_dim])
+        last = self.head[-1]
+        with torch.no_grad():
+            last.weight.mul_(config.policy_init_scale)
+            last.bias.zero_()
+
+    def raw(self, graph: SwarmGraph) -> Tensor:
+        """The pre-``tanh`` output ``(M, 4)``."""
+        return self.head(self.encoder(graph))
+
+    def forward(self, graph: SwarmGraph) -> Tensor:
+        return torch.tanh(self.raw(graph))

@@ -1,0 +1,322 @@
+"""Training runs: the loop, logging, evaluation rollouts, checkpoints and resuming.
+
+    from egcbf.config import TrainConfig
+    from egcbf.train import train
+    train(TrainConfig.preset("egcbf+", "cpu", steps=200), "runs/egcbf+")
+
+Layout of a run directory ``OUT``::
+
+    OUT/config.json                 the run's TrainConfig
+    OUT/metrics.csv                 evaluation rollouts: step, wall_s, safe/reach/success rates, cost, reward
+    OUT/scalars.csv                 every logged scalar, long format (step, wall_s, tag, value)
+    OUT/tb/                         TensorBoard events (only if the ``tensorboard`` package is importable)
+    OUT/checkpoints/step_000100/    config.json, model.safetensors (cbf., policy., cbf_target. weights),
+                                    training_state.pt (optimizer states and RNG state; loads with weights_only),
+                                    buffers.safetensors (replay buffers; newest checkpoint only),
+                                    state.json (step, wall time, versions)
+
+A checkpoint directory alone is enough to evaluate (:func:`load_controller`). Checkpoints are written to a
+temporary directory and renamed, so an interrupted write never leaves a half checkpoint; ``resume=True`` continues
+from the newest one (losing at most ``checkpoint_interval`` updates), truncating the CSV logs to its step, and
+continues bit for bit on CPU: every random number comes from the seed, the update index or the saved generator.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import platform
+import shutil
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+from tqdm.auto import tqdm
+
+from .algo.learner import GraphCBFLearner, LearnedController
+from .config import TrainConfig
+from .evaluate import episode_seed, run_episodes
+from .nn import PolicyNet
+
+__all__ = [
+    "METRICS_FIELDS",
+    "evaluate_policy",
+    "find_checkpoint",
+    "load_controller",
+    "load_learner",
+    "save_checkpoint",
+    "train",
+]
+
+METRICS_FIELDS = ("step", "wall_s", "safe_rate", "reach_rate", "success_rate", "cost", "reward", "num_episodes")
+_CKPT = "checkpoints"
+
+
+# ---------------------------------------------------------------------------------------------------- logging
+class _Logger:
+    """Scalars to ``scalars.csv`` (always) and TensorBoard (if importable); evaluations to ``metrics.csv``."""
+
+    def __init__(self, out: Path, start_step: int):
+        self.out = out
+        for name, header in (("scalars.csv", ("step", "wall_s", "tag", "value")), ("metrics.csv", METRICS_FIELDS)):
+            _truncate_csv(out / name, header, start_step)
+        self.tb = None
+        try:  # optional dependency
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tb = SummaryWriter(str(out / "tb"), purge_step=start_step + 1 if start_step else None)
+        except Exception:  # ImportError, or tensorboard missing behind torch's wrapper
+            self.tb = None
+
+    def scalars(self, step: int, wall_s: float, values: dict[str, float]) -> None:
+        with open(self.out / "scalars.csv", "a", newline="") as f:
+            w = csv.writer(f)
+            for k, v in values.items():
+                w.writerow((step, f"{wall_s:.3f}", k, repr(float(v))))
+        if self.tb is not None:
+            for k, v in values.items():
+                self.tb.add_scalar(k, float(v), step)
+
+    def metrics(self, row: dict) -> None:
+        with open(self.out / "metrics.csv", "a", newline="") as f:
+            csv.DictWriter(f, METRICS_FIELDS, extrasaction="ignore").writerow(row)
+        if self.tb is not None:
+            for k in METRICS_FIELDS[2:]:
+                self.tb.add_scalar(f"eval/{k}", float(row[k]), int(row["step"]))
+
+    def close(self) -> None:
+        if self.tb is not None:
+            self.tb.close()
+
+
+def _truncate_csv(path: Path, header: tuple[str, ...], keep_upto: int) -> None:
+    """Create ``path`` with ``header``, or keep only its rows with ``step <= keep_upto`` (resume)."""
+    rows = []
+    if path.exists() and keep_upto > 0:
+        with open(path, newline="") as f:
+            rows = [r for r in csv.DictReader(f) if int(r["step"]) <= keep_upto]
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, header)
+        w.writeheader()
+        w.writerows(rows)
+
+
+# ---------------------------------------------------------------------------------------------------- evaluation
+def evaluate_policy(learner: GraphCBFLearner, config: TrainConfig) -> dict:
+    """Evaluation rollouts of the current policy on fixed episodes (the same at every call): the metrics row of
+    :mod:`egcbf.metrics` (rates in ``[0, 1]``)."""
+    env_cfg = config.eval_env_config()
+    seeds = [episode_seed(config.seed + 1_000, env_cfg.num_agents, e) for e in range(config.eval_episodes)]
+    stats, _, _ = run_episodes(learner.controller(), env_cfg, seeds, device=learner.device, dtype=learner.dtype)
+    return stats.result()
+
+
+# ---------------------------------------------------------------------------------------------------- checkpoints
+def _ckpt_dir(out: Path, step: int) -> Path:
+    return out / _CKPT / f"step_{step:06d}"
+
+
+def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: int = 0, buffers: bool = True) -> Path:
+    """Write the learner's checkpoint ``OUT/checkpoints/step_XXXXXX`` atomically; keep the newest ``keep`` (0: all)."""
+    final = _ckpt_dir(out, learner.step)
+    tmp = final.with_name(final.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    learner.config.to_json(tmp / "config.json")
+    save_file({k: v.cpu() for k, v in learner.weights().items()}, str(tmp / "model.safetensors"))
+    torch.save(_to_cpu(learner.training_state()), tmp / "training_state.pt")
+    if buffers:
+        save_file({k: v.cpu() for k, v in learner.buffers().items()}, str(tmp / "buffers.safetensors"))
+    state = {
+        "step": learner.step,
+        "wall_s": wall_s,
+        "algo": learner.config.algo,
+        "torch": torch.__version__,
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+    }
+    (tmp / "state.json").write_text(json.dumps(state, indent=2) + "\n")
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(tmp, final)
+    older = _checkpoints(out)[:-1]
+    for old in older:  # resuming needs the buffers of the newest checkpoint only (they can be large)
+        (old / "buffers.safetensors").unlink(missing_ok=True)
+    if keep > 0:
+        for old in older[: max(0, len(older) + 1 - keep)]:
+            shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def _to_cpu(obj):
+    if isinstance(obj, torch.Tensor):
+        return obj.cpu()
+    if isinstance(obj, dict):
+        return {k: _to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_to_cpu(v) for v in obj)
+    return obj
+
+
+def _checkpoints(out: Path) -> list[Path]:
+    """Complete checkpoints of a run, oldest first."""
+    root = out / _CKPT
+    if not root.is_dir():
+        return []
+    done = [
+        p for p in root.glob("step_*") if p.is_dir() and not p.name.endswith(".tmp") and (p / "state.json").exists()
+    ]
+    return sorted(done, key=lambda p: int(p.name.split("_")[1]))
+
+
+def find_checkpoint(path: str | Path) -> Path:
+    """A checkpoint directory: ``path`` itself if it holds one, else the newest checkpoint of the run ``path``."""
+    p = Path(path)
+    if (p / "model.safetensors").exists() and (p / "config.json").exists():
+        return p
+    found = _checkpoints(p)
+    if not found:
+        raise FileNotFoundError(f"no checkpoint in {p} (expected {p}/{_CKPT}/step_*/model.safetensors)")
+    return found[-1]
+
+
+def load_learner(path: str | Path, device=None, dtype=None, config: TrainConfig | None = None) -> GraphCBFLearner:
+    """The learner of checkpoint ``path`` (a checkpoint or run directory): weights, optimizers, RNG, buffers."""
+    ckpt = find_checkpoint(path)
+    cfg = config or TrainConfig.from_json(ckpt / "config.json")
+    learner = GraphCBFLearner(cfg, device=device, dtype=dtype)
+    weights = load_file(str(ckpt / "model.safetensors"))
+    learner.load_weights({k: v.to(learner.device, learner.dtype) for k, v in weights.items()})
+    if (ckpt / "training_state.pt").exists():
+        learner.load_training_state(torch.load(ckpt / "training_state.pt", weights_only=True, map_location="cpu"))
+        _optim_to(learner, learner.device)
+    if (ckpt / "buffers.safetensors").exists():
+        learner.load_buffers(load_file(str(ckpt / "buffers.safetensors")))
+    elif learner.step > 0:
+        warnings.warn(
+            f"{ckpt} holds no replay buffers (only the newest checkpoint of a run keeps them, and only with "
+            "save_buffers): continuing with empty buffers, not bit for bit",
+            stacklevel=2,
+        )
+    return learner
+
+
+def _optim_to(learner: GraphCBFLearner, device) -> None:
+    for opt in (learner.opt_cbf, learner.opt_policy):
+        for st in opt.state.values():
+            for k, v in st.items():
+                if isinstance(v, torch.Tensor) and k != "step":
+                    st[k] = v.to(device)
+
+
+def load_controller(
+    path: str | Path, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
+) -> tuple[LearnedController, TrainConfig]:
+    """An evaluation controller ``(state, env_config) -> (u, info)`` from a checkpoint (or run) directory; needs only
+    its ``config.json`` and ``model.safetensors``. Returns the controller and the training config."""
+    ckpt = find_checkpoint(path)
+    cfg = TrainConfig.from_json(ckpt / "config.json")
+    policy = PolicyNet(cfg.model)
+    weights = load_file(str(ckpt / "model.safetensors"))
+    policy.load_state_dict({k[len("policy.") :]: v for k, v in weights.items() if k.startswith("policy.")})
+    policy = policy.to(device=device, dtype=dtype).eval()
+    return LearnedController(policy, cfg.model), cfg
+
+
+# ---------------------------------------------------------------------------------------------------- loop
+def _setup_torch(config: TrainConfig) -> tuple:
+    """Apply the config's threads and determinism; returns what to restore afterwards."""
+    saved = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled(),
+             torch.is_deterministic_algorithms_warn_only_enabled())  # fmt: skip
+    if config.num_threads > 0:
+        torch.set_num_threads(config.num_threads)
+    if config.deterministic:
+        if config.device.startswith("cuda"):
+            os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.use_deterministic_algorithms(True, warn_only=True)
+    return saved
+
+
+def _restore_torch(saved: tuple) -> None:
+    torch.set_num_threads(saved[0])
+    torch.use_deterministic_algorithms(saved[1], warn_only=saved[2])
+
+
+def train(
+    config: TrainConfig,
+    out: str | Path,
+    *,
+    resume: bool = False,
+    steps: int | None = None,
+    progress: bool = True,
+    log=None,
+) -> GraphCBFLearner:
+    """Train ``config`` into the run directory ``out`` (module doc); returns the learner.
+
+    Args:
+        config: the run's configuration (with ``resume``, the checkpoint's config is used instead).
+        out: the run directory; a fresh run refuses a directory that already holds checkpoints.
+        resume: continue from the newest checkpoint in ``out``.
+        steps: train up to this many updates (default ``config.steps``; with ``resume`` it may extend the run).
+        progress: show a tqdm bar.
+        log: a callable receiving one line per evaluation (default: ``tqdm.write``).
+    """
+    out = Path(out)
+    log = log or tqdm.write
+    if resume:
+        ckpt = find_checkpoint(out)
+        config = TrainConfig.from_json(ckpt / "config.json")
+        if steps is not None:
+            config = config.replace(steps=steps)
+        saved = _setup_torch(config)
+        learner = load_learner(ckpt, config=config)
+        wall0 = float(json.loads((ckpt / "state.json").read_text())["wall_s"])
+        log(f"resumed {config.algo} from {ckpt} at update {learner.step}")
+    else:
+        if _checkpoints(out):
+            raise FileExistsError(f"{out} already holds a run; pass resume=True (--resume) or another directory")
+        if steps is not None:
+            config = config.replace(steps=steps)
+        saved = _setup_torch(config)
+        out.mkdir(parents=True, exist_ok=True)
+        learner = GraphCBFLearner(config)
+        wall0 = 0.0
+    config.to_json(out / "config.json")
+    logger = _Logger(out, learner.step)
+    t_start = time.perf_counter()
+
+    def wall() -> float:
+        return wall0 + time.perf_counter() - t_start
+
+    def evaluate_now() -> None:
+        row = evaluate_policy(learner, config)
+        row.update(step=learner.step, wall_s=round(wall(), 3))
+        logger.metrics(row)
+        log(
+            f"[{config.algo}] update {learner.step:5d}  {row['wall_s']:8.1f}s  safe {100 * row['safe_rate']:5.1f}%  "
+            f"reach {100 * row['reach_rate']:5.1f}%  success {100 * row['success_rate']:5.1f}%  "
+            f"reward {row['reward']:9.2f}"
+        )
+
+    bar = tqdm(total=config.steps, initial=learner.step, desc=config.algo, unit="upd", disable=not progress)
+    try:
+        if learner.step == 0:
+            evaluate_now()
+        while learner.step < config.steps:
+            info = learner.update()
+            logger.scalars(learner.step, wall(), info)
+            bar.update(1)
+            bar.set_postfix(loss=f"{info['loss/total']:.4f}", unsafe=int(info["data/unsafe"]), refresh=False)
+            last = learner.step == config.steps
+            if learner.step % config.eval_interval == 0 or last:
+                evaluate_now()
+            if learner.step % config.checkpoint_interval == 0 or last:
+                save_checkpoint(learner, out, wall(), keep=config.keep_checkpoints, buffers=config.save_buffers)
+    finally:
+        bar.close()
+        logger.close()
+        _restore_torch(saved)
+    return learner

@@ -1,0 +1,146 @@
+"""The CBF and policy networks: EGCBF is invariant under a global SE2xR transform of the scene, GCBF is not."""
+
+import functools
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from egcbf.algo.actions import control_bounds, control_scale, policy_control
+from egcbf.algo.learner import LearnedController
+from egcbf.dynamics import quadrotor as dyn
+from egcbf.dynamics.so3 import so3_exp
+from egcbf.env import EnvConfig, Obstacles, SwarmEnv, SwarmState
+from egcbf.graph import GROUP, build_graph
+from egcbf.nn import CBFNet, GraphTransformerLayer, ModelConfig, PolicyNet
+from groupcanon.testing import strategies as gst
+
+F64 = torch.float64
+
+
+def _scene(cfg: EnvConfig, seed: int) -> SwarmState:
+    """A reset state with random attitudes, velocities and body rates (every feature non-trivial)."""
+    s = SwarmEnv(cfg, dtype=F64).reset(seed)
+    gen = torch.Generator().manual_seed(seed + 1)
+    b, n = cfg.num_envs, cfg.num_agents
+    rot = so3_exp(torch.randn(b, n, 3, generator=gen, dtype=F64))
+    v = torch.randn(b, n, 3, generator=gen, dtype=F64)
+    w = torch.randn(b, n, 3, generator=gen, dtype=F64)
+    return SwarmState(dyn.state_from_parts(s.positions, rot, v, w), s.goals, s.obstacles)
+
+
+def _transform(state: SwarmState, g: torch.Tensor) -> SwarmState:
+    """One SE2xR element per environment (``g`` ``(B, 5)``) applied to states (STATE_TYPE), goals and obstacles."""
+    x = dyn.STATE_TYPE.act(g[:, None], state.x)
+    goals = GROUP.transform(g[:, None], state.goals)
+    obs = Obstacles(GROUP.transform(g[:, None], state.obstacles.centers), state.obstacles.radii)
+    return SwarmState(x, goals, obs, state.t)
+
+
+@functools.cache
+def _nets(group: str):
+    torch.manual_seed(0)
+    cfg = ModelConfig(group=group, hidden=32, heads=4, head_hidden=32)
+    return CBFNet(cfg).double(), PolicyNet(cfg).double(), cfg
+
+
+def _outputs(group: str, state: SwarmState, cfg: EnvConfig):
+    cbf, pol, mcfg = _nets(group)
+    graph = build_graph(state, cfg)
+    with torch.no_grad():
+        u, _ = LearnedController(pol, mcfg)(state, cfg)
+        return cbf(graph), pol.raw(graph), pol.encoder(graph), u
+
+
+@st.composite
+def scenes(draw):
+    cfg = EnvConfig(
+        num_agents=draw(st.integers(1, 6)),
+        num_envs=draw(st.integers(1, 2)),
+        area_size=draw(st.floats(1.0, 2.0)),
+        num_obstacles=draw(st.integers(0, 3)),
+        n_rays=8,
+        lidar_max_hits=4,
+    )
+    return cfg, draw(st.integers(0, 2**20))
+
+
+@given(scene=scenes(), g=gst.elements(GROUP, batch=(2,)))
+@settings(max_examples=25)
+def test_egcbf_is_invariant_and_gcbf_is_not(scene, g):
+    cfg, seed = scene
+    state = _scene(cfg, seed)
+    g = g[: cfg.num_envs]
+    a = _outputs("se2xr", state, cfg)
+    b = _outputs("se2xr", _transform(state, g), cfg)
+    for name, x, y in zip(("h", "policy raw", "policy features", "control"), a, b):
+        assert (x - y).abs().max() <= 1e-9, name
+    # the same test fails for GCBF (the same layers over the trivial group) under a quarter turn
+    quarter = torch.tensor([[0.0, 1.0, 0.5, -0.5, 0.2]], dtype=F64).expand(cfg.num_envs, 5)
+    a = _outputs("trivial", state, cfg)
+    b = _outputs("trivial", _transform(state, quarter), cfg)
+    assert (a[0] - b[0]).abs().max() > 1e-6 and (a[2] - b[2]).abs().max() > 1e-4
+
+
+def test_gcbf_is_not_rotation_invariant_but_translation_invariant():
+    cfg = EnvConfig(num_agents=5, num_envs=1, area_size=1.5, num_obstacles=2, n_rays=8, lidar_max_hits=4)
+    state = _scene(cfg, 3)
+    c, s = math.cos(math.pi / 2), math.sin(math.pi / 2)
+    rot = torch.tensor([[c, s, 0.3, -0.2, 0.1]], dtype=F64)
+    shift = torch.tensor([[1.0, 0.0, 0.3, -0.2, 0.1]], dtype=F64)
+    a = _outputs("trivial", state, cfg)
+    b = _outputs("trivial", _transform(state, rot), cfg)
+    errors = {name: float((x - y).abs().max()) for name, x, y in zip(("h", "raw", "features", "u"), a, b)}
+    assert errors["h"] > 1e-3 and errors["features"] > 1e-2 and errors["raw"] > 1e-5, errors
+    # its features carry no absolute position: translations alone leave it unchanged
+    t = _outputs("trivial", _transform(state, shift), cfg)
+    for x, y in zip(a, t):
+        assert (x - y).abs().max() <= 1e-9
+    # and the equivariant network is invariant under the same rotation
+    for x, y in zip(_outputs("se2xr", state, cfg), _outputs("se2xr", _transform(state, rot), cfg)):
+        assert (x - y).abs().max() <= 1e-9
+
+
+def test_outputs_are_bounded_and_shaped():
+    cfg = EnvConfig(num_agents=4, num_envs=3, n_rays=8, lidar_max_hits=4)
+    state = _scene(cfg, 1)
+    for group in ("se2xr", "trivial"):
+        cbf, pol, mcfg = _nets(group)
+        graph = build_graph(state, cfg)
+        h, pi = cbf(graph), pol(graph)
+        assert h.shape == (12,) and pi.shape == (12, 4)
+        assert (h.abs() < 1).all() and (pi.abs() <= 1).all()
+        # the same parameter count for both groups: canonicalization adds none
+        assert sum(p.numel() for p in cbf.parameters()) == sum(p.numel() for p in _nets("se2xr")[0].parameters())
+        u, info = LearnedController(pol, mcfg)(state, cfg)
+        lo, hi = control_bounds(u)
+        un = u / control_scale(cfg.params, u)
+        assert u.shape == (3, 4, 4) and (un >= lo - 1e-12).all() and (un <= hi + 1e-12).all()
+        assert info["u_ref"].shape == u.shape
+
+
+def test_untrained_policy_stays_near_nominal():
+    _, pol, mcfg = _nets("se2xr")
+    assert mcfg.policy_init_scale < 1
+    assert torch.equal(pol.head[-1].bias, torch.zeros_like(pol.head[-1].bias))
+    residual = torch.zeros(5, 4, dtype=F64)
+    u_nom = dyn.hover_control(dyn.DEFAULT_PARAMS, 5, dtype=F64)
+    assert torch.allclose(policy_control(residual, u_nom, 2.0) * control_scale(like=u_nom), u_nom)
+    big = torch.ones(5, 4, dtype=F64)
+    assert torch.equal(policy_control(big, u_nom, 2.0), torch.ones(5, 4, dtype=F64))  # clipped to the box
+
+
+def test_layer_is_an_ordinary_pair_layer():
+    layer = GraphTransformerLayer(18, 3, hidden=16, heads=2)
+    x_src, x_dst = torch.randn(7, 18), torch.randn(3, 18)
+    edge_index = torch.tensor([[0, 1, 2, 3, 4, 5, 6], [0, 0, 1, 1, 2, 2, 2]])
+    out = layer((x_src, x_dst), edge_index, torch.randn(7, 3))
+    assert out.shape == (3, 16) and torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("kwargs", [{"group": "so3"}, {"hidden": 30, "heads": 4}, {"action_scale": 0.0}])
+def test_model_config_rejects_bad_values(kwargs):
+    with pytest.raises(ValueError):
+        ModelConfig(**kwargs)

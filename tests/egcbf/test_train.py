@@ -1,0 +1,147 @@
+"""Training runs: configs, the four methods end to end, checkpoints, bit-for-bit resume, eval from a checkpoint."""
+
+import csv
+import json
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from egcbf.algo import GraphCBFLearner
+from egcbf.cli import app
+from egcbf.config import METHODS, TrainConfig
+from egcbf.env import SwarmEnv
+from egcbf.train import find_checkpoint, load_controller, load_learner, train
+
+
+def _quiet(cfg, out, **kw):
+    return train(cfg, out, progress=False, log=lambda line: None, **kw)
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_config_presets_and_json_roundtrip(tmp_path):
+    paper = TrainConfig.preset("egcbf+", "paper")
+    # GCBF+: 16 envs x 256 steps per update, 8 epochs x 48 minibatches of 256 graphs
+    graphs = paper.rollout_envs * paper.rollout_steps * 2 + paper.unsafe_samples
+    assert (paper.rollout_envs, paper.rollout_steps, paper.epochs, graphs // paper.batch_size) == (16, 256, 8, 48)
+    assert (paper.lr_cbf, paper.lr_policy, paper.gamma, paper.eta_d, paper.alpha) == (1e-4, 1e-5, 0.02, 0.2, 1.0)
+    for algo, (group, reference) in METHODS.items():
+        cfg = TrainConfig.preset(algo, "cpu", seed=3, model={"hidden": 32})
+        assert (cfg.group, cfg.reference, cfg.seed, cfg.model.hidden) == (group, reference, 3, 32)
+        cfg.to_json(tmp_path / "c.json")
+        assert TrainConfig.from_json(tmp_path / "c.json") == cfg
+    cpu = TrainConfig.preset("gcbf", "cpu")
+    env = cpu.env_config()
+    assert (env.num_agents, env.area_size, env.num_obstacles) == (8, 2.0, 5)
+    with pytest.raises(ValueError, match="group"):
+        TrainConfig(algo="egcbf", reference="nominal")  # the default model group is se2xr: fine ...
+        TrainConfig(algo="gcbf", reference="nominal")  # ... but gcbf needs the trivial group
+    with pytest.raises(ValueError, match="unknown TrainConfig fields"):
+        TrainConfig.from_dict({"algo": "gcbf", "bogus": 1})
+    with pytest.raises(ValueError, match="batch_size"):
+        TrainConfig.preset("gcbf", "tiny", batch_size=0)
+
+
+@pytest.mark.parametrize("algo", sorted(METHODS))
+def test_each_method_trains_end_to_end(tmp_path, algo):
+    cfg = TrainConfig.preset(algo, "tiny", steps=2)
+    learner = _quiet(cfg, tmp_path)
+    assert learner.step == 2
+    ckpt = find_checkpoint(tmp_path)
+    assert ckpt.name == "step_000002"
+    for name in ("config.json", "model.safetensors", "training_state.pt", "buffers.safetensors", "state.json"):
+        assert (ckpt / name).exists(), name
+    metrics = _rows(tmp_path / "metrics.csv")
+    assert [int(r["step"]) for r in metrics] == [0, 2]
+    for r in metrics:
+        assert 0 <= float(r["safe_rate"]) <= 1 and 0 <= float(r["reach_rate"]) <= 1 and float(r["wall_s"]) >= 0
+    tags = {r["tag"] for r in _rows(tmp_path / "scalars.csv")}
+    assert {"loss/total", "loss/hdot", "data/safe", "data/unsafe", "data/unlabelled"} <= tags
+    assert ("qp/num_slack" in tags) == (cfg.reference == "qp")
+
+
+def test_resume_continues_bit_for_bit(tmp_path, monkeypatch):
+    cfg = TrainConfig.preset("egcbf+", "tiny", steps=4, checkpoint_interval=2, eval_interval=2)
+    full = _quiet(cfg, tmp_path / "full")
+    update = GraphCBFLearner.update
+
+    def crash_in_update_4(self):
+        if self.step == 3:
+            raise KeyboardInterrupt  # interrupted after update 3; the newest checkpoint is update 2
+        return update(self)
+
+    monkeypatch.setattr(GraphCBFLearner, "update", crash_in_update_4)
+    with pytest.raises(KeyboardInterrupt):
+        _quiet(cfg, tmp_path / "part")
+    monkeypatch.undo()
+    assert [p.name for p in (tmp_path / "part" / "checkpoints").iterdir()] == ["step_000002"]
+    (tmp_path / "part" / "checkpoints" / "step_000004.tmp").mkdir()  # a half-written checkpoint is ignored
+    resumed = _quiet(cfg, tmp_path / "part", resume=True)
+    assert resumed.step == full.step == 4
+    wf, wr = full.weights(), resumed.weights()
+    assert wf.keys() == wr.keys() and all(torch.equal(wf[k], wr[k]) for k in wf)
+    for a, b in ((full.opt_cbf, resumed.opt_cbf), (full.opt_policy, resumed.opt_policy)):
+        sa, sb = a.state_dict()["state"], b.state_dict()["state"]
+        assert all(torch.equal(sa[i]["exp_avg"], sb[i]["exp_avg"]) and sa[i]["step"] == sb[i]["step"] for i in sa)
+    assert torch.equal(full.generator.get_state(), resumed.generator.get_state())
+    assert torch.equal(full.buffer.data.x, resumed.buffer.data.x) and len(full.unsafe_buffer) == len(
+        resumed.unsafe_buffer
+    )
+    strip = [{k: v for k, v in r.items() if k != "wall_s"} for r in _rows(tmp_path / "full" / "metrics.csv")]
+    assert strip == [{k: v for k, v in r.items() if k != "wall_s"} for r in _rows(tmp_path / "part" / "metrics.csv")]
+    steps = [int(r["step"]) for r in _rows(tmp_path / "part" / "scalars.csv")]
+    assert steps == sorted(steps) and max(steps) == 4  # rows after the checkpoint were replaced, not duplicated
+    with pytest.raises(FileExistsError):
+        _quiet(cfg, tmp_path / "full")
+
+
+def test_checkpoint_roundtrip_and_controller(tmp_path):
+    cfg = TrainConfig.preset("gcbf+", "tiny", steps=2)
+    learner = _quiet(cfg, tmp_path)
+    loaded = load_learner(tmp_path)
+    assert loaded.step == 2 and loaded.config == cfg
+    assert all(torch.equal(v, loaded.weights()[k]) for k, v in learner.weights().items())
+    ctrl, cfg2 = load_controller(find_checkpoint(tmp_path))
+    assert cfg2 == cfg
+    env = SwarmEnv(cfg.env_config(num_envs=2))
+    state = env.reset(7)
+    u1, info1 = learner.controller()(state, env.config)
+    u2, info2 = ctrl(state, env.config)
+    assert torch.equal(u1, u2) and torch.equal(info1["u_ref"], info2["u_ref"])
+    # weights only: the controller needs nothing but config.json and model.safetensors
+    only = tmp_path / "only"
+    only.mkdir()
+    for name in ("config.json", "model.safetensors"):
+        (only / name).write_bytes((find_checkpoint(tmp_path) / name).read_bytes())
+    u3, _ = load_controller(only)[0](state, env.config)
+    assert torch.equal(u1, u3)
+
+
+def test_cli_train_resume_and_eval_checkpoint(tmp_path):
+    run = tmp_path / "run"
+    (tmp_path / "cfg.json").write_text(json.dumps({"preset": "tiny", "steps": 2, "model": {"hidden": 8}}))
+    r = CliRunner().invoke(app, ["train", "--algo", "egcbf", "--config", str(tmp_path / "cfg.json"), "--out",
+                                 str(run), "--seed", "5", "--no-progress"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    saved = TrainConfig.from_json(run / "config.json")
+    assert (saved.algo, saved.steps, saved.seed, saved.model.hidden, saved.model.group) == ("egcbf", 2, 5, 8, "se2xr")
+    r = CliRunner().invoke(app, ["train", "--out", str(run), "--resume", "--steps", "3", "--no-progress"])
+    assert r.exit_code == 0, r.output
+    assert find_checkpoint(run).name == "step_000003"
+    r = CliRunner().invoke(app, ["train", "--algo", "egcbf", "--preset", "tiny", "--out", str(run), "--no-progress"])
+    assert r.exit_code != 0 and "resume" in r.output
+    r = CliRunner().invoke(app, ["train", "--algo", "sgd", "--out", str(tmp_path / "x")])
+    assert r.exit_code != 0 and "algo" in r.output
+    out = tmp_path / "ev"
+    args = ["--num-agents", "2,4", "--area", "1.5", "--episodes", "2", "--max-steps", "10", "--no-progress"]
+    r = CliRunner().invoke(app, ["eval", "--checkpoint", str(run), "--out", str(out), *args])
+    assert r.exit_code == 0, r.output
+    rows = json.loads((out / "metrics.json").read_text())
+    assert [row["num_agents"] for row in rows] == [2, 4] and "Safe%" in r.output
+    assert json.loads((out / "run.json").read_text())["controller"] == "egcbf"
+    r = CliRunner().invoke(app, ["eval", "--checkpoint", str(tmp_path / "nothing"), "--out", str(out)])
+    assert r.exit_code != 0 and "no checkpoint" in r.output

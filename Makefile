@@ -54,8 +54,11 @@ format: $(STAMP)
 	$(PY) -m ruff format src tests examples benchmarks docs/*.py
 	$(PY) -m ruff check --fix src tests examples benchmarks
 
+# Speed measurements; each script rewrites its own section of docs/benchmarks.md.
 bench: $(STAMP)
 	$(PY) benchmarks/run.py
+	$(PY) benchmarks/env_scaling.py --threads 1
+	$(PY) benchmarks/qp_scaling.py
 
 clean:
 	rm -rf $(VENV) $(ESCNN_VENV) .pytest_cache .ruff_cache .hypothesis

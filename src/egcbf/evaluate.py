@@ -95,7 +95,7 @@ def run_episodes(
             rec.positions.append(state.positions[0].detach().cpu().clone())
             rec.collided.append(step_info.collision[0].detach().cpu().clone())
         if progress is not None:
-            progress.update(1)
+            progress.update(len(seeds))
     return stats, timing, rec
 
 
@@ -136,9 +136,8 @@ def evaluate(
         for k in range(0, episodes, b):
             chunk = seeds[k : k + b]
             stats, t, rec = run_episodes(
-                controller, config, chunk, device=device, dtype=dtype, record=record and k == 0, progress=None
+                controller, config, chunk, device=device, dtype=dtype, record=record and k == 0, progress=bar
             )
-            bar.update(len(chunk) * config.max_steps)
             per_episode.append(stats.per_episode())
             for key in ("step_ms", "qp_ms"):
                 # per-episode time: a batch step serves len(chunk) episodes at once

@@ -9,6 +9,8 @@ Learning, the QP and the loss all work with the *normalized* control ``u~ = u / 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor
 
@@ -39,13 +41,20 @@ def unnormalize(u_norm: Tensor, params: QuadrotorParams = DEFAULT_PARAMS) -> Ten
     return u_norm * control_scale(params, u_norm)
 
 
-def policy_control(residual: Tensor, u_nom: Tensor, action_scale: float, params: QuadrotorParams = DEFAULT_PARAMS):
+def policy_control(
+    residual: Tensor,
+    u_nom: Tensor,
+    action_scale: float | Sequence[float],
+    params: QuadrotorParams = DEFAULT_PARAMS,
+):
     """The applied normalized control ``clip(u~_nom + action_scale * residual)`` (GCBF+: ``clip(2 pi + u_ref)``).
 
     ``residual`` ``(..., 4)`` is the policy output in ``[-1, 1]^4``; ``u_nom`` the nominal control in physical
-    units. Returns the normalized control (multiply by :func:`control_scale` for physical units). The clip is a
+    units; ``action_scale`` one number or four (per channel, ``ModelConfig.action_scales``). Returns the normalized control (multiply by :func:`control_scale` for physical units). The clip is a
     ``clamp`` (its gradient is zero where the box is active, as for the applied control).
     """
     lo, hi = control_bounds(residual)
+    if not isinstance(action_scale, (int, float)):
+        action_scale = torch.as_tensor(action_scale, dtype=residual.dtype, device=residual.device)
     u = normalize(u_nom, params).to(residual.dtype) + action_scale * residual
     return torch.maximum(torch.minimum(u, hi), lo)

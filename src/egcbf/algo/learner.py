@@ -82,7 +82,7 @@ def act(
     b, n, _ = state.x.shape
     residual = policy(graph).view(b, n, 4)
     u_nom = nominal_control(state.x, state.goals, params)
-    u = unnormalize(policy_control(residual, u_nom, model_config.action_scale, params), params)
+    u = unnormalize(policy_control(residual, u_nom, model_config.action_scales, params), params)
     return u, u_nom
 
 
@@ -190,7 +190,7 @@ class GraphCBFLearner:
         h = self.cbf(graph)
         residual = self.policy(graph).view(s, n, 4)
         u_nom = nominal_control(batch.x, batch.goals, self.params)
-        u = policy_control(residual, u_nom, cfg.model.action_scale, self.params)
+        u = policy_control(residual, u_nom, cfg.model.action_scales, self.params)
         x_next = dyn.step(batch.x, unnormalize(u, self.params), env_cfg.dt, self.params, env_cfg.substeps,
                           env_cfg.integrator)  # fmt: skip
         graph_next = refresh_graph(graph, x_next)

@@ -86,6 +86,13 @@ class ModelConfig:
             because every agent always has its goal edge and the residual already carries its own features.
         action_scale: the policy output ``tanh(.)`` in ``[-1, 1]^4`` is multiplied by this (in units of the
             actuator box) and added to the nominal control (GCBF+: 2, so the residual can cross the whole box).
+        torque_action_scale: the scale of the three torque channels, if not ``None`` (``None``: ``action_scale``
+            for all four). The nominal attitude loop is stiff: a residual of ``1`` (one torque box) held against it
+            tilts the drone by ``~1.3 rad`` and shifts its hover point by ``~1.9 m``, and the CBF's one-step
+            derivative pushes torques hardest (they change the body rates ``w`` within one step), so a small
+            state-independent torque bias from the policy ruins goal reaching (docs/learning.md, "CPU recipe").
+            The ``cpu`` preset uses ``0.25``: still ``~0.3 rad`` of sustained tilt authority, far more than
+            collision avoidance needs.
         policy_init_scale: the last layer of the policy head is initialised with weights scaled by this and zero
             bias, so that an untrained policy stays close to the nominal controller.
     """
@@ -96,6 +103,7 @@ class ModelConfig:
     head_hidden: int = 64
     self_loops: bool = False
     action_scale: float = 2.0
+    torque_action_scale: float | None = None
     policy_init_scale: float = 0.1
 
     def __post_init__(self) -> None:
@@ -106,6 +114,14 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.head_hidden must be >= 1, got {self.head_hidden}")
         if not self.action_scale > 0:
             raise ValueError(f"ModelConfig.action_scale must be > 0, got {self.action_scale}")
+        if self.torque_action_scale is not None and not self.torque_action_scale > 0:
+            raise ValueError(f"ModelConfig.torque_action_scale must be > 0 or None, got {self.torque_action_scale}")
+
+    @property
+    def action_scales(self) -> tuple[float, float, float, float]:
+        """The per-channel residual scale ``(torque (3), thrust)`` in units of the actuator box."""
+        t = self.action_scale if self.torque_action_scale is None else self.torque_action_scale
+        return (t, t, t, self.action_scale)
 
     def to_dict(self) -> dict:
         return asdict(self)

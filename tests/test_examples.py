@@ -16,3 +16,10 @@ def test_example_runs(script):
     )
     assert proc.returncode == 0, f"{script} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
     assert "OK" in proc.stdout
+
+
+def test_api_reference_is_in_sync():
+    """docs/api.md is generated from the docstrings: regenerate with `python docs/gen_api.py` after API changes."""
+    root = Path(__file__).resolve().parents[1]
+    res = subprocess.run([sys.executable, str(root / "docs" / "gen_api.py"), "--check"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout + res.stderr

@@ -140,7 +140,20 @@ def test_layer_is_an_ordinary_pair_layer():
     assert out.shape == (3, 16) and torch.isfinite(out).all()
 
 
-@pytest.mark.parametrize("kwargs", [{"group": "so3"}, {"hidden": 30, "heads": 4}, {"action_scale": 0.0}])
+def test_per_channel_action_scale():
+    assert ModelConfig().action_scales == (2.0, 2.0, 2.0, 2.0)  # GCBF+: one scale
+    mcfg = ModelConfig(torque_action_scale=0.25)
+    assert mcfg.action_scales == (0.25, 0.25, 0.25, 2.0)
+    u_nom = dyn.hover_control(dyn.DEFAULT_PARAMS, 5, dtype=F64)
+    residual = torch.full((5, 4), 0.5, dtype=F64)
+    u = policy_control(residual, u_nom, mcfg.action_scales)
+    expected = u_nom / control_scale(like=u_nom) + torch.tensor([0.125, 0.125, 0.125, 1.0], dtype=F64)
+    assert torch.allclose(u, expected.clamp(max=1.0))
+
+
+@pytest.mark.parametrize(
+    "kwargs", [{"group": "so3"}, {"hidden": 30, "heads": 4}, {"action_scale": 0.0}, {"torque_action_scale": 0.0}]
+)
 def test_model_config_rejects_bad_values(kwargs):
     with pytest.raises(ValueError):
         ModelConfig(**kwargs)

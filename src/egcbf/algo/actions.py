@@ -50,8 +50,9 @@ def policy_control(
     """The applied normalized control ``clip(u~_nom + action_scale * residual)`` (GCBF+: ``clip(2 pi + u_ref)``).
 
     ``residual`` ``(..., 4)`` is the policy output in ``[-1, 1]^4``; ``u_nom`` the nominal control in physical
-    units; ``action_scale`` one number or four (per channel, ``ModelConfig.action_scales``). Returns the normalized control (multiply by :func:`control_scale` for physical units). The clip is a
-    ``clamp`` (its gradient is zero where the box is active, as for the applied control).
+    units; ``action_scale`` one number or four (per channel: ``ModelConfig.action_scales``). Returns the
+    normalized control (multiply by :func:`control_scale` for physical units). The clip is a ``clamp`` (its
+    gradient is zero where the box is active, as for the applied control).
     """
     lo, hi = control_bounds(residual)
     if not isinstance(action_scale, (int, float)):

@@ -44,6 +44,8 @@ __all__ = [
 ]
 
 GROUPS = {"se2xr": SE2xR, "trivial": Trivial}
+#: the body-rate channels ``w`` of the node features (:data:`egcbf.graph.NODE_TYPE`: kind 3, v 3, R 9, w 3)
+W_SLICE = slice(NODE_DIM - 3, NODE_DIM)
 
 
 def make_group(name: str) -> Group:
@@ -93,6 +95,10 @@ class ModelConfig:
             state-independent torque bias from the policy ruins goal reaching (docs/learning.md, "CPU recipe").
             The ``cpu`` preset uses ``0.25``: still ``~0.3 rad`` of sustained tilt authority, far more than
             collision avoidance needs.
+        cbf_body_rates: whether the CBF reads the body rates ``w`` (the policy always does). ``w`` is a fast
+            internal state of the attitude loop (torque changes it by ``~17`` rad/s per unit of normalized torque
+            within one control step), so a CBF that reads it has a huge ``Lg h`` on the torques, and the derivative
+            term and the QP correct safety through torque (docs/learning.md, "CPU recipe").
         policy_init_scale: the last layer of the policy head is initialised with weights scaled by this and zero
             bias, so that an untrained policy stays close to the nominal controller.
     """
@@ -104,6 +110,7 @@ class ModelConfig:
     self_loops: bool = False
     action_scale: float = 2.0
     torque_action_scale: float | None = None
+    cbf_body_rates: bool = True
     policy_init_scale: float = 0.1
 
     def __post_init__(self) -> None:
@@ -130,8 +137,9 @@ class ModelConfig:
 class GraphEncoder(nn.Module):
     """The canonicalized graph transformer layer: ``SwarmGraph -> (M, hidden)`` invariant agent features."""
 
-    def __init__(self, config: ModelConfig):
+    def __init__(self, config: ModelConfig, body_rates: bool = True):
         super().__init__()
+        self.body_rates = body_rates
         self.group = make_group(config.group)
         nt, et = node_type(self.group), edge_type(self.group)
         out = FieldType(self.group, [Scalar(config.hidden)])
@@ -142,7 +150,12 @@ class GraphEncoder(nn.Module):
 
     def forward(self, graph: SwarmGraph) -> Tensor:
         frames = frames_for(self.group, graph)
-        return self.layer((graph.x_src, graph.x_dst), graph.edge_index, frames=frames, edge_attr=graph.edge_attr)
+        x_src, x_dst = graph.x_src, graph.x_dst
+        if not self.body_rates:  # w is an invariant scalar block: zeroing it commutes with the group action
+            keep = torch.ones(NODE_DIM, dtype=x_src.dtype, device=x_src.device)
+            keep[W_SLICE] = 0
+            x_src, x_dst = x_src * keep, x_dst * keep
+        return self.layer((x_src, x_dst), graph.edge_index, frames=frames, edge_attr=graph.edge_attr)
 
 
 class CBFNet(nn.Module):
@@ -151,7 +164,7 @@ class CBFNet(nn.Module):
     def __init__(self, config: ModelConfig):
         super().__init__()
         self.config = config
-        self.encoder = GraphEncoder(config)
+        self.encoder = GraphEncoder(config, body_rates=config.cbf_body_rates)
         self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, 1])
 
     def raw(self, graph: SwarmGraph) -> Tensor:

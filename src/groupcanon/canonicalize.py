@@ -276,14 +276,14 @@ class CanonicalizedLayer(nn.Module):
         pt = self.spec.pos_type
         pt.check(p_src, "pos")
         pt.check(p_dst, "pos")
-        return pt.act(inv_e, p_src[src]), pt.act(inv, p_dst)
+        return pt.act_gathered(inv_e, p_src, src), pt.act(inv, p_dst)
 
     def _forward_pair(self, x_src, x_dst, edge_index, frames, pos, edge_attr, kwargs):
         spec = self.spec
         src, dst = edge_index[0], edge_index[1]
         inv = self.group.inverse(frames)  # N_dst inverses, gathered per edge
         inv_e = inv[dst]
-        xs = spec.src_type.act(inv_e, x_src[src])  # (E, in): each source seen in its receiver's frame
+        xs = spec.src_type.act_gathered(inv_e, x_src, src)  # (E, in): each source seen in its receiver's frame
         xd = spec.dst_type.act(inv, x_dst)  # (N_dst, in)
         num_edges, n_dst = src.shape[0], xd.shape[0]
         rows = torch.arange(num_edges, device=src.device)
@@ -319,7 +319,7 @@ class CanonicalizedLayer(nn.Module):
         n = x.shape[0]
         inv = self.group.inverse(frames)
         inv_e = inv[dst]
-        x_union = torch.cat((spec.dst_type.act(inv, x), spec.src_type.act(inv_e, x[src])))  # (N + E, in)
+        x_union = torch.cat((spec.dst_type.act(inv, x), spec.src_type.act_gathered(inv_e, x, src)))  # (N + E, in)
         rows = n + torch.arange(src.shape[0], device=src.device)
         pos_pair = self._pos_inputs(pos, src, inv, inv_e)
         if pos_pair is not None:

@@ -427,6 +427,24 @@ class FieldType:
             out[..., s] = f.act(g, x[..., s])
         return out
 
+    def act_gathered(self, g: Tensor, x: Tensor, index: Tensor) -> Tensor:
+        """``act(g, x[index])`` for ``x`` ``(N, dim)``, ``index`` ``(E,)`` and ``g`` ``(E, *element_shape)``.
+
+        The same numbers as ``act(g, x[index])``, with less memory traffic: all channels are gathered once and only
+        the transformed fields are gathered again and acted on (canonicalization gathers every node's features
+        once per edge, and most channels are usually invariant).
+        """
+        check_element_shape(self.group, g)
+        self.check(x)
+        out = x.index_select(0, index)
+        if self.invariant:
+            return out
+        if len(self._plan) == 1 and self._plan[0][1] == slice(0, self.dim):
+            return self._plan[0][0].act(g, out)
+        for f, s in self._plan:
+            out[:, s] = f.act(g, x[:, s].index_select(0, index))
+        return out
+
     def __repr__(self) -> str:
         items = [f"{n}={f!r}" if n else repr(f) for n, f in zip(self.names, self.features)]
         return f"FieldType({self.group}, [{', '.join(items)}])"

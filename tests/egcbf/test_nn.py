@@ -151,6 +151,20 @@ def test_per_channel_action_scale():
     assert torch.allclose(u, expected.clamp(max=1.0))
 
 
+@pytest.mark.parametrize("group", ["se2xr", "trivial"])
+def test_cbf_without_body_rates_ignores_them(group):
+    cfg = EnvConfig(num_agents=4, num_envs=2, n_rays=8, lidar_max_hits=4)
+    state = _scene(cfg, 2)
+    p, rot, v, w = dyn.unpack(state.x)
+    spun = SwarmState(dyn.state_from_parts(p, rot, v, torch.randn_like(w)), state.goals, state.obstacles)
+    torch.manual_seed(0)
+    mcfg = ModelConfig(group=group, hidden=16, heads=2, head_hidden=16, cbf_body_rates=False)
+    cbf, pol = CBFNet(mcfg).double(), PolicyNet(mcfg).double()
+    g0, g1 = build_graph(state, cfg), build_graph(spun, cfg)
+    assert torch.equal(cbf(g0), cbf(g1))
+    assert not torch.allclose(pol(g0), pol(g1))  # the policy still reads w
+
+
 @pytest.mark.parametrize(
     "kwargs", [{"group": "so3"}, {"hidden": 30, "heads": 4}, {"action_scale": 0.0}, {"torque_action_scale": 0.0}]
 )

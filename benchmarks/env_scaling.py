@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import math
 import platform
-import re
 import statistics
 import sys
 import time
@@ -30,6 +29,7 @@ import torch
 from egcbf.dynamics import quadrotor as dyn
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.graph import build_graph
+from egcbf.report import replace_section
 
 BEGIN, END = "<!-- env-scaling:begin -->", "<!-- env-scaling:end -->"
 SIZES = (64, 128, 256, 512, 1024, 2048, 4096)
@@ -112,17 +112,7 @@ def table(title: str, rows: list[dict]) -> str:
 
 
 def write_section(path: Path, body: str) -> None:
-    block = f"{BEGIN}\n{body}\n{END}"
-    if path.exists():
-        text = path.read_text()
-        if BEGIN in text and END in text:
-            text = re.sub(re.escape(BEGIN) + r".*?" + re.escape(END), lambda _: block, text, flags=re.S)
-        else:
-            text = text.rstrip("\n") + "\n\n## Environment scaling\n\n" + block + "\n"
-    else:
-        text = "# Benchmarks\n\n## Environment scaling\n\n" + block + "\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    replace_section(path, "env-scaling", body, heading="## Environment scaling")
 
 
 def main(argv=None) -> int:

@@ -24,7 +24,6 @@ import argparse
 import importlib.util
 import os
 import platform
-import re
 import statistics
 import sys
 import time
@@ -44,6 +43,7 @@ from egcbf.control.qp import (
     solve_sparse,
 )
 from egcbf.env import EnvConfig, SwarmEnv
+from egcbf.report import replace_section
 
 BEGIN, END = "<!-- qp-scaling:begin -->", "<!-- qp-scaling:end -->"
 SIZES = (8, 16, 64, 128, 256, 512)
@@ -162,17 +162,7 @@ def render(rows: list[dict], comp: dict[int, dict], args, solvers) -> str:
 
 
 def write_section(path: Path, body: str) -> None:
-    block = f"{BEGIN}\n{body}\n{END}"
-    if path.exists():
-        text = path.read_text()
-        if BEGIN in text and END in text:
-            text = re.sub(re.escape(BEGIN) + r".*?" + re.escape(END), lambda _: block, text, flags=re.S)
-        else:
-            text = text.rstrip("\n") + "\n\n## CBF-QP baselines: solve time\n\n" + block + "\n"
-    else:
-        text = "# Benchmarks\n\n## CBF-QP baselines: solve time\n\n" + block + "\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    replace_section(path, "qp-scaling", body, heading="## CBF-QP baselines: solve time")
 
 
 def main(argv=None) -> int:

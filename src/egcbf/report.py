@@ -58,8 +58,11 @@ def metrics_markdown(rows: Sequence[dict], *, label: str | None = None, timing: 
     return "\n".join(lines)
 
 
-def replace_section(path: str | Path, name: str, body: str) -> None:
-    """Replace (or append) the block between ``<!-- name:begin -->`` and ``<!-- name:end -->`` in ``path``."""
+def replace_section(path: str | Path, name: str, body: str, heading: str | None = None) -> None:
+    """Replace (or append) the block between ``<!-- name:begin -->`` and ``<!-- name:end -->`` in ``path``.
+
+    ``heading`` (e.g. ``"## Environment scaling"``) is written above the block only when it is appended.
+    """
     path = Path(path)
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
     text = path.read_text() if path.exists() else ""
@@ -69,5 +72,7 @@ def replace_section(path: str | Path, name: str, body: str) -> None:
         _, post = rest.split(end, 1)
         text = pre + block + post
     else:
-        text = text.rstrip() + ("\n\n" if text else "") + block + "\n"
+        top = f"{heading}\n\n" if heading else ""
+        text = text.rstrip() + ("\n\n" if text else "") + top + block + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)

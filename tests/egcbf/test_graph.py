@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from egcbf.dynamics import quadrotor as dyn
 from egcbf.dynamics.so3 import so3_exp
-from egcbf.env import EnvConfig, Obstacles, SwarmEnv, SwarmState
+from egcbf.env import EnvConfig, SwarmEnv, SwarmState
 from egcbf.graph import (
     EDGE_TYPE,
     GROUP,
@@ -37,14 +37,6 @@ def _random_state(cfg: EnvConfig, seed: int) -> SwarmState:
     v = torch.randn(b, n, 3, generator=gen, dtype=F64)
     w = torch.randn(b, n, 3, generator=gen, dtype=F64)
     return SwarmState(dyn.state_from_parts(s.positions, rot, v, w), s.goals, s.obstacles)
-
-
-def _transform(state: SwarmState, g: torch.Tensor) -> SwarmState:
-    """Apply one SE2xR element per environment (``g`` ``(B, 5)``) to the whole scene."""
-    x = dyn.STATE_TYPE.act(g[:, None], state.x)
-    goals = GROUP.transform(g[:, None], state.goals)
-    obs = Obstacles(GROUP.transform(g[:, None], state.obstacles.centers), state.obstacles.radii)
-    return SwarmState(x, goals, obs, state.t)
 
 
 def _local(graph):
@@ -76,7 +68,7 @@ def configs(draw):
 def test_receiver_frame_features_are_invariant(cfg, seed, g):
     state = _random_state(cfg, seed)
     g = g[: cfg.num_envs]
-    g1, g2 = build_graph(state, cfg), build_graph(_transform(state, g), cfg)
+    g1, g2 = build_graph(state, cfg), build_graph(state.transform(g), cfg)
     assert torch.equal(g1.edge_index, g2.edge_index)  # identical edge set, identical order
     assert torch.equal(g1.edge_kind, g2.edge_kind) and torch.equal(g1.src_kind, g2.src_kind)
     for a, b in zip(_local(g1), _local(g2)):
@@ -170,7 +162,7 @@ def test_canonicalized_layer_on_the_graph_is_invariant():
     eq = Canonicalize(GROUP, in_type=(NODE_TYPE, NODE_TYPE), out_type=out_type, edge_type=EDGE_TYPE)(layer)
     g = torch.tensor([[math.cos(1.0), math.sin(1.0), 3.0, -2.0, 0.5], [-1.0, 0.0, 0.1, 0.2, -7.0]], dtype=F64)
     outs = []
-    for s in (state, _transform(state, g)):
+    for s in (state, state.transform(g)):
         gr = build_graph(s, cfg)
         outs.append(eq((gr.x_src, gr.x_dst), gr.edge_index, frames=gr.frames, edge_attr=gr.edge_attr))
     assert outs[0].shape == (16, 4)

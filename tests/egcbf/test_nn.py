@@ -12,7 +12,7 @@ from egcbf.algo.actions import control_bounds, control_scale, policy_control
 from egcbf.algo.learner import LearnedController
 from egcbf.dynamics import quadrotor as dyn
 from egcbf.dynamics.so3 import so3_exp
-from egcbf.env import EnvConfig, Obstacles, SwarmEnv, SwarmState
+from egcbf.env import EnvConfig, SwarmEnv, SwarmState
 from egcbf.graph import GROUP, build_graph
 from egcbf.nn import CBFNet, GraphTransformerLayer, ModelConfig, PolicyNet
 from groupcanon.testing import strategies as gst
@@ -29,14 +29,6 @@ def _scene(cfg: EnvConfig, seed: int) -> SwarmState:
     v = torch.randn(b, n, 3, generator=gen, dtype=F64)
     w = torch.randn(b, n, 3, generator=gen, dtype=F64)
     return SwarmState(dyn.state_from_parts(s.positions, rot, v, w), s.goals, s.obstacles)
-
-
-def _transform(state: SwarmState, g: torch.Tensor) -> SwarmState:
-    """One SE2xR element per environment (``g`` ``(B, 5)``) applied to states (STATE_TYPE), goals and obstacles."""
-    x = dyn.STATE_TYPE.act(g[:, None], state.x)
-    goals = GROUP.transform(g[:, None], state.goals)
-    obs = Obstacles(GROUP.transform(g[:, None], state.obstacles.centers), state.obstacles.radii)
-    return SwarmState(x, goals, obs, state.t)
 
 
 @functools.cache
@@ -74,13 +66,13 @@ def test_egcbf_is_invariant_and_gcbf_is_not(scene, g):
     state = _scene(cfg, seed)
     g = g[: cfg.num_envs]
     a = _outputs("se2xr", state, cfg)
-    b = _outputs("se2xr", _transform(state, g), cfg)
+    b = _outputs("se2xr", state.transform(g), cfg)
     for name, x, y in zip(("h", "policy raw", "policy features", "control"), a, b):
         assert (x - y).abs().max() <= 1e-9, name
     # the same test fails for GCBF (the same layers over the trivial group) under a quarter turn
     quarter = torch.tensor([[0.0, 1.0, 0.5, -0.5, 0.2]], dtype=F64).expand(cfg.num_envs, 5)
     a = _outputs("trivial", state, cfg)
-    b = _outputs("trivial", _transform(state, quarter), cfg)
+    b = _outputs("trivial", state.transform(quarter), cfg)
     assert (a[0] - b[0]).abs().max() > 1e-6 and (a[2] - b[2]).abs().max() > 1e-4
 
 
@@ -91,15 +83,15 @@ def test_gcbf_is_not_rotation_invariant_but_translation_invariant():
     rot = torch.tensor([[c, s, 0.3, -0.2, 0.1]], dtype=F64)
     shift = torch.tensor([[1.0, 0.0, 0.3, -0.2, 0.1]], dtype=F64)
     a = _outputs("trivial", state, cfg)
-    b = _outputs("trivial", _transform(state, rot), cfg)
+    b = _outputs("trivial", state.transform(rot), cfg)
     errors = {name: float((x - y).abs().max()) for name, x, y in zip(("h", "raw", "features", "u"), a, b)}
     assert errors["h"] > 1e-3 and errors["features"] > 1e-2 and errors["raw"] > 1e-5, errors
     # its features carry no absolute position: translations alone leave it unchanged
-    t = _outputs("trivial", _transform(state, shift), cfg)
+    t = _outputs("trivial", state.transform(shift), cfg)
     for x, y in zip(a, t):
         assert (x - y).abs().max() <= 1e-9
     # and the equivariant network is invariant under the same rotation
-    for x, y in zip(_outputs("se2xr", state, cfg), _outputs("se2xr", _transform(state, rot), cfg)):
+    for x, y in zip(_outputs("se2xr", state, cfg), _outputs("se2xr", state.transform(rot), cfg)):
         assert (x - y).abs().max() <= 1e-9
 
 

@@ -211,6 +211,23 @@ class SwarmState:
         obs = Obstacles(self.obstacles.centers.detach(), self.obstacles.radii.detach())
         return SwarmState(self.x.detach(), self.goals.detach(), obs, self.t)
 
+    def transform(self, g: Tensor) -> SwarmState:
+        """The scene moved by ``g`` ``(B, 5)``, one SE2xR element per environment: agent states act with
+        ``dynamics.STATE_TYPE``, goals and obstacle centres move as points, radii are unchanged.
+
+        ``g`` may also be a single element ``(5,)`` applied to every environment. This is the global transform
+        under which graph features in agent frames, the CBF and the body-frame controls are invariant.
+        """
+        group = dyn.GROUP
+        group.check(g, "g")
+        if g.dim() == 1:
+            g = g.expand(self.num_envs, g.shape[-1])
+        if g.shape[0] != self.num_envs:
+            raise ValueError(f"g has {g.shape[0]} elements for {self.num_envs} environments")
+        ge = g[:, None].to(self.x.dtype)
+        obs = Obstacles(group.transform(ge, self.obstacles.centers), self.obstacles.radii)
+        return SwarmState(dyn.STATE_TYPE.act(ge, self.x), group.transform(ge, self.goals), obs, self.t)
+
 
 @dataclass
 class StepInfo:

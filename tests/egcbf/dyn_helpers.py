@@ -38,3 +38,17 @@ def random_controls(seed: int, batch=(8,), dtype=F64, params=DEFAULT_PARAMS) -> 
 def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
     """Max abs error divided by max(1, max |b|)."""
     return float((a - b).abs().max() / b.abs().max().clamp_min(1.0))
+
+
+def moving_scene(cfg, seed: int):
+    """A reset swarm state (``egcbf.env.SwarmState``, float64) with random attitudes, velocities and body rates, so
+    that every graph feature is non-trivial."""
+    from egcbf.env import SwarmEnv, SwarmState
+
+    s = SwarmEnv(cfg, dtype=F64).reset(seed)
+    g = gen(seed + 1)
+    b, n = cfg.num_envs, cfg.num_agents
+    rot = so3_exp(torch.randn(b, n, 3, generator=g, dtype=F64))
+    v = torch.randn(b, n, 3, generator=g, dtype=F64)
+    w = torch.randn(b, n, 3, generator=g, dtype=F64)
+    return SwarmState(state_from_parts(s.positions, rot, v, w), s.goals, s.obstacles)

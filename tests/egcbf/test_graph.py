@@ -4,11 +4,11 @@ import math
 
 import pytest
 import torch
+from dyn_helpers import moving_scene
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from egcbf.dynamics import quadrotor as dyn
-from egcbf.dynamics.so3 import so3_exp
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
 from egcbf.graph import (
     EDGE_TYPE,
@@ -26,17 +26,6 @@ from groupcanon.features import Scalar
 from groupcanon.testing import strategies as gst
 
 F64 = torch.float64
-
-
-def _random_state(cfg: EnvConfig, seed: int) -> SwarmState:
-    """A reset state with random attitudes, velocities and body rates (so every feature is non-trivial)."""
-    s = SwarmEnv(cfg, dtype=F64).reset(seed)
-    gen = torch.Generator().manual_seed(seed + 1)
-    b, n = cfg.num_envs, cfg.num_agents
-    rot = so3_exp(torch.randn(b, n, 3, generator=gen, dtype=F64))
-    v = torch.randn(b, n, 3, generator=gen, dtype=F64)
-    w = torch.randn(b, n, 3, generator=gen, dtype=F64)
-    return SwarmState(dyn.state_from_parts(s.positions, rot, v, w), s.goals, s.obstacles)
 
 
 def _local(graph):
@@ -66,7 +55,7 @@ def configs(draw):
 @given(cfg=configs(), seed=st.integers(0, 2**20), g=gst.elements(GROUP, batch=(3,)))
 @settings(max_examples=20)
 def test_receiver_frame_features_are_invariant(cfg, seed, g):
-    state = _random_state(cfg, seed)
+    state = moving_scene(cfg, seed)
     g = g[: cfg.num_envs]
     g1, g2 = build_graph(state, cfg), build_graph(state.transform(g), cfg)
     assert torch.equal(g1.edge_index, g2.edge_index)  # identical edge set, identical order
@@ -81,7 +70,7 @@ def test_receiver_frame_features_are_invariant(cfg, seed, g):
 @given(cfg=configs(), seed=st.integers(0, 2**20))
 @settings(max_examples=15)
 def test_structure(cfg, seed):
-    state = _random_state(cfg, seed)
+    state = moving_scene(cfg, seed)
     gr = build_graph(state, cfg)
     b, n = cfg.num_envs, cfg.num_agents
     m = b * n
@@ -131,7 +120,7 @@ def test_structure(cfg, seed):
 
 def test_refresh_graph_matches_and_is_differentiable():
     cfg = EnvConfig(num_envs=2, num_agents=6)
-    state = _random_state(cfg, 0)
+    state = moving_scene(cfg, 0)
     gr = build_graph(state, cfg)
     same = refresh_graph(gr, state.x)
     for name in ("x_src", "x_dst", "edge_attr", "frames", "pos_src", "pos_dst"):
@@ -156,7 +145,7 @@ def test_canonicalized_layer_on_the_graph_is_invariant():
 
     torch.manual_seed(0)
     cfg = EnvConfig(num_envs=2, num_agents=8, comm_radius=1.0)
-    state = _random_state(cfg, 1)
+    state = moving_scene(cfg, 1)
     out_type = FieldType(GROUP, [Scalar(4)])
     layer = TransformerConv((NODE_TYPE.dim, NODE_TYPE.dim), 4, edge_dim=3).double()
     eq = Canonicalize(GROUP, in_type=(NODE_TYPE, NODE_TYPE), out_type=out_type, edge_type=EDGE_TYPE)(layer)

@@ -5,30 +5,19 @@ import math
 
 import pytest
 import torch
+from dyn_helpers import moving_scene
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from egcbf.algo.actions import control_bounds, control_scale, policy_control
 from egcbf.algo.learner import LearnedController
 from egcbf.dynamics import quadrotor as dyn
-from egcbf.dynamics.so3 import so3_exp
-from egcbf.env import EnvConfig, SwarmEnv, SwarmState
+from egcbf.env import EnvConfig, SwarmState
 from egcbf.graph import GROUP, build_graph
 from egcbf.nn import CBFNet, GraphTransformerLayer, ModelConfig, PolicyNet
 from groupcanon.testing import strategies as gst
 
 F64 = torch.float64
-
-
-def _scene(cfg: EnvConfig, seed: int) -> SwarmState:
-    """A reset state with random attitudes, velocities and body rates (every feature non-trivial)."""
-    s = SwarmEnv(cfg, dtype=F64).reset(seed)
-    gen = torch.Generator().manual_seed(seed + 1)
-    b, n = cfg.num_envs, cfg.num_agents
-    rot = so3_exp(torch.randn(b, n, 3, generator=gen, dtype=F64))
-    v = torch.randn(b, n, 3, generator=gen, dtype=F64)
-    w = torch.randn(b, n, 3, generator=gen, dtype=F64)
-    return SwarmState(dyn.state_from_parts(s.positions, rot, v, w), s.goals, s.obstacles)
 
 
 @functools.cache
@@ -63,7 +52,7 @@ def scenes(draw):
 @settings(max_examples=25)
 def test_egcbf_is_invariant_and_gcbf_is_not(scene, g):
     cfg, seed = scene
-    state = _scene(cfg, seed)
+    state = moving_scene(cfg, seed)
     g = g[: cfg.num_envs]
     a = _outputs("se2xr", state, cfg)
     b = _outputs("se2xr", state.transform(g), cfg)
@@ -78,7 +67,7 @@ def test_egcbf_is_invariant_and_gcbf_is_not(scene, g):
 
 def test_gcbf_is_not_rotation_invariant_but_translation_invariant():
     cfg = EnvConfig(num_agents=5, num_envs=1, area_size=1.5, num_obstacles=2, n_rays=8, lidar_max_hits=4)
-    state = _scene(cfg, 3)
+    state = moving_scene(cfg, 3)
     c, s = math.cos(math.pi / 2), math.sin(math.pi / 2)
     rot = torch.tensor([[c, s, 0.3, -0.2, 0.1]], dtype=F64)
     shift = torch.tensor([[1.0, 0.0, 0.3, -0.2, 0.1]], dtype=F64)
@@ -97,7 +86,7 @@ def test_gcbf_is_not_rotation_invariant_but_translation_invariant():
 
 def test_outputs_are_bounded_and_shaped():
     cfg = EnvConfig(num_agents=4, num_envs=3, n_rays=8, lidar_max_hits=4)
-    state = _scene(cfg, 1)
+    state = moving_scene(cfg, 1)
     for group in ("se2xr", "trivial"):
         cbf, pol, mcfg = _nets(group)
         graph = build_graph(state, cfg)
@@ -146,7 +135,7 @@ def test_per_channel_action_scale():
 @pytest.mark.parametrize("group", ["se2xr", "trivial"])
 def test_cbf_without_body_rates_ignores_them(group):
     cfg = EnvConfig(num_agents=4, num_envs=2, n_rays=8, lidar_max_hits=4)
-    state = _scene(cfg, 2)
+    state = moving_scene(cfg, 2)
     p, rot, v, w = dyn.unpack(state.x)
     spun = SwarmState(dyn.state_from_parts(p, rot, v, torch.randn_like(w)), state.goals, state.obstacles)
     torch.manual_seed(0)

@@ -169,30 +169,108 @@ def eval_cmd(
     typer.echo(f"wrote {out / 'metrics.json'}")
 
 
+def _demo_source(name: str, checkpoints: Path) -> Path | None:
+    """The checkpoint directory of a learned method (``checkpoints/<name>``), or ``None`` for a hand-crafted
+    controller name; a clear error naming the path and the training command if a learned method has none."""
+    from .config import METHODS
+    from .control.controllers import CONTROLLERS
+
+    if name in CONTROLLERS:
+        return None
+    if name not in METHODS:
+        raise typer.BadParameter(
+            f"unknown method {name!r}: a learned method {sorted(METHODS)} or a controller {sorted(CONTROLLERS)}"
+        )
+    from .train import find_checkpoint
+
+    path = checkpoints / name
+    try:
+        return find_checkpoint(path)
+    except FileNotFoundError:
+        raise typer.BadParameter(
+            f"no {name} checkpoint at {path} (config.json + model.safetensors). Train one with\n"
+            f"  egcbf train --algo {name} --steps 200 --threads 1 --out runs/{name}\n"
+            f"and pass --checkpoints with a directory holding {name}/ (e.g. a copy of runs/{name}/best)."
+        ) from None
+
+
 @app.command()
 def demo(
-    out: Annotated[Path, typer.Option(help="output directory")] = Path("out/demo"),
-    num_agents: Annotated[int, typer.Option("--num-agents")] = 16,
-    controller: Annotated[str, typer.Option(help="nominal | ccbf | dcbf")] = "ccbf",
+    checkpoints: Annotated[
+        Path, typer.Option(help="directory holding one checkpoint directory per learned method (egcbf+/, gcbf+/, ...)")
+    ] = Path("checkpoints"),
+    method: Annotated[
+        str, typer.Option(help="a learned method (gcbf, gcbf+, egcbf, egcbf+) or a controller (nominal, ccbf, dcbf)")
+    ] = "egcbf+",
+    baseline: Annotated[
+        str | None,
+        typer.Option(help="compared on the same seeds; 'none' to skip (default: gcbf+ for a learned --method)"),
+    ] = None,
+    num_agents: Annotated[int, typer.Option("--num-agents")] = 64,
+    area: Annotated[float, typer.Option(help="side l of the arena [0, l]^3 (m)")] = 4.0,
+    obstacles: Annotated[int, typer.Option(help="number of sphere obstacles")] = 8,
     episodes: Annotated[int, typer.Option()] = 4,
+    seed: Annotated[int, typer.Option()] = 0,
+    out: Annotated[Path, typer.Option(help="output directory")] = Path("out/demo"),
+    max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's)")] = None,
     device: Annotated[str, typer.Option()] = "cpu",
+    threads: Annotated[int, typer.Option(help="torch CPU threads (small matrices: 1 is fastest on a shared CPU)")] = 1,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
 ) -> None:
-    """The main job: a short swarm episode with a safe controller, its metrics table and a GIF."""
-    eval_cmd(
-        controller=controller,
-        num_agents=str(num_agents),
-        area=2.0,
-        obstacles=3,
-        episodes=episodes,
-        seed=0,
-        out=out,
-        render=True,
-        max_steps=None,
-        batch=None,
-        device=device,
-        dtype="float32",
-        progress=True,
-    )
+    """The main job: the learned EGCBF+ policy and GCBF+ on the same episodes (64 agents, l = 4, 8 obstacles by
+    default): both metrics tables, a one-line comparison, OUT/<method>/metrics.json, a GIF and a top-down PNG of
+    the first EGCBF+ episode, and OUT/demo.json. ``--method ccbf`` runs the hand-crafted centralized CBF-QP."""
+    t0 = time.time()
+    if baseline is None:
+        baseline = "none" if _demo_source(method, checkpoints) is None else "gcbf+"
+    names = [method] + ([] if baseline.lower() in ("none", "") or baseline == method else [baseline])
+    sources = {name: _demo_source(name, checkpoints) for name in names}  # fail before any work
+    if threads < 1:
+        raise typer.BadParameter("--threads must be >= 1")
+    torch.set_num_threads(threads)
+    rows = {}
+    for name, ckpt in sources.items():
+        eval_cmd(
+            controller=name if ckpt is None else "nominal",
+            num_agents=str(num_agents),
+            area=area,
+            obstacles=obstacles,
+            episodes=episodes,
+            seed=seed,
+            out=out / name,
+            render=name == method,
+            max_steps=max_steps,
+            batch=None,
+            device=device,
+            dtype="float32",
+            progress=progress,
+            checkpoint=ckpt,
+        )
+        rows[name] = json.loads((out / name / "metrics.json").read_text())[0]
+    if len(rows) == 2:
+        (a, ra), (b, rb) = rows.items()
+        parts = ", ".join(
+            f"{k} {100 * ra[f'{k}_rate']:.1f}% vs {100 * rb[f'{k}_rate']:.1f}%" for k in ("safe", "reach", "success")
+        )
+        typer.echo(f"{a} vs {b} on the same {episodes} episodes (N={num_agents}, l={area:g}, seed {seed}): {parts}")
+    summary = {
+        "command": " ".join(["egcbf", *sys.argv[1:]]),
+        "method": method,
+        "baseline": None if len(rows) == 1 else names[1],
+        "checkpoints": {k: None if v is None else str(v) for k, v in sources.items()},
+        "num_agents": num_agents,
+        "area": area,
+        "obstacles": obstacles,
+        "episodes": episodes,
+        "seed": seed,
+        "max_steps": max_steps,
+        "metrics": rows,
+        "wall_s": round(time.time() - t0, 1),
+        "machine": _machine(),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "demo.json").write_text(json.dumps(summary, indent=2) + "\n")
+    typer.echo(f"wrote {out / 'demo.json'}")
 
 
 @app.command()
@@ -256,6 +334,89 @@ def train(
         run_training(cfg, out, progress=progress)
     except FileExistsError as err:
         raise typer.BadParameter(str(err)) from None
+
+
+def _parse_methods(text: str, option: str) -> tuple[str, ...]:
+    from .reproduce import METHODS
+
+    names = tuple(s for s in text.replace(" ", "").split(",") if s)
+    bad = [m for m in names if m not in METHODS]
+    if bad:
+        raise typer.BadParameter(f"{option}: unknown method(s) {bad}; choose from {', '.join(METHODS)}")
+    return names
+
+
+@app.command()
+def reproduce(
+    methods: Annotated[str, typer.Option(help="comma list of gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+")] = (
+        "gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+"
+    ),
+    num_agents: Annotated[str, typer.Option("--num-agents", help="comma-separated swarm sizes")] = (
+        "8,16,64,128,256,512"
+    ),
+    area: Annotated[float, typer.Option(help="side l of the arena [0, l]^3 (m)")] = 4.0,
+    obstacles: Annotated[int, typer.Option(help="obstacles of the obstacle setting (0: none)")] = 8,
+    obstacle_methods: Annotated[
+        str, typer.Option("--obstacle-methods", help="methods also run with obstacles (comma list)")
+    ] = "gcbf,gcbf+,egcbf,egcbf+",
+    episodes: Annotated[int, typer.Option(help="episodes per cell (method, obstacles, N)")] = 50,
+    baseline_episodes: Annotated[
+        int | None, typer.Option(help="episodes per cell of the CBF-QP baselines (default: --episodes)")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="evaluation seed")] = 0,
+    max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's 256 steps)")] = None,
+    checkpoints: Annotated[
+        Path, typer.Option(help="one checkpoint directory per learned method: CHECKPOINTS/<method>/")
+    ] = Path("checkpoints"),
+    out: Annotated[Path, typer.Option(help="results directory (one JSON file per cell)")] = Path(
+        "docs/results/reproduction"
+    ),
+    report: Annotated[Path, typer.Option(help="markdown report (figures go to its directory's figures/)")] = Path(
+        "docs/reproduction.md"
+    ),
+    baselines: Annotated[
+        Path | None, typer.Option(help="earlier `egcbf eval` outputs to import baseline cells from")
+    ] = Path("docs/results/baselines"),
+    workers: Annotated[int, typer.Option(help="cells evaluated in parallel (one torch thread each)")] = 2,
+    backend: Annotated[str, typer.Option(help="process | ray (optional extra, for several machines)")] = "process",
+    device: Annotated[str, typer.Option(help="cpu | cuda")] = "cpu",
+    report_only: Annotated[
+        bool, typer.Option("--report-only", help="regenerate the report from the existing cells")
+    ] = False,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+) -> None:
+    """Reproduce the paper's Table I and scalability study: evaluate every method at every N (without obstacles,
+    and OBSTACLE-METHODS with OBSTACLES obstacles), resumably (finished cells are kept), and write REPORT."""
+    from .reproduce import SweepConfig, load_cells, sweep, validate, write_report
+
+    try:
+        cfg = SweepConfig(
+            methods=_parse_methods(methods, "--methods"),
+            num_agents=tuple(_parse_sizes(num_agents)),
+            area=area,
+            obstacles=obstacles,
+            obstacle_methods=_parse_methods(obstacle_methods, "--obstacle-methods"),
+            episodes=episodes,
+            baseline_episodes=baseline_episodes,
+            seed=seed,
+            max_steps=max_steps,
+            checkpoints=checkpoints,
+            out=out,
+            baselines=baselines,
+            device=device,
+            workers=workers,
+            backend=backend,
+        )
+        if not report_only:
+            validate(cfg)
+    except (ValueError, FileNotFoundError, ImportError) as err:
+        raise typer.BadParameter(str(err)) from None
+    if report_only:
+        records = load_cells(cfg)
+    else:
+        records = sweep(cfg, command=" ".join(["egcbf", *sys.argv[1:]]), progress=progress, log=typer.echo)
+    path = write_report(cfg, records, report)
+    typer.echo(f"{len(records)} of {len(cfg.cells())} cells; wrote {path}")
 
 
 def main() -> None:  # pragma: no cover

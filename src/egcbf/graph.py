@@ -129,6 +129,30 @@ class SwarmGraph:
     def num_hits(self) -> int:
         return self.hit_owner.shape[0]
 
+    def reflect_z(self) -> SwarmGraph:
+        """The graph of the scene mirrored in a horizontal plane, ``sigma = diag(1, 1, -1)`` (same edges).
+
+        Vectors flip their z component (``v``, ``dp``, positions), attitudes are conjugated ``R -> sigma R sigma``
+        (a rotation again; the body x axis keeps its yaw), body rates become ``(-wx, -wy, wz)`` (``R^T dR/dt``
+        conjugated by the improper ``sigma``), frames keep their yaw and flip ``tz``. The reflection commutes with
+        every SE(2) x R element, so averaging a network over ``{G, G.reflect_z()}`` keeps SE2xR invariance.
+        """
+        like = self.x_src
+        flip = torch.ones(NODE_DIM, dtype=like.dtype, device=like.device)
+        # channels (NODE_TYPE): kind 0:3 | v 3:6 | R 6:15 (row-major) | w 15:18
+        flip[[5, 6 + 2, 6 + 5, 6 + 6, 6 + 7, 15, 16]] = -1  # v_z; R_02, R_12, R_20, R_21; w_x, w_y
+        vec = torch.tensor((1.0, 1.0, -1.0), dtype=like.dtype, device=like.device)
+        frame = torch.tensor((1.0, 1.0, 1.0, 1.0, -1.0), dtype=like.dtype, device=like.device)
+        return replace(
+            self,
+            x_src=self.x_src * flip,
+            x_dst=self.x_dst * flip,
+            edge_attr=self.edge_attr * vec,
+            pos_src=self.pos_src * vec,
+            pos_dst=self.pos_dst * vec,
+            frames=self.frames * frame,
+        )
+
     def to(self, *args, **kwargs) -> SwarmGraph:
         """Move (and for floating tensors cast) every tensor, like ``Tensor.to``; index tensors stay long."""
         out = {}

@@ -14,9 +14,16 @@ Layout of a run directory ``OUT``::
                                     training_state.pt (optimizer states and RNG state; loads with weights_only),
                                     buffers.safetensors (replay buffers; newest checkpoint only),
                                     state.json (step, wall time, versions)
+    OUT/best/                       the policy with the best evaluation rollouts so far (highest success rate,
+                                    ties to the higher safe rate, then to the later update): config.json,
+                                    model.safetensors, state.json (step, wall time, its metrics row)
 
-A checkpoint directory alone is enough to evaluate (:func:`load_controller`). Checkpoints are written to a
-temporary directory and renamed, so an interrupted write never leaves a half checkpoint; ``resume=True`` continues
+Model selection uses the evaluation rollouts of training (fixed episodes from ``seed + 1000``, never the seeds of
+:func:`egcbf.evaluate.evaluate`), so ``OUT/best`` is a validation choice: the learned policies can degrade late in
+a run (docs/learning.md), and the best one seen is the one to ship.
+
+A checkpoint directory alone is enough to evaluate (:func:`load_controller`). Checkpoints are written to a temporary
+directory and renamed, so an interrupted write never leaves a half checkpoint; ``resume=True`` continues
 from the newest one (losing at most ``checkpoint_interval`` updates), truncating the CSV logs to its step, and
 continues bit for bit on CPU: every random number comes from the seed, the update index or the saved generator.
 """
@@ -48,6 +55,7 @@ __all__ = [
     "find_checkpoint",
     "load_controller",
     "load_learner",
+    "save_best",
     "save_checkpoint",
     "train",
 ]
@@ -149,6 +157,30 @@ def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: in
         for old in older[: max(0, len(older) + 1 - keep)]:
             shutil.rmtree(old, ignore_errors=True)
     return final
+
+
+def _selection_key(row: dict) -> tuple[float, float]:
+    return (float(row["success_rate"]), float(row["safe_rate"]))
+
+
+def save_best(learner: GraphCBFLearner, out: Path, wall_s: float, row: dict) -> Path:
+    """Write ``OUT/best`` (weights, config, and the evaluation ``row`` that selected it) atomically."""
+    final = out / "best"
+    tmp = out / "best.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    learner.config.to_json(tmp / "config.json")
+    save_file({k: v.cpu() for k, v in learner.weights().items()}, str(tmp / "model.safetensors"))
+    state = {"step": learner.step, "wall_s": wall_s, "algo": learner.config.algo, "metrics": row}
+    (tmp / "state.json").write_text(json.dumps(state, indent=2) + "\n")
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(tmp, final)
+    return final
+
+
+def _best_key(out: Path) -> tuple[float, float] | None:
+    f = out / "best" / "state.json"
+    return _selection_key(json.loads(f.read_text())["metrics"]) if f.exists() else None
 
 
 def _to_cpu(obj):
@@ -286,6 +318,7 @@ def train(
         wall0 = 0.0
     config.to_json(out / "config.json")
     logger = _Logger(out, learner.step)
+    best = [_best_key(out) if resume else None]
     t_start = time.perf_counter()
 
     def wall() -> float:
@@ -295,6 +328,10 @@ def train(
         row = evaluate_policy(learner, config)
         row.update(step=learner.step, wall_s=round(wall(), 3))
         logger.metrics(row)
+        key = _selection_key(row)
+        if best[0] is None or key >= best[0]:
+            best[0] = key
+            save_best(learner, out, row["wall_s"], row)
         log(
             f"[{config.algo}] update {learner.step:5d}  {row['wall_s']:8.1f}s  safe {100 * row['safe_rate']:5.1f}%  "
             f"reach {100 * row['reach_rate']:5.1f}%  success {100 * row['success_rate']:5.1f}%  "

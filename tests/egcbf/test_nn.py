@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from egcbf.algo.actions import control_bounds, control_scale, policy_control
 from egcbf.algo.learner import LearnedController
+from egcbf.config import TrainConfig
 from egcbf.dynamics import quadrotor as dyn
 from egcbf.env import EnvConfig, SwarmState
 from egcbf.graph import GROUP, build_graph
@@ -144,6 +145,67 @@ def test_cbf_without_body_rates_ignores_them(group):
     g0, g1 = build_graph(state, cfg), build_graph(spun, cfg)
     assert torch.equal(cbf(g0), cbf(g1))
     assert not torch.allclose(pol(g0), pol(g1))  # the policy still reads w
+
+
+@pytest.mark.parametrize("group", ["se2xr", "trivial"])
+def test_cbf_without_goal_edges_ignores_goals(group):
+    cfg = EnvConfig(num_agents=4, num_envs=2, n_rays=8, lidar_max_hits=4)
+    state = moving_scene(cfg, 3)
+    moved = SwarmState(state.x, state.goals + torch.randn_like(state.goals), state.obstacles)
+    torch.manual_seed(0)
+    mcfg = ModelConfig(group=group, hidden=16, heads=2, head_hidden=16, cbf_goal_edges=False)
+    cbf, pol = CBFNet(mcfg).double(), PolicyNet(mcfg).double()
+    g0, g1 = build_graph(state, cfg), build_graph(moved, cfg)
+    assert torch.equal(cbf(g0), cbf(g1))
+    assert not torch.allclose(pol(g0), pol(g1))  # the policy still reads its goal
+
+
+@given(scene=scenes(), g=gst.elements(GROUP, batch=(2,)))
+@settings(max_examples=10)
+def test_cpu_recipe_networks_are_invariant(scene, g):
+    """The cpu preset's networks (no body rates, no goal edges in the CBF) keep EGCBF's invariance."""
+    cfg, seed = scene
+    state = moving_scene(cfg, seed)
+    g = g[: cfg.num_envs]
+    torch.manual_seed(0)
+    mcfg = TrainConfig.preset("egcbf+", "cpu").model
+    cbf, pol = CBFNet(mcfg).double(), PolicyNet(mcfg).double()
+    with torch.no_grad():
+        a = cbf(build_graph(state, cfg)), pol(build_graph(state, cfg))
+        moved = state.transform(g)
+        b = cbf(build_graph(moved, cfg)), pol(build_graph(moved, cfg))
+    for x, y in zip(a, b):
+        assert (x - y).abs().max() <= 1e-9
+
+
+def _mirror(state: SwarmState, height: float) -> SwarmState:
+    """The scene mirrored in the plane z = height / 2: p_z -> height - p_z, R -> S R S, v_z -> -v_z,
+    w -> (-wx, -wy, wz)."""
+    sig = torch.tensor([1.0, 1.0, -1.0], dtype=F64)
+    shift = torch.tensor([0.0, 0.0, height], dtype=F64)
+    p, rot, v, w = dyn.unpack(state.x)
+    rot = sig[:, None] * rot * sig[None, :]
+    x = dyn.state_from_parts(p * sig + shift, rot, v * sig, w * -sig)
+    obs = type(state.obstacles)(state.obstacles.centers * sig + shift, state.obstacles.radii)
+    return SwarmState(x, state.goals * sig + shift, obs)
+
+
+@given(seed=st.integers(0, 2**16), n=st.integers(2, 6))
+@settings(max_examples=10)
+def test_reflect_z_is_the_mirrored_scene_and_the_symmetric_cbf_ignores_it(seed, n):
+    cfg = EnvConfig(num_agents=n, num_envs=2, area_size=2.0, num_obstacles=0)
+    state = moving_scene(cfg, seed)
+    g0, g1 = build_graph(state, cfg), build_graph(_mirror(state, 2.0), cfg)
+    assert torch.equal(g0.edge_index, g1.edge_index)
+    r = g0.reflect_z()
+    assert torch.allclose(r.x_src, g1.x_src, atol=1e-12) and torch.allclose(r.edge_attr, g1.edge_attr, atol=1e-12)
+    assert torch.allclose(r.frames[:, :2], g1.frames[:, :2], atol=1e-12)  # same yaw (tz differs by the shift)
+    torch.manual_seed(seed)
+    for group in ("se2xr", "trivial"):
+        sym = CBFNet(ModelConfig(group=group, hidden=16, heads=2, head_hidden=16, cbf_z_symmetric=True)).double()
+        assert (sym(g0) - sym(g1)).abs().max() <= 1e-9
+    plain = CBFNet(ModelConfig(hidden=16, heads=2, head_hidden=16)).double()
+    assert (plain(g0) - plain(g1)).abs().max() > 1e-6
 
 
 @pytest.mark.parametrize(

@@ -145,3 +145,16 @@ def test_cli_train_resume_and_eval_checkpoint(tmp_path):
     assert json.loads((out / "run.json").read_text())["controller"] == "egcbf"
     r = CliRunner().invoke(app, ["eval", "--checkpoint", str(tmp_path / "nothing"), "--out", str(out)])
     assert r.exit_code != 0 and "no checkpoint" in r.output
+
+
+def test_best_policy_is_the_best_evaluated_one(tmp_path):
+    cfg = TrainConfig.preset("egcbf", "tiny", steps=4, eval_interval=1)
+    _quiet(cfg, tmp_path)
+    rows = _rows(tmp_path / "metrics.csv")
+    key = [(float(r["success_rate"]), float(r["safe_rate"]), int(r["step"])) for r in rows]
+    best = json.loads((tmp_path / "best" / "state.json").read_text())
+    assert best["step"] == max(key)[2]  # highest success, then safety, then the later update
+    assert (best["metrics"]["success_rate"], best["metrics"]["safe_rate"]) == max(key)[:2]
+    ctrl, cfg2 = load_controller(tmp_path / "best")
+    assert ctrl.model_config == cfg.model  # a best/ directory is a checkpoint for evaluation
+    assert cfg2 == cfg

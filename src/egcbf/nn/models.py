@@ -28,7 +28,7 @@ from groupcanon import Canonicalize, FieldType, Group
 from groupcanon.features import Rotation, Scalar, Vector
 from groupcanon.groups import SE2xR, Trivial
 
-from ..graph import NODE_DIM, SwarmGraph
+from ..graph import KIND_GOAL, NODE_DIM, SwarmGraph
 from .layers import GraphTransformerLayer, mlp
 
 __all__ = [
@@ -99,6 +99,18 @@ class ModelConfig:
             internal state of the attitude loop (torque changes it by ``~17`` rad/s per unit of normalized torque
             within one control step), so a CBF that reads it has a huge ``Lg h`` on the torques, and the derivative
             term and the QP correct safety through torque (docs/learning.md, "CPU recipe").
+        cbf_goal_edges: whether the CBF sees the goal edge (the policy always does). Safety does not depend on
+            where the goal is; a CBF that reads it can make ``h`` depend on the goal offset and the vertical
+            velocity of an agent hovering alone at its goal, and the derivative term then pushes a thrust bias
+            that shifts every hover point (docs/learning.md, "CPU recipe"). GCBF+ feeds the goal to both.
+        cbf_z_symmetric: average the CBF over the mirror image of the scene in a horizontal plane,
+            ``h = tanh((m(G) + m(sigma G)) / 2)`` (:meth:`egcbf.graph.SwarmGraph.reflect_z`). The safe set (distances)
+            is mirror-symmetric; without this, an untrained CBF's ``dh/dv_z`` has one sign almost everywhere, and
+            since the learned-CBF QP can only act through thrust within one step (the CBF has relative degree 2 in
+            the torques), ``u_QP`` pushes every agent up (or every agent down) whenever anything approaches: a
+            global thrust bias that shifts hover points out of the goal radius (docs/learning.md, "CPU recipe").
+            Mirror symmetry makes ``dh/dv_z`` odd in the vertical arrangement (climb if the neighbour is below,
+            descend if above) and zero for a level scene. Costs a second CBF evaluation.
         policy_init_scale: the last layer of the policy head is initialised with weights scaled by this and zero
             bias, so that an untrained policy stays close to the nominal controller.
     """
@@ -111,6 +123,8 @@ class ModelConfig:
     action_scale: float = 2.0
     torque_action_scale: float | None = None
     cbf_body_rates: bool = True
+    cbf_goal_edges: bool = True
+    cbf_z_symmetric: bool = False
     policy_init_scale: float = 0.1
 
     def __post_init__(self) -> None:
@@ -137,9 +151,10 @@ class ModelConfig:
 class GraphEncoder(nn.Module):
     """The canonicalized graph transformer layer: ``SwarmGraph -> (M, hidden)`` invariant agent features."""
 
-    def __init__(self, config: ModelConfig, body_rates: bool = True):
+    def __init__(self, config: ModelConfig, body_rates: bool = True, goal_edges: bool = True):
         super().__init__()
         self.body_rates = body_rates
+        self.goal_edges = goal_edges
         self.group = make_group(config.group)
         nt, et = node_type(self.group), edge_type(self.group)
         out = FieldType(self.group, [Scalar(config.hidden)])
@@ -155,7 +170,11 @@ class GraphEncoder(nn.Module):
             keep = torch.ones(NODE_DIM, dtype=x_src.dtype, device=x_src.device)
             keep[W_SLICE] = 0
             x_src, x_dst = x_src * keep, x_dst * keep
-        return self.layer((x_src, x_dst), graph.edge_index, frames=frames, edge_attr=graph.edge_attr)
+        edge_index, edge_attr = graph.edge_index, graph.edge_attr
+        if not self.goal_edges:  # an edge subset chosen by kind (an invariant): commutes with the group action
+            sel = graph.edge_kind != KIND_GOAL
+            edge_index, edge_attr = edge_index[:, sel], edge_attr[sel]
+        return self.layer((x_src, x_dst), edge_index, frames=frames, edge_attr=edge_attr)
 
 
 class CBFNet(nn.Module):
@@ -164,12 +183,15 @@ class CBFNet(nn.Module):
     def __init__(self, config: ModelConfig):
         super().__init__()
         self.config = config
-        self.encoder = GraphEncoder(config, body_rates=config.cbf_body_rates)
+        self.encoder = GraphEncoder(config, body_rates=config.cbf_body_rates, goal_edges=config.cbf_goal_edges)
         self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, 1])
 
     def raw(self, graph: SwarmGraph) -> Tensor:
-        """The pre-``tanh`` value ``(M,)``."""
-        return self.head(self.encoder(graph)).squeeze(-1)
+        """The pre-``tanh`` value ``(M,)`` (mirror-averaged with ``cbf_z_symmetric``)."""
+        out = self.head(self.encoder(graph)).squeeze(-1)
+        if self.config.cbf_z_symmetric:
+            out = 0.5 * (out + self.head(self.encoder(graph.reflect_z())).squeeze(-1))
+        return out
 
     def forward(self, graph: SwarmGraph) -> Tensor:
         return torch.tanh(self.raw(graph))

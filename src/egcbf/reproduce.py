@@ -721,10 +721,8 @@ def _scalability_section(cfg: SweepConfig, records: dict[Cell, dict], report: Pa
 
 
 def _convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
-    try:
-        from .curves import training_curves
-    except ImportError:
-        return "Training curves: `egcbf.curves.training_curves` is not available yet."
+    from .curves import training_curves
+
     runs = {LABELS[m]: cfg.checkpoints / m for m in LEARNED if (cfg.checkpoints / m / "metrics.csv").exists()}
     if not runs:
         return f"Training curves: no `{cfg.checkpoints}/<method>/metrics.csv` (copy each run's metrics.csv there)."
@@ -739,12 +737,8 @@ def _convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
 
 
 def _contour_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
-    # HOOK (provisional wiring, for the lead engineer to confirm): egcbf.contour.cbf_contour_figure(checkpoints:
-    # {label: checkpoint dir}, out_png) -> {label: max |h(g . G) - h(G)|}, for EGCBF+ against GCBF+ as in the paper.
-    try:
-        from .contour import cbf_contour_figure
-    except ImportError:
-        return "CBF contour figure: `egcbf.contour.cbf_contour_figure` is not available yet."
+    from .contour import cbf_contour_figure
+
     ckpts = {}
     for m in ("egcbf+", "gcbf+"):
         try:
@@ -756,8 +750,8 @@ def _contour_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
     png = figures / "reproduction_contour.png"
     try:
         diffs = cbf_contour_figure(ckpts, png)
-    except (TypeError, ValueError, FileNotFoundError) as err:
-        return f"CBF contour figure: not wired yet (`{type(err).__name__}: {err}`)."
+    except Exception as err:  # a figure must not lose a finished sweep's report
+        return f"CBF contour figure failed: `{type(err).__name__}: {err}`."
     gaps = ", ".join(f"{k}: {v:.2e}" for k, v in (diffs or {}).items())
     return (
         f"![CBF contour]({_rel(png, report)})\n\nThe learned CBF of one agent over the horizontal plane in a scene "

@@ -348,8 +348,8 @@ def _parse_methods(text: str, option: str) -> tuple[str, ...]:
 
 @app.command()
 def reproduce(
-    methods: Annotated[str, typer.Option(help="comma list of gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+")] = (
-        "gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+"
+    methods: Annotated[str, typer.Option(help="comma list of gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal")] = (
+        "gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal"
     ),
     num_agents: Annotated[str, typer.Option("--num-agents", help="comma-separated swarm sizes")] = (
         "8,16,64,128,256,512"
@@ -358,7 +358,7 @@ def reproduce(
     obstacles: Annotated[int, typer.Option(help="obstacles of the obstacle setting (0: none)")] = 8,
     obstacle_methods: Annotated[
         str, typer.Option("--obstacle-methods", help="methods also run with obstacles (comma list)")
-    ] = "gcbf,gcbf+,egcbf,egcbf+",
+    ] = "gcbf,gcbf+,egcbf,egcbf+,nominal",
     episodes: Annotated[int, typer.Option(help="episodes per cell (method, obstacles, N)")] = 50,
     baseline_episodes: Annotated[
         int | None, typer.Option(help="episodes per cell of the CBF-QP baselines (default: --episodes)")

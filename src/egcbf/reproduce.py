@@ -75,9 +75,11 @@ __all__ = [
 ]
 
 LEARNED = ("gcbf", "gcbf+", "egcbf", "egcbf+")
-BASELINES = ("dcbf", "ccbf")
-METHODS = ("gcbf", "gcbf+", "dcbf", "ccbf", "egcbf", "egcbf+")  # the paper's row order
+BASELINES = ("dcbf", "ccbf", "nominal")
+# the paper's row order, then the nominal controller alone (not in the paper: what the learned residual starts from)
+METHODS = ("gcbf", "gcbf+", "dcbf", "ccbf", "egcbf", "egcbf+", "nominal")
 LABELS = {
+    "nominal": "nominal (no CBF)",
     "gcbf": "GCBF",
     "gcbf+": "GCBF+",
     "dcbf": "dCBF-QP",
@@ -92,6 +94,7 @@ BACKENDS = ("process", "ray")
 # None where the paper prints '-' (its CBF-QPs stop at N = 16).
 PaperRow = tuple[float, float, float, float, float, float, float]
 PAPER_TABLE_I: dict[str, dict[int, PaperRow | None]] = {
+    "nominal": {},
     "gcbf": {
         8: (100, 100, 100, 0, 0, 0, -315.1),
         16: (97.5, 100, 97.5, 0.33, 0, 2, -311.4),
@@ -175,7 +178,7 @@ class SweepConfig:
     num_agents: tuple[int, ...] = DEFAULT_SIZES
     area: float = 4.0
     obstacles: int = 8
-    obstacle_methods: tuple[str, ...] = LEARNED
+    obstacle_methods: tuple[str, ...] = (*LEARNED, "nominal")
     episodes: int = 50
     baseline_episodes: int | None = None
     seed: int = 0
@@ -489,7 +492,7 @@ def _execute(tasks: Sequence[CellTask], backend: str, workers: int) -> Iterator[
 # ---------------------------------------------------------------------------------------------------- the sweep
 def _schedule(cells: Sequence[Cell]) -> list[Cell]:
     """Largest ``N`` first (the longest cells start first, so the workers finish together)."""
-    order = {m: i for i, m in enumerate(("ccbf", "dcbf", *LEARNED))}
+    order = {m: i for i, m in enumerate(("ccbf", "dcbf", *LEARNED, "nominal"))}
     return sorted(cells, key=lambda c: (-c.num_agents, -c.obstacles, order[c.method]))
 
 
@@ -685,7 +688,8 @@ def scalability_figure(cfg: SweepConfig, records: dict[Cell, dict], out_png: str
             label = LABELS[method] + ("" if k or len(settings) == 1 else " (no obstacles)")
             for ax, metric in zip(axes, ("safe_rate", "success_rate")):
                 y = [100 * row[metric] for _, row in pts]
-                ax.plot([n for n, _ in pts], y, style, color=f"C{i}", label=label, ms=4, lw=1.5, alpha=alpha)
+                color = "k" if method == "nominal" else f"C{i}"
+                ax.plot([n for n, _ in pts], y, style, color=color, label=label, ms=4, lw=1.5, alpha=alpha)
     for ax, title in zip(axes, ("safety rate", "success rate")):
         ax.set_xscale("log", base=2)
         ax.set_xticks(list(cfg.num_agents), [str(n) for n in cfg.num_agents])

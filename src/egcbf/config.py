@@ -64,7 +64,9 @@ class TrainConfig:
     ``qp_slack_linear``/``qp_slack_quadratic`` (slack cost ``w1 s + w2 s^2 / 2``), ``qp_tol``, ``qp_max_iter``,
     ``qp_chunk`` (environments per batched solve), ``target_tau`` (soft update of the target CBF after each update).
 
-    Run: ``steps`` (updates), ``seed``, ``device``, ``dtype``, ``deterministic``
+    Run: ``steps`` (updates), ``max_wall_minutes`` (stop earlier, after the first update that ends past this much
+    training wall time, with a final evaluation and checkpoint; ``None``: no limit), ``seed``, ``device``,
+    ``dtype``, ``deterministic``
     (``torch.use_deterministic_algorithms``), ``num_threads`` (0: leave torch's default), ``eval_interval``,
     ``eval_episodes``, ``eval_num_agents``, ``eval_area_size``, ``eval_num_obstacles``, ``eval_max_steps``
     (periodic evaluation rollouts; ``eval_*=None``: the training values, 256-step episodes),
@@ -114,6 +116,7 @@ class TrainConfig:
     target_tau: float = 0.5
     # run
     steps: int = 1000
+    max_wall_minutes: float | None = None
     seed: int = 0
     device: str = "cpu"
     dtype: str = "float32"
@@ -161,6 +164,9 @@ class TrainConfig:
             v = getattr(self, name)
             need(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0, name, "a finite number >= 0")
         need(0 <= self.target_tau <= 1, "target_tau", "in [0, 1]")
+        if self.max_wall_minutes is not None:
+            v = self.max_wall_minutes
+            need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, "max_wall_minutes", "None or > 0")
         need(self.control_loss in ("squared", "norm"), "control_loss", "'squared' or 'norm'")
         need(self.dtype in ("float32", "float64"), "dtype", "'float32' or 'float64'")
         self.env_config()  # validates the environment fields
@@ -233,7 +239,7 @@ class TrainConfig:
             )  # fmt: skip
             # 20 gradient steps per update (the paper: 384) at the paper's 1e-4 / 1e-5 barely move the policy within
             # an hour (safe 84 -> 86 % in 90 updates); 3e-4 / 1e-4 gets there in 30 (docs/learning.md)
-            base.update(lr_cbf=3e-4, lr_policy=1e-4)
+            base.update(lr_cbf=3e-4, lr_policy=1e-4, max_wall_minutes=60.0)
             if reference == "nominal":
                 # with eta_c = 1 the pull to u_nom (which knows nothing of safety) outweighs the derivative term and
                 # GCBF / EGCBF stay the nominal controller (reward -0.00, safe rate unchanged over 70 updates); the

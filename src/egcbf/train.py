@@ -347,11 +347,15 @@ def train(
             logger.scalars(learner.step, wall(), info)
             bar.update(1)
             bar.set_postfix(loss=f"{info['loss/total']:.4f}", unsafe=int(info["data/unsafe"]), refresh=False)
-            last = learner.step == config.steps
+            out_of_time = config.max_wall_minutes is not None and wall() >= 60.0 * config.max_wall_minutes
+            last = learner.step == config.steps or out_of_time
             if learner.step % config.eval_interval == 0 or last:
                 evaluate_now()
             if learner.step % config.checkpoint_interval == 0 or last:
                 save_checkpoint(learner, out, wall(), keep=config.keep_checkpoints, buffers=config.save_buffers)
+            if out_of_time and learner.step < config.steps:
+                log(f"[{config.algo}] stopped at update {learner.step}: max_wall_minutes={config.max_wall_minutes:g}")
+                break
     finally:
         bar.close()
         logger.close()

@@ -158,3 +158,14 @@ def test_best_policy_is_the_best_evaluated_one(tmp_path):
     ctrl, cfg2 = load_controller(tmp_path / "best")
     assert ctrl.model_config == cfg.model  # a best/ directory is a checkpoint for evaluation
     assert cfg2 == cfg
+
+
+def test_max_wall_minutes_stops_with_a_final_evaluation_and_checkpoint(tmp_path):
+    cfg = TrainConfig.preset("gcbf", "tiny", steps=4, max_wall_minutes=1e-9)
+    learner = _quiet(cfg, tmp_path)
+    assert learner.step == 1  # the first update already ends past the budget
+    assert find_checkpoint(tmp_path).name == "step_000001"
+    assert [int(r["step"]) for r in _rows(tmp_path / "metrics.csv")] == [0, 1]
+    assert TrainConfig.preset("egcbf+", "cpu").max_wall_minutes == 60.0
+    with pytest.raises(ValueError, match="max_wall_minutes"):
+        TrainConfig.preset("gcbf", "tiny", max_wall_minutes=0)

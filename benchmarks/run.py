@@ -32,6 +32,7 @@ import torch
 import torch_geometric
 from torch_geometric.nn import TransformerConv
 
+from egcbf.report import cpu_name
 from groupcanon import Canonicalize, FieldType, groups
 from groupcanon.features import Point, Scalar, Vector
 
@@ -89,14 +90,7 @@ def random_graph(n: int, degree: int, generator: torch.Generator, device) -> tor
 
 
 def machine(device: torch.device) -> dict[str, str]:
-    cpu = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = cpu_name()
     info = {
         "CPU": cpu,
         "cores (os.cpu_count)": str(os.cpu_count()),

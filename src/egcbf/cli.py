@@ -9,7 +9,6 @@ policy) and ``egcbf demo`` (the main job).
 from __future__ import annotations
 
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -17,6 +16,8 @@ from typing import Annotated
 
 import torch
 import typer
+
+from .report import cpu_name
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Equivariant graph CBFs for quadrotor swarms.")
 
@@ -60,14 +61,7 @@ def format_table(rows: list[dict], title: str = "") -> str:
 
 
 def _machine() -> dict:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = cpu_name()
     return {
         "cpu": cpu,
         "threads": torch.get_num_threads(),

@@ -7,10 +7,22 @@ so hand-written text around them survives.
 from __future__ import annotations
 
 import json
+import platform
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["load_run", "metrics_markdown", "replace_section"]
+__all__ = ["cpu_name", "load_run", "metrics_markdown", "replace_section"]
+
+
+def cpu_name() -> str:
+    """The CPU model from ``/proc/cpuinfo`` (Linux), else what ``platform`` knows, for provenance records."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
 
 
 def load_run(directory: str | Path) -> tuple[list[dict], dict]:

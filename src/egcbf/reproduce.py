@@ -47,6 +47,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .dynamics.quadrotor import DEFAULT_DT
+from .report import cpu_name
 
 __all__ = [
     "BASELINES",
@@ -283,14 +284,7 @@ def find_method_checkpoint(root: str | Path, method: str) -> CheckpointInfo:
 # ---------------------------------------------------------------------------------------------------- one cell
 def machine_info() -> dict:
     """CPU model (``/proc/cpuinfo``, else ``platform``), logical cores, torch threads and versions."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = cpu_name()
     return {
         "cpu": cpu,
         "cores": os.cpu_count(),

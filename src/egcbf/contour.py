@@ -33,9 +33,9 @@ import torch
 from torch import Tensor
 
 from .dynamics import quadrotor as dyn
-from .env.lidar import LidarScan, lidar_scan
+from .env.lidar import LidarScan
 from .env.obstacles import Obstacles
-from .env.swarm import EnvConfig, SwarmEnv, SwarmState
+from .env.swarm import EnvConfig, SwarmEnv, SwarmState, cast_lidar
 from .graph import build_graph
 from .nn import CBFNet
 
@@ -82,17 +82,6 @@ def _grid(extent: Extent, grid: int, dtype, device) -> tuple[Tensor, Tensor]:
     return torch.meshgrid(xs, ys, indexing="xy")  # (grid, grid): X[i, j] = xs[j], Y[i, j] = ys[i]
 
 
-def _scan(state: SwarmState, config: EnvConfig) -> LidarScan:
-    return lidar_scan(
-        state.positions,
-        state.attitudes[..., :, 0],
-        state.obstacles,
-        n_rays=config.n_rays,
-        max_range=config.resolved_lidar_range,
-        max_hits=config.lidar_max_hits,
-    )
-
-
 def _placements(state: SwarmState, config: EnvConfig, agent: int, xy: Tensor, base: LidarScan):
     """``P = len(xy)`` copies of the one-environment ``state`` with agent ``agent`` moved to ``xy`` ``(P, 2)``
     (height unchanged), and their LiDAR scans (the moved agent's recast, the others' from ``base``)."""
@@ -104,14 +93,7 @@ def _placements(state: SwarmState, config: EnvConfig, agent: int, xy: Tensor, ba
     )  # views: read only
     placed = SwarmState(x, state.goals.expand(p, -1, -1), obstacles, state.t)
     sel = slice(agent, agent + 1)
-    own = lidar_scan(
-        x[:, sel, 0:3],
-        placed.attitudes[:, sel, :, 0],
-        obstacles,
-        n_rays=config.n_rays,
-        max_range=config.resolved_lidar_range,
-        max_hits=config.lidar_max_hits,
-    )
+    own = cast_lidar(config, x[:, sel, 0:3], placed.attitudes[:, sel, :, 0], obstacles)
     parts = {}
     for name in ("points", "valid", "distance"):
         t = getattr(base, name).expand(p, *getattr(base, name).shape[1:]).clone()
@@ -186,7 +168,7 @@ def cbf_slice(
         X, Y = xy[:, 0].reshape(grid, grid), xy[:, 1].reshape(grid, grid)
     was_training = cbf.training
     cbf.eval()
-    base = _scan(state, env_config)
+    base = cast_lidar(env_config, state.positions, state.attitudes[..., :, 0], state.obstacles)
     n = state.num_agents
     out = []
     for k in range(0, xy.shape[0], chunk):

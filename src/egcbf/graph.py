@@ -47,8 +47,8 @@ from groupcanon.groups import SE2xR
 
 from .dynamics.quadrotor import ROT, W
 from .dynamics.quadrotor import V as VEL
-from .env.lidar import LidarScan, lidar_scan
-from .env.swarm import EnvConfig, SwarmState
+from .env.lidar import LidarScan
+from .env.swarm import EnvConfig, SwarmState, cast_lidar
 from .neighbors import radius_neighbors
 
 __all__ = [
@@ -220,15 +220,7 @@ def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None
     xf = x.reshape(m, -1)
     p = xf[:, 0:3]
     if lidar is None:
-        body_x = x[..., ROT].reshape(b, n, 3, 3)[..., :, 0]
-        lidar = lidar_scan(
-            x[..., 0:3],
-            body_x,
-            state.obstacles,
-            n_rays=config.n_rays,
-            max_range=config.resolved_lidar_range,
-            max_hits=config.lidar_max_hits,
-        )
+        lidar = cast_lidar(config, x[..., 0:3], x[..., ROT].reshape(b, n, 3, 3)[..., :, 0], state.obstacles)
     valid = lidar.valid.reshape(m, -1)
     owner, _slot = valid.nonzero(as_tuple=True)  # row-major: owner-major, closest first
     hit_pos = lidar.points.reshape(m, -1, 3)[valid]  # same order as nonzero

@@ -3,7 +3,7 @@
 from .lidar import LidarScan, lidar_scan, ray_directions
 from .obstacles import Obstacles, sample_obstacles
 from .sampling import sample_separated_points
-from .swarm import EnvConfig, NonFiniteStateError, StepInfo, SwarmEnv, SwarmState, safety_masks
+from .swarm import EnvConfig, NonFiniteStateError, StepInfo, SwarmEnv, SwarmState, cast_lidar, safety_masks
 
 __all__ = [
     "EnvConfig",
@@ -13,6 +13,7 @@ __all__ = [
     "StepInfo",
     "SwarmEnv",
     "SwarmState",
+    "cast_lidar",
     "lidar_scan",
     "ray_directions",
     "safety_masks",

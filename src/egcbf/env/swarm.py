@@ -32,7 +32,7 @@ from .lidar import LidarScan, lidar_scan
 from .obstacles import Obstacles, sample_obstacles
 from .sampling import sample_separated_points
 
-__all__ = ["EnvConfig", "NonFiniteStateError", "StepInfo", "SwarmEnv", "SwarmState", "safety_masks"]
+__all__ = ["EnvConfig", "NonFiniteStateError", "StepInfo", "SwarmEnv", "SwarmState", "cast_lidar", "safety_masks"]
 
 
 class NonFiniteStateError(FloatingPointError):
@@ -292,6 +292,22 @@ def safety_masks(positions: Tensor, goals: Tensor, obstacles: Obstacles, agent_r
     }
 
 
+def cast_lidar(config: EnvConfig, positions: Tensor, body_x: Tensor, obstacles: Obstacles) -> LidarScan:
+    """:func:`egcbf.env.lidar.lidar_scan` with the ray pattern, range and hit count of ``config``.
+
+    ``positions`` and ``body_x`` (the body x axes, world frame) are ``(B, N, 3)``; ``obstacles`` has ``B``
+    environments.
+    """
+    return lidar_scan(
+        positions,
+        body_x,
+        obstacles,
+        n_rays=config.n_rays,
+        max_range=config.resolved_lidar_range,
+        max_hits=config.lidar_max_hits,
+    )
+
+
 class SwarmEnv:
     """Batched quadrotor swarm environment.
 
@@ -391,16 +407,7 @@ class SwarmEnv:
     # ---------------------------------------------------------------------------------------- perception
     def lidar(self, state: SwarmState) -> LidarScan:
         """LiDAR scan of every agent (rays in the agent's yaw frame; see ``egcbf.env.lidar``)."""
-        c = self.config
-        body_x = state.attitudes[..., :, 0]
-        return lidar_scan(
-            state.positions,
-            body_x,
-            state.obstacles,
-            n_rays=c.n_rays,
-            max_range=c.resolved_lidar_range,
-            max_hits=c.lidar_max_hits,
-        )
+        return cast_lidar(self.config, state.positions, state.attitudes[..., :, 0], state.obstacles)
 
     def graph(self, state: SwarmState, lidar: LidarScan | None = None):
         """:func:`egcbf.graph.build_graph` of ``state``."""

@@ -60,17 +60,9 @@ def load_cbf(path: str | Path, device: str | torch.device = "cpu", dtype: torch.
 
     Needs only ``config.json`` and ``model.safetensors`` (the ``cbf.*`` weights).
     """
-    from safetensors.torch import load_file
+    from .train import load_network
 
-    from .config import TrainConfig
-    from .train import find_checkpoint
-
-    ckpt = find_checkpoint(path)
-    cfg = TrainConfig.from_json(ckpt / "config.json")
-    cbf = CBFNet(cfg.model)
-    weights = load_file(str(ckpt / "model.safetensors"))
-    cbf.load_state_dict({k[len("cbf.") :]: v for k, v in weights.items() if k.startswith("cbf.")})
-    return cbf.to(device=device, dtype=dtype).eval(), cfg
+    return load_network(path, "cbf", device, dtype)
 
 
 def _grid(extent: Extent, grid: int, dtype, device) -> tuple[Tensor, Tensor]:

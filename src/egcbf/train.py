@@ -47,7 +47,7 @@ from tqdm.auto import tqdm
 from .algo.learner import GraphCBFLearner, LearnedController
 from .config import TrainConfig
 from .evaluate import episode_seed, run_episodes
-from .nn import PolicyNet
+from .nn import CBFNet, PolicyNet
 
 __all__ = [
     "METRICS_FIELDS",
@@ -55,6 +55,7 @@ __all__ = [
     "find_checkpoint",
     "load_controller",
     "load_learner",
+    "load_network",
     "save_best",
     "save_checkpoint",
     "train",
@@ -128,17 +129,30 @@ def _ckpt_dir(out: Path, step: int) -> Path:
     return out / _CKPT / f"step_{step:06d}"
 
 
-def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: int = 0, buffers: bool = True) -> Path:
-    """Write the learner's checkpoint ``OUT/checkpoints/step_XXXXXX`` atomically; keep the newest ``keep`` (0: all)."""
-    final = _ckpt_dir(out, learner.step)
+def _write_dir_atomically(learner: GraphCBFLearner, final: Path, state: dict, extra=None) -> Path:
+    """Write ``config.json``, ``model.safetensors``, ``state.json`` (and whatever ``extra(tmp_dir)`` adds) into
+    ``final.tmp``, then rename it to ``final``: an interrupted write never leaves a half directory."""
     tmp = final.with_name(final.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     learner.config.to_json(tmp / "config.json")
     save_file({k: v.cpu() for k, v in learner.weights().items()}, str(tmp / "model.safetensors"))
-    torch.save(_to_cpu(learner.training_state()), tmp / "training_state.pt")
-    if buffers:
-        save_file({k: v.cpu() for k, v in learner.buffers().items()}, str(tmp / "buffers.safetensors"))
+    if extra is not None:
+        extra(tmp)
+    (tmp / "state.json").write_text(json.dumps(state, indent=2) + "\n")
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(tmp, final)
+    return final
+
+
+def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: int = 0, buffers: bool = True) -> Path:
+    """Write the learner's checkpoint ``OUT/checkpoints/step_XXXXXX`` atomically; keep the newest ``keep`` (0: all)."""
+
+    def training_files(tmp: Path) -> None:
+        torch.save(_to_cpu(learner.training_state()), tmp / "training_state.pt")
+        if buffers:
+            save_file({k: v.cpu() for k, v in learner.buffers().items()}, str(tmp / "buffers.safetensors"))
+
     state = {
         "step": learner.step,
         "wall_s": wall_s,
@@ -147,9 +161,7 @@ def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: in
         "python": sys.version.split()[0],
         "platform": platform.platform(),
     }
-    (tmp / "state.json").write_text(json.dumps(state, indent=2) + "\n")
-    shutil.rmtree(final, ignore_errors=True)
-    os.replace(tmp, final)
+    final = _write_dir_atomically(learner, _ckpt_dir(out, learner.step), state, training_files)
     older = _checkpoints(out)[:-1]
     for old in older:  # resuming needs the buffers of the newest checkpoint only (they can be large)
         (old / "buffers.safetensors").unlink(missing_ok=True)
@@ -165,17 +177,8 @@ def _selection_key(row: dict) -> tuple[float, float]:
 
 def save_best(learner: GraphCBFLearner, out: Path, wall_s: float, row: dict) -> Path:
     """Write ``OUT/best`` (weights, config, and the evaluation ``row`` that selected it) atomically."""
-    final = out / "best"
-    tmp = out / "best.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    learner.config.to_json(tmp / "config.json")
-    save_file({k: v.cpu() for k, v in learner.weights().items()}, str(tmp / "model.safetensors"))
     state = {"step": learner.step, "wall_s": wall_s, "algo": learner.config.algo, "metrics": row}
-    (tmp / "state.json").write_text(json.dumps(state, indent=2) + "\n")
-    shutil.rmtree(final, ignore_errors=True)
-    os.replace(tmp, final)
-    return final
+    return _write_dir_atomically(learner, out / "best", state)
 
 
 def _best_key(out: Path) -> tuple[float, float] | None:
@@ -244,17 +247,29 @@ def _optim_to(learner: GraphCBFLearner, device) -> None:
                     st[k] = v.to(device)
 
 
+def load_network(
+    path: str | Path, part: str, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
+) -> tuple[CBFNet | PolicyNet, TrainConfig]:
+    """One trained network, ``part = "policy"`` or ``"cbf"``, of a checkpoint (or run) directory, in eval mode, and
+    the training config; needs only ``config.json`` and ``model.safetensors`` (the ``<part>.*`` weights)."""
+    nets = {"policy": PolicyNet, "cbf": CBFNet}
+    if part not in nets:
+        raise ValueError(f"part must be one of {sorted(nets)}, got {part!r}")
+    ckpt = find_checkpoint(path)
+    cfg = TrainConfig.from_json(ckpt / "config.json")
+    net = nets[part](cfg.model)
+    weights = load_file(str(ckpt / "model.safetensors"))
+    prefix = part + "."
+    net.load_state_dict({k[len(prefix) :]: v for k, v in weights.items() if k.startswith(prefix)})
+    return net.to(device=device, dtype=dtype).eval(), cfg
+
+
 def load_controller(
     path: str | Path, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
 ) -> tuple[LearnedController, TrainConfig]:
     """An evaluation controller ``(state, env_config) -> (u, info)`` from a checkpoint (or run) directory; needs only
     its ``config.json`` and ``model.safetensors``. Returns the controller and the training config."""
-    ckpt = find_checkpoint(path)
-    cfg = TrainConfig.from_json(ckpt / "config.json")
-    policy = PolicyNet(cfg.model)
-    weights = load_file(str(ckpt / "model.safetensors"))
-    policy.load_state_dict({k[len("policy.") :]: v for k, v in weights.items() if k.startswith("policy.")})
-    policy = policy.to(device=device, dtype=dtype).eval()
+    policy, cfg = load_network(path, "policy", device, dtype)
     return LearnedController(policy, cfg.model), cfg
 
 

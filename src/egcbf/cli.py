@@ -17,7 +17,7 @@ from typing import Annotated
 import torch
 import typer
 
-from .report import cpu_name
+from .report import machine_info
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Equivariant graph CBFs for quadrotor swarms.")
 
@@ -58,16 +58,6 @@ def format_table(rows: list[dict], title: str = "") -> str:
             line += f" {r.get('qp_ms_median', float('nan')):>7.2f} {r.get('qp_slack_steps', 0):>6}"
         lines.append(line)
     return "\n".join(lines)
-
-
-def _machine() -> dict:
-    cpu = cpu_name()
-    return {
-        "cpu": cpu,
-        "threads": torch.get_num_threads(),
-        "torch": torch.__version__,
-        "python": sys.version.split()[0],
-    }
 
 
 def _render(records: dict, out: Path, area: float, tag: str) -> list[Path]:
@@ -153,7 +143,7 @@ def eval_cmd(
         "episodes": episodes,
         "seed": seed,
         "wall_s": round(time.time() - t0, 1),
-        "machine": _machine(),
+        "machine": machine_info(),
     }
     (out / "run.json").write_text(json.dumps(meta, indent=2) + "\n")
     typer.echo(format_table(rows, title=f"{controller}: l={area:g}, {obstacles} obstacles, {episodes} episodes"))
@@ -260,7 +250,7 @@ def demo(
         "max_steps": max_steps,
         "metrics": rows,
         "wall_s": round(time.time() - t0, 1),
-        "machine": _machine(),
+        "machine": machine_info(),
     }
     out.mkdir(parents=True, exist_ok=True)
     (out / "demo.json").write_text(json.dumps(summary, indent=2) + "\n")

@@ -7,11 +7,13 @@ so hand-written text around them survives.
 from __future__ import annotations
 
 import json
+import os
 import platform
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["cpu_name", "load_run", "metrics_markdown", "replace_section"]
+__all__ = ["cpu_name", "load_run", "machine_info", "metrics_markdown", "replace_section"]
 
 
 def cpu_name() -> str:
@@ -23,6 +25,20 @@ def cpu_name() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine() or "unknown"
+
+
+def machine_info() -> dict:
+    """Provenance of a run: CPU model, logical cores, torch threads, torch / python versions, host name."""
+    import torch
+
+    return {
+        "cpu": cpu_name(),
+        "cores": os.cpu_count(),
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "python": sys.version.split()[0],
+        "host": platform.node(),
+    }
 
 
 def load_run(directory: str | Path) -> tuple[list[dict], dict]:

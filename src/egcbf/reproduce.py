@@ -33,9 +33,7 @@ import hashlib
 import json
 import multiprocessing
 import os
-import platform
 import shlex
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -47,7 +45,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .dynamics.quadrotor import DEFAULT_DT
-from .report import cpu_name
+from .report import machine_info
 
 __all__ = [
     "BASELINES",
@@ -282,19 +280,6 @@ def find_method_checkpoint(root: str | Path, method: str) -> CheckpointInfo:
 
 
 # ---------------------------------------------------------------------------------------------------- one cell
-def machine_info() -> dict:
-    """CPU model (``/proc/cpuinfo``, else ``platform``), logical cores, torch threads and versions."""
-    cpu = cpu_name()
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "threads": torch.get_num_threads(),
-        "torch": torch.__version__,
-        "python": sys.version.split()[0],
-        "host": platform.node(),
-    }
-
-
 @dataclass(frozen=True)
 class CellTask:
     """Everything a worker needs to evaluate one cell (picklable; a learned method carries its checkpoint files)."""

@@ -34,7 +34,7 @@ METHODS: dict[str, tuple[str, str]] = {
     "egcbf": ("se2xr", "nominal"),
     "egcbf+": ("se2xr", "qp"),
 }
-PRESETS = ("cpu", "paper", "tiny")
+PRESETS = ("cpu", "cpu-torque", "paper", "tiny")
 
 
 @dataclass
@@ -46,13 +46,21 @@ class TrainConfig:
 
     Training environment: ``num_agents``, ``area_size``, ``num_obstacles`` and ``env_overrides`` (any other
     :class:`egcbf.env.EnvConfig` field, e.g. ``{"comm_radius": 1.0}``); the episode length of the rollouts is
-    ``rollout_steps``.
+    ``rollout_steps``. ``area_sizes`` (a list, or ``None``): the rollout of update ``k`` uses
+    ``area_sizes[k % len(area_sizes)]`` instead of ``area_size``, so that training covers several densities
+    (the agent count, and so the shape of the replay buffers, stays ``num_agents``).
+
+    Command model (``model.interface == "accel"`` only, :mod:`egcbf.algo.interface`): ``command_model``,
+    ``"ideal"`` (the double integrator the acceleration command defines) or ``"closed_loop"`` (one step through the
+    attitude loop and the rigid body), for the QP's ``Lg h`` and the loss's next state.
 
     Data (GCBF+): every update rolls out ``rollout_envs`` environments for ``rollout_steps`` steps with the
     current policy (fresh episodes), labels them with look-ahead ``horizon`` (``truncated_safe``: see
     :mod:`egcbf.algo.labels`), and trains on those graphs plus ``memory_trajectories`` trajectories drawn from the
     last ``buffer_trajectories`` ones plus ``unsafe_samples`` graphs drawn with replacement from the last
-    ``unsafe_buffer_size`` graphs with an unsafe agent.
+    ``unsafe_buffer_size`` graphs with an unsafe agent. ``train_graphs`` (``None``: all): of the rollout and memory
+    graphs, only this many, drawn at random without replacement, are trained on (consecutive steps of a rollout
+    are nearly the same graph; dense scenes make every graph expensive).
 
     Optimization: ``epochs`` passes over that data in minibatches of ``batch_size`` graphs; AdamW
     (``lr_cbf``, ``lr_policy``, ``weight_decay``), gradient norm clipped to ``max_grad_norm`` per network.
@@ -81,7 +89,9 @@ class TrainConfig:
     num_agents: int = 8
     area_size: float = 2.0
     num_obstacles: int = 5
+    area_sizes: list[float] | None = None
     env_overrides: dict[str, Any] = field(default_factory=dict)
+    command_model: str = "ideal"
     # data
     rollout_envs: int = 4
     rollout_steps: int = 128
@@ -91,6 +101,7 @@ class TrainConfig:
     memory_trajectories: int = 4
     unsafe_buffer_size: int = 256
     unsafe_samples: int = 256
+    train_graphs: int | None = None
     # optimization
     epochs: int = 2
     batch_size: int = 128
@@ -153,6 +164,8 @@ class TrainConfig:
                      "qp_chunk"):  # fmt: skip
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 1, name, "an integer >= 1")
+        if self.train_graphs is not None:
+            need(isinstance(self.train_graphs, int) and self.train_graphs >= 1, "train_graphs", "None or an int >= 1")
         for name in ("horizon", "memory_trajectories", "unsafe_samples", "keep_checkpoints", "num_threads"):
             v = getattr(self, name)
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, name, "an integer >= 0")
@@ -168,6 +181,12 @@ class TrainConfig:
             v = self.max_wall_minutes
             need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, "max_wall_minutes", "None or > 0")
         need(self.control_loss in ("squared", "norm"), "control_loss", "'squared' or 'norm'")
+        need(self.command_model in ("ideal", "closed_loop"), "command_model", "'ideal' or 'closed_loop'")
+        if self.area_sizes is not None:
+            ok = isinstance(self.area_sizes, (list, tuple)) and len(self.area_sizes) > 0
+            ok = ok and all(isinstance(a, (int, float)) and math.isfinite(a) and a > 0 for a in self.area_sizes)
+            need(ok, "area_sizes", "None or a non-empty list of numbers > 0")
+            self.area_sizes = [float(a) for a in self.area_sizes]
         need(self.dtype in ("float32", "float64"), "dtype", "'float32' or 'float64'")
         self.env_config()  # validates the environment fields
 
@@ -175,6 +194,14 @@ class TrainConfig:
     @property
     def group(self) -> str:
         return self.model.group
+
+    def interface_options(self) -> dict[str, Any]:
+        """Keyword arguments of :func:`egcbf.algo.interface.make_interface` beyond the interface's name."""
+        return {"model": self.command_model} if self.model.interface == "accel" else {}
+
+    def area_of_update(self, update: int) -> float:
+        """The arena side of update ``update``'s rollout (``area_sizes`` cycled, else ``area_size``)."""
+        return self.area_size if not self.area_sizes else self.area_sizes[update % len(self.area_sizes)]
 
     def env_config(self, **changes) -> EnvConfig:
         """The training environment's :class:`EnvConfig` (``num_envs = rollout_envs``), with ``changes``."""
@@ -225,6 +252,27 @@ class TrainConfig:
         model = {"group": group}
         base: dict[str, Any] = {"num_threads": 1}  # small matrices: one thread is as fast, and never oversubscribes
         if name == "cpu":
+            # the command interface (docs/learning.md, "Command interface"): the policy, the learned-CBF QP and the
+            # loss act on a desired acceleration tracked by the attitude loop; the CBF reads relative positions and
+            # velocities only (the states the ideal model moves); agents that sense nothing keep the nominal command
+            model.update(
+                interface="accel", cbf_body_rates=False, cbf_attitude=False, cbf_goal_edges=False,
+                cbf_z_symmetric=False, accel_action_scale=1.0, policy_gate_isolated=True, edge_velocity=True,
+                edge_closest_approach=True,
+            )  # fmt: skip
+            # training covers the evaluation's densities (docs/learning.md, "Density"): 32 agents in arenas of side
+            # 1.6 / 2.0 / 2.5 m in turn (7.8 / 4 / 2 agents per m^3; N = 512 at l = 4 is 8 per m^3), validation on
+            # 64 agents at l = 2 (8 per m^3)
+            base.update(
+                num_agents=32, area_sizes=[1.6, 2.0, 2.5], num_obstacles=4, memory_trajectories=2,
+                train_graphs=192, unsafe_samples=64, epochs=2, batch_size=32, lr_cbf=3e-4, lr_policy=1e-4,
+                max_wall_minutes=60.0, gamma=0.1, eta_d=1.0,
+                eval_num_agents=64, eval_area_size=2.0, eval_num_obstacles=0, eval_episodes=4,
+            )  # fmt: skip
+            if reference == "nominal":
+                base.update(eta_c=0.1)
+        if name == "cpu-torque":
+            # the previous CPU recipe on body torque and thrust (kept for the interface comparison)
             # the CBF does not read the body rates and the torque residual is small (docs/learning.md, "CPU
             # recipe"): with GCBF+'s choices (CBF on the full state, residual scale 2 on every channel) the QP and
             # the derivative term drive a state-independent torque bias that ruins goal reaching within 20 updates
@@ -254,9 +302,13 @@ class TrainConfig:
                 device="cuda", num_threads=0,
             )  # fmt: skip
         elif name == "tiny":
-            model.update(hidden=16, heads=2, head_hidden=16)
+            model.update(
+                hidden=16, heads=2, head_hidden=16, interface="accel", cbf_attitude=False, cbf_body_rates=False,
+                edge_velocity=True,
+            )  # fmt: skip
             base.update(
-                num_agents=3, area_size=1.5, num_obstacles=1, env_overrides={"n_rays": 8, "lidar_max_hits": 4},
+                num_agents=3, area_size=1.5, area_sizes=[1.5, 1.2], num_obstacles=1,
+                env_overrides={"n_rays": 8, "lidar_max_hits": 4},
                 rollout_envs=2, rollout_steps=12, horizon=4, buffer_trajectories=8, memory_trajectories=2,
                 unsafe_buffer_size=16, unsafe_samples=8, epochs=1, batch_size=8, steps=4, eval_interval=2,
                 eval_episodes=2, eval_max_steps=12, checkpoint_interval=2, lr_cbf=1e-3, lr_policy=1e-3,

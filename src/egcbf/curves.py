@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import csv
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 __all__ = ["load_metrics", "training_curves"]
@@ -41,10 +41,22 @@ def _best_step(run: Path) -> int | None:
     return None
 
 
-def training_curves(runs: Mapping[str, str | Path], out_png: str | Path, *, title: str | None = None) -> Path:
-    """Plot safe / reach / success rates (%) of each run against training update (top row) and wall time in
-    minutes (bottom row); one colour per run. A run directory that holds a ``state.json`` (a shipped checkpoint)
-    gets a marker at the update it was selected at. Returns ``out_png``."""
+def _on_grid(runs: list[dict[str, list[float]]], col: str) -> tuple[list[float], ...]:
+    """Steps evaluated by every run, with the mean, min and max of ``col`` there and the mean wall time."""
+    common = sorted(set.intersection(*(set(r["step"]) for r in runs)))
+    vals = [[r[col][r["step"].index(s)] for r in runs] for s in common]
+    wall = [sum(r["wall_s"][r["step"].index(s)] for r in runs) / len(runs) for s in common]
+    return common, [sum(v) / len(v) for v in vals], [min(v) for v in vals], [max(v) for v in vals], wall
+
+
+def training_curves(
+    runs: Mapping[str, str | Path | Sequence[str | Path]], out_png: str | Path, *, title: str | None = None
+) -> Path:
+    """Plot safe / reach / success rates (%) of each method against training update (top row) and wall time in
+    minutes (bottom row); one colour per method. A method maps to one run directory or to several (training
+    seeds): then the line is the mean over the seeds and the band their min / max, at the updates all of them
+    evaluated. A single run directory that holds a ``state.json`` (a shipped checkpoint) gets a marker at the
+    update it was selected at. Returns ``out_png``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -52,19 +64,28 @@ def training_curves(runs: Mapping[str, str | Path], out_png: str | Path, *, titl
 
     if not runs:
         raise ValueError("training_curves needs at least one run")
-    data = {name: load_metrics(path) for name, path in runs.items()}
+    groups = {name: [paths] if isinstance(paths, (str, Path)) else list(paths) for name, paths in runs.items()}
+    if any(not paths for paths in groups.values()):
+        raise ValueError("training_curves: every method needs at least one run")
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5), sharey=True)
-    for i, (name, m) in enumerate(data.items()):
+    for i, (name, paths) in enumerate(groups.items()):
         color = f"C{i}"
-        best = _best_step(Path(runs[name]))
+        data = [load_metrics(p) for p in paths]
+        label = name if len(data) == 1 else f"{name} (mean of {len(data)} seeds, min-max band)"
+        best = _best_step(Path(paths[0])) if len(paths) == 1 else None
         for j, col in enumerate(_COLUMNS):
-            y = [100 * v for v in m[col]]
-            axes[0, j].plot(m["step"], y, color=color, label=name, lw=1.6)
-            axes[1, j].plot([w / 60 for w in m["wall_s"]], y, color=color, label=name, lw=1.6)
-            if best is not None and best in m["step"]:
-                k = m["step"].index(best)
-                axes[0, j].plot(m["step"][k], y[k], "o", color=color, ms=7, mfc="none", mew=1.8)
-                axes[1, j].plot(m["wall_s"][k] / 60, y[k], "o", color=color, ms=7, mfc="none", mew=1.8)
+            steps, mean, lo, hi, wall = _on_grid(data, col)
+            minutes = [w / 60 for w in wall]
+            y = [100 * v for v in mean]
+            axes[0, j].plot(steps, y, color=color, label=label, lw=1.6)
+            axes[1, j].plot(minutes, y, color=color, label=label, lw=1.6)
+            if len(data) > 1:
+                axes[0, j].fill_between(steps, [100 * v for v in lo], [100 * v for v in hi], color=color, alpha=0.2)
+                axes[1, j].fill_between(minutes, [100 * v for v in lo], [100 * v for v in hi], color=color, alpha=0.2)
+            if best is not None and best in steps:
+                k = steps.index(best)
+                axes[0, j].plot(steps[k], y[k], "o", color=color, ms=7, mfc="none", mew=1.8)
+                axes[1, j].plot(minutes[k], y[k], "o", color=color, ms=7, mfc="none", mew=1.8)
     for j, col in enumerate(_COLUMNS):
         axes[0, j].set_title(_TITLES[col])
         axes[0, j].set_xlabel("training update")

@@ -153,6 +153,17 @@ class SwarmGraph:
             frames=self.frames * frame,
         )
 
+    def with_receivers(self, keep: Tensor) -> SwarmGraph:
+        """The same graph with only the edges into the receivers where ``keep`` ``(M,)`` is true.
+
+        A network's output for a kept receiver is unchanged (it reads only its own incoming edges); the others
+        see no neighbour. Used to evaluate a network only where its output is needed.
+        """
+        sel = keep[self.edge_index[1]]
+        return replace(
+            self, edge_index=self.edge_index[:, sel], edge_attr=self.edge_attr[sel], edge_kind=self.edge_kind[sel]
+        )
+
     def to(self, *args, **kwargs) -> SwarmGraph:
         """Move (and for floating tensors cast) every tensor, like ``Tensor.to``; index tensors stay long."""
         out = {}

@@ -14,15 +14,12 @@ from egcbf.algo import (
     TrajectoryBuffer,
     UnsafeBuffer,
     cbf_jacobian,
-    cbf_lie_derivatives,
     cbf_loss,
-    control_bounds,
-    control_scale,
     finite_horizon_labels,
+    make_interface,
     solve_cbf_qp,
 )
 from egcbf.config import METHODS, TrainConfig
-from egcbf.control.nominal import nominal_control
 from egcbf.dynamics import quadrotor as dyn
 from egcbf.dynamics.so3 import so3_exp
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
@@ -140,25 +137,32 @@ def test_cbf_jacobian_matches_one_backward_per_agent(group):
 
 
 # ------------------------------------------------------------------------------------------------ QP target
-def _qp(group: str, state: SwarmState, alpha: float = 0.1):
+INTERFACES = ["torque", "accel"]
+
+
+def _qp(group: str, state: SwarmState, interface: str = "torque", alpha: float = 0.1, lg_scale: float = 1.0):
+    """The learned-CBF QP of ``state`` over the commands of ``interface``, as the learner builds it: returns
+    ``h, lf, lg, c_ref`` (the last two in the local coordinates of the box), ``lo, hi`` and the result."""
     net = _cbf(group, bias=-0.6)
     graph = build_graph(state, _CFG)
-    h, lf, lg = cbf_lie_derivatives(net, graph, state.x)
-    u_nom = nominal_control(state.x, state.goals)
-    return h, lf, lg, u_nom, solve_cbf_qp(h, lf, lg, u_nom, alpha=alpha)
+    itf = make_interface(interface)
+    h, lf, lg = itf.lie_derivatives(net, graph, state.x)
+    lg = lg_scale * itf.to_local(state.x[:, None], lg)
+    c_ref = itf.to_local(state.x, itf.nominal(state.x, state.goals))
+    lo, hi = itf.bounds(h)
+    return h, lf, lg, c_ref, lo, hi, solve_cbf_qp(h, lf, lg, c_ref, lo, hi, alpha=alpha)
 
 
+@pytest.mark.parametrize("interface", INTERFACES)
 @given(seed=st.integers(0, 2**16))
-@settings(max_examples=10)
-def test_qp_target_satisfies_the_learned_cbf_constraints_up_to_its_slack(seed):
+@settings(max_examples=8)
+def test_qp_target_satisfies_the_learned_cbf_constraints_up_to_its_slack(interface, seed):
     state = _scene(_CFG, seed, speed=2.0)
-    h, lf, lg, u_nom, res = _qp("se2xr", state)
-    umax = control_scale(like=h)
-    lo, hi = control_bounds(h)
+    h, lf, lg, _, lo, hi, res = _qp("se2xr", state, interface)
     assert res.converged.all()
     assert (res.u >= lo - 1e-9).all() and (res.u <= hi + 1e-9).all() and (res.slack >= 0).all()
-    # the constraint, recomputed independently from the Lie derivatives and the physical control
-    resid = lf + torch.einsum("bijk,bjk->bi", lg, res.u * umax) + 0.1 * h
+    # the constraint, recomputed independently from the Lie derivatives
+    resid = lf + torch.einsum("bijk,bjk->bi", lg, res.u) + 0.1 * h
     assert torch.allclose(resid, res.residual, atol=1e-9)
     scale = 1 + lf.abs().amax() + lg.abs().amax()
     assert (resid + res.slack >= -1e-6 * scale).all()
@@ -166,27 +170,26 @@ def test_qp_target_satisfies_the_learned_cbf_constraints_up_to_its_slack(seed):
     assert stats["num_slack"] == int((res.slack > 1e-6).sum()) and stats["num_failed"] == 0
     assert stats["num_constraints"] == h.numel()
     # a CBF almost insensitive to the control: the constraints cannot all be met, the slack takes the rest
-    weak = solve_cbf_qp(h, lf, 1e-4 * lg, u_nom, alpha=0.1)
+    h, lf, lg, _, _, _, weak = _qp("se2xr", state, interface, lg_scale=1e-4)
     assert weak.converged.all() and weak.stats()["num_slack"] > 0
-    resid = lf + torch.einsum("bijk,bjk->bi", 1e-4 * lg, weak.u * umax) + 0.1 * h
+    resid = lf + torch.einsum("bijk,bjk->bi", lg, weak.u) + 0.1 * h
     assert (resid + weak.slack >= -1e-6 * scale).all()
 
 
-def test_qp_target_is_optimal_and_active():
+@pytest.mark.parametrize("interface", INTERFACES)
+def test_qp_target_is_optimal_and_active(interface):
     proxsuite = pytest.importorskip("proxsuite")
     state = _scene(_CFG, 11, speed=2.0)
-    h, lf, lg, u_nom, res = _qp("trivial", state)
-    umax = control_scale(like=h)
-    u_ref = (u_nom / umax).clamp(*control_bounds(h))
-    moved = (res.u - u_ref).abs().amax((-1, -2)) > 1e-3
-    assert moved.any()  # some constraints are active: the target differs from the nominal control
-    b, n = h.shape
-    nu = 4 * n
-    lo, hi = control_bounds(h)
+    h, lf, lg, c_ref, lo, hi, res = _qp("trivial", state, interface)
+    c_ref = torch.maximum(torch.minimum(c_ref, hi), lo)
+    moved = (res.u - c_ref).abs().amax((-1, -2)) > 1e-3
+    assert moved.any()  # some constraints are active: the target differs from the nominal command
+    b, n, k = c_ref.shape
+    nu = k * n
     for e in range(b):
-        a = (lg[e] * umax).reshape(n, nu).numpy()
+        a = lg[e].reshape(n, nu).numpy()
         H = np.diag(np.r_[np.ones(nu), np.full(n, 10.0)])
-        g = np.r_[-u_ref[e].reshape(-1).numpy(), np.full(n, 1e3)]
+        g = np.r_[-c_ref[e].reshape(-1).numpy(), np.full(n, 1e3)]
         C = np.c_[a, np.eye(n)]  # a u + s >= -(Lf h + alpha h)
         qp = proxsuite.proxqp.dense.QP(nu + n, 0, n, True)
         qp.settings.eps_abs = 1e-10
@@ -198,11 +201,14 @@ def test_qp_target_is_optimal_and_active():
         assert np.abs(qp.results.x[nu:] - res.slack[e].numpy()).max() < 1e-4
 
 
-def test_qp_target_of_an_invariant_cbf_is_invariant():
+@pytest.mark.parametrize("interface", INTERFACES)
+def test_qp_target_of_an_invariant_cbf_is_invariant(interface):
+    """In local coordinates (torques; accelerations in each agent's yaw frame) the QP of an invariant CBF is the
+    same QP in a transformed scene, so its solution is invariant (and the world-frame command rotates)."""
     state = _scene(_CFG, 5, speed=2.0)
     g = torch.tensor([[0.6, 0.8, 0.4, -0.3, 0.2], [0.0, -1.0, 1.0, 2.0, -1.0], [-1.0, 0.0, 0.0, 0.0, 3.0]], dtype=F64)
-    _, _, _, _, r1 = _qp("se2xr", state)
-    _, _, _, _, r2 = _qp("se2xr", state.transform(g))
+    *_, r1 = _qp("se2xr", state, interface)
+    *_, r2 = _qp("se2xr", state.transform(g), interface)
     assert (r1.u - r2.u).abs().max() < 1e-8 and (r1.slack - r2.slack).abs().max() < 1e-8
 
 

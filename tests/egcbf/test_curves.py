@@ -41,3 +41,22 @@ def test_training_curves_writes_a_png(tmp_path):
     assert out.exists() and out.read_bytes()[:4] == b"\x89PNG"
     with pytest.raises(ValueError):
         training_curves({}, tmp_path / "x.png")
+
+
+def test_training_curves_of_several_seeds_average_on_common_steps(tmp_path):
+    from egcbf.curves import _on_grid
+
+    def rows(level, steps):
+        return [{"step": s, "wall_s": 2.0 * s, "safe_rate": level, "reach_rate": 1.0, "success_rate": level,
+                 "cost": 0} for s in steps]  # fmt: skip
+
+    _write_run(tmp_path / "s0", rows(0.6, (0, 10, 20)))
+    _write_run(tmp_path / "s1", rows(0.8, (0, 10)))  # stopped earlier: only the common steps are averaged
+    data = [load_metrics(tmp_path / "s0"), load_metrics(tmp_path / "s1")]
+    steps, mean, lo, hi, wall = _on_grid(data, "safe_rate")
+    assert steps == [0.0, 10.0] and mean == pytest.approx([0.7, 0.7]) and lo == [0.6, 0.6] and hi == [0.8, 0.8]
+    assert wall == [0.0, 20.0]
+    out = training_curves({"A": [tmp_path / "s0", tmp_path / "s1"], "B": tmp_path / "s0"}, tmp_path / "m.png")
+    assert out.read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(ValueError, match="at least one run"):
+        training_curves({"A": []}, tmp_path / "x.png")

@@ -10,13 +10,16 @@ from dyn_helpers import moving_scene
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from egcbf.algo.actions import control_bounds, control_scale, policy_control
-from egcbf.algo.learner import LearnedController
+from egcbf.algo.actions import control_bounds, control_scale
+from egcbf.algo.interface import make_interface
+from egcbf.algo.learner import LearnedController, policy_command
 from egcbf.config import TrainConfig
 from egcbf.dynamics import quadrotor as dyn
 from egcbf.env import EnvConfig, SwarmState
 from egcbf.graph import GROUP, build_graph
 from egcbf.nn import CBFNet, GraphTransformerLayer, ModelConfig, PolicyNet
+from groupcanon import FieldType
+from groupcanon.features import Vector
 from groupcanon.testing import strategies as gst
 
 F64 = torch.float64
@@ -34,11 +37,14 @@ def _nets(group: str, preset: str | None = None):
 
 
 def _outputs(group: str, state: SwarmState, cfg: EnvConfig, preset: str | None = None):
+    """CBF values, the policy's raw output (own frame) and features, the applied body control and the command."""
     cbf, pol, mcfg = _nets(group, preset)
     graph = build_graph(state, cfg)
     with torch.no_grad():
         u, _ = LearnedController(pol, mcfg)(state, cfg)
-        return cbf(graph), pol.raw(graph), pol.encoder(graph), u
+        itf = make_interface(mcfg.interface)
+        c, _ = policy_command(pol, mcfg, itf, graph, state.x, state.goals)
+        return cbf(graph), pol.raw(graph), pol.encoder(graph), u, c
 
 
 @st.composite
@@ -60,17 +66,25 @@ def test_egcbf_is_invariant_and_gcbf_is_not(scene, g):
     cfg, seed = scene
     state = moving_scene(cfg, seed)
     g = g[: cfg.num_envs]
-    # the default networks and the cpu preset's (no body rates, no goal edges, mirror-symmetric CBF)
-    for preset in (None, "cpu"):
+    g_agents = g[:, None].expand(cfg.num_envs, cfg.num_agents, 5)
+    # the default networks (torque interface), the cpu preset's (acceleration command; CBF on positions and
+    # velocities only) and the cpu-torque preset's (no body rates, no goal edges, mirror-symmetric CBF)
+    for preset in (None, "cpu", "cpu-torque"):
         a = _outputs("se2xr", state, cfg, preset)
         b = _outputs("se2xr", state.transform(g), cfg, preset)
+        # invariant: h, the raw output and features (own frame), the body torque and thrust
         for name, x, y in zip(("h", "policy raw", "policy features", "control"), a, b):
             assert (x - y).abs().max() <= 1e-9, (preset, name)
+        # the command transforms with the scene: an acceleration as a world-frame vector, a torque not at all
+        out_type = _nets("se2xr", preset)[1].out_type
+        assert (out_type.act(g_agents, a[4]) - b[4]).abs().max() <= 1e-9, preset
+    assert isinstance(_nets("se2xr", "cpu")[1].out_type.features[0], Vector)
     # the same test fails for GCBF (the same layers over the trivial group) under a quarter turn
     quarter = torch.tensor([[0.0, 1.0, 0.5, -0.5, 0.2]], dtype=F64).expand(cfg.num_envs, 5)
-    a = _outputs("trivial", state, cfg)
-    b = _outputs("trivial", state.transform(quarter), cfg)
-    assert (a[0] - b[0]).abs().max() > 1e-6 and (a[2] - b[2]).abs().max() > 1e-4
+    for preset in (None, "cpu"):
+        a = _outputs("trivial", state, cfg, preset)
+        b = _outputs("trivial", state.transform(quarter), cfg, preset)
+        assert (a[0] - b[0]).abs().max() > 1e-6 and (a[2] - b[2]).abs().max() > 1e-4, preset
 
 
 def test_gcbf_is_not_rotation_invariant_but_translation_invariant():
@@ -90,6 +104,14 @@ def test_gcbf_is_not_rotation_invariant_but_translation_invariant():
     # and the equivariant network is invariant under the same rotation
     for x, y in zip(_outputs("se2xr", state, cfg), _outputs("se2xr", state.transform(rot), cfg)):
         assert (x - y).abs().max() <= 1e-9
+    # with the acceleration command (cpu preset) GCBF's command does not rotate with the scene, EGCBF's does
+    rotate = FieldType(GROUP, [Vector(3)])
+    rot_agents = rot[:, None].expand(1, cfg.num_agents, 5)
+    for group, equivariant in (("trivial", False), ("se2xr", True)):
+        c0 = _outputs(group, state, cfg, "cpu")[4]
+        c1 = _outputs(group, state.transform(rot), cfg, "cpu")[4]
+        err = float((rotate.act(rot_agents, c0) - c1).abs().max())
+        assert (err <= 1e-9) if equivariant else (err > 1e-5), (group, err)
 
 
 def test_outputs_are_bounded_and_shaped():
@@ -110,15 +132,38 @@ def test_outputs_are_bounded_and_shaped():
         assert info["u_ref"].shape == u.shape
 
 
+class _FixedPolicy(torch.nn.Module):
+    """A stand-in policy that outputs the same residual for every agent."""
+
+    def __init__(self, residual):
+        super().__init__()
+        self.residual = residual
+
+    def forward(self, graph):
+        return self.residual.expand(graph.num_dst, -1)
+
+
+def _command(mcfg: ModelConfig, residual):
+    cfg = EnvConfig(num_agents=5, num_envs=1, n_rays=8, lidar_max_hits=4, num_obstacles=0)
+    state = moving_scene(cfg, 0)
+    itf = make_interface(mcfg.interface)
+    c, c_nom = policy_command(_FixedPolicy(residual), mcfg, itf, build_graph(state, cfg), state.x, state.goals)
+    return c, c_nom, itf, state
+
+
 def test_untrained_policy_stays_near_nominal():
     _, pol, mcfg = _nets("se2xr")
     assert mcfg.policy_init_scale < 1
     assert torch.equal(pol.head[-1].bias, torch.zeros_like(pol.head[-1].bias))
-    residual = torch.zeros(5, 4, dtype=F64)
-    u_nom = dyn.hover_control(dyn.DEFAULT_PARAMS, 5, dtype=F64)
-    assert torch.allclose(policy_control(residual, u_nom, 2.0) * control_scale(like=u_nom), u_nom)
-    big = torch.ones(5, 4, dtype=F64)
-    assert torch.equal(policy_control(big, u_nom, 2.0), torch.ones(5, 4, dtype=F64))  # clipped to the box
+    for interface in ("torque", "accel"):
+        mcfg = ModelConfig(interface=interface)
+        c, c_nom, itf, state = _command(mcfg, torch.zeros(mcfg.action_dim, dtype=F64))
+        assert torch.allclose(c, c_nom, atol=1e-12, rtol=0)
+        big, _, _, _ = _command(mcfg, torch.ones(mcfg.action_dim, dtype=F64))
+        lo, hi = itf.bounds(big)
+        local = itf.to_local(state.x, big)
+        assert (local <= hi + 1e-12).all() and (local >= lo - 1e-12).all()  # clipped to the box
+        assert torch.isclose(local, hi).any()
 
 
 def test_layer_is_an_ordinary_pair_layer():
@@ -133,11 +178,11 @@ def test_per_channel_action_scale():
     assert ModelConfig().action_scales == (2.0, 2.0, 2.0, 2.0)  # GCBF+: one scale
     mcfg = ModelConfig(torque_action_scale=0.25)
     assert mcfg.action_scales == (0.25, 0.25, 0.25, 2.0)
-    u_nom = dyn.hover_control(dyn.DEFAULT_PARAMS, 5, dtype=F64)
-    residual = torch.full((5, 4), 0.5, dtype=F64)
-    u = policy_control(residual, u_nom, mcfg.action_scales)
-    expected = u_nom / control_scale(like=u_nom) + torch.tensor([0.125, 0.125, 0.125, 1.0], dtype=F64)
-    assert torch.allclose(u, expected.clamp(max=1.0))
+    c, c_nom, _, _ = _command(mcfg, torch.full((4,), 0.1, dtype=F64))
+    expected = c_nom + torch.tensor([0.025, 0.025, 0.025, 0.2], dtype=F64)
+    assert torch.allclose(c, expected.clamp(max=1.0))
+    accel = ModelConfig(interface="accel", accel_action_scale=0.5)
+    assert accel.action_scales == (0.5, 0.5, 0.5) and accel.action_dim == 3
 
 
 @pytest.mark.parametrize("group", ["se2xr", "trivial"])
@@ -203,3 +248,35 @@ def test_reflect_z_is_the_mirrored_scene_and_the_symmetric_cbf_ignores_it(seed, 
 def test_model_config_rejects_bad_values(kwargs):
     with pytest.raises(ValueError):
         ModelConfig(**kwargs)
+
+
+@pytest.mark.parametrize("preset", [None, "cpu", "cpu-torque"])
+def test_networks_on_a_receiver_subset_are_exact(preset):
+    """``SwarmGraph.with_receivers`` (the loss's split of h(x') into labelled and unlabelled agents): the kept
+    receivers' outputs are the full graph's, bit for bit up to reduction order."""
+    cfg = EnvConfig(num_agents=6, num_envs=2, n_rays=8, lidar_max_hits=4, area_size=1.2, num_obstacles=2)
+    state = moving_scene(cfg, 5)
+    cbf, pol, _ = _nets("se2xr", preset)
+    graph = build_graph(state, cfg)
+    keep = torch.arange(graph.num_dst) % 3 != 0
+    with torch.no_grad():
+        for net in (cbf, pol):
+            full, part = net(graph), net(graph.with_receivers(keep))
+            assert (full[keep] - part[keep]).abs().max() <= 1e-12
+
+
+def test_edge_velocity_reads_closing_speed():
+    """With ``edge_velocity`` the CBF changes when a neighbour's velocity changes relative to the agent's own (and
+    its encoder's edge type carries the relative velocity as a vector)."""
+    cfg = EnvConfig(num_agents=4, num_envs=1, n_rays=8, lidar_max_hits=4, area_size=1.0, num_obstacles=0)
+    state = moving_scene(cfg, 6)
+    torch.manual_seed(0)
+    mcfg = ModelConfig(hidden=16, heads=2, head_hidden=16, edge_velocity=True, cbf_attitude=False)
+    cbf = CBFNet(mcfg).double()
+    assert cbf.encoder.layer.spec.edge_type.names == ("dp", "dv")
+    p, rot, v, w = dyn.unpack(state.x)
+    v2 = v.clone()
+    v2[:, 1] += 0.5
+    moved = SwarmState(dyn.state_from_parts(p, rot, v2, w), state.goals, state.obstacles)
+    with torch.no_grad():
+        assert not torch.allclose(cbf(build_graph(state, cfg)), cbf(build_graph(moved, cfg)))

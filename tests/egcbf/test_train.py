@@ -36,7 +36,15 @@ def test_config_presets_and_json_roundtrip(tmp_path):
         assert TrainConfig.from_json(tmp_path / "c.json") == cfg
     cpu = TrainConfig.preset("gcbf", "cpu")
     env = cpu.env_config()
-    assert (env.num_agents, env.area_size, env.num_obstacles) == (8, 2.0, 5)
+    assert (env.num_agents, env.area_size, env.num_obstacles) == (32, 2.0, 4)
+    # the density recipe: the rollout of update k uses area_sizes[k % 3]; up to 7.8 agents per m^3
+    assert [cpu.area_of_update(k) for k in range(4)] == [1.6, 2.0, 2.5, 1.6]
+    assert max(cpu.num_agents / a**3 for a in cpu.area_sizes) > 7.5
+    assert cpu.model.interface == "accel" and TrainConfig.preset("gcbf", "cpu-torque").model.interface == "torque"
+    with pytest.raises(ValueError, match="area_sizes"):
+        TrainConfig.preset("gcbf", "tiny", area_sizes=[])
+    with pytest.raises(ValueError, match="command_model"):
+        TrainConfig.preset("gcbf", "tiny", command_model="exact")
     with pytest.raises(ValueError, match="group"):
         TrainConfig(algo="egcbf", reference="nominal")  # the default model group is se2xr: fine ...
         TrainConfig(algo="gcbf", reference="nominal")  # ... but gcbf needs the trivial group
@@ -46,9 +54,13 @@ def test_config_presets_and_json_roundtrip(tmp_path):
         TrainConfig.preset("gcbf", "tiny", batch_size=0)
 
 
-@pytest.mark.parametrize("algo", sorted(METHODS))
-def test_each_method_trains_end_to_end(tmp_path, algo):
-    cfg = TrainConfig.preset(algo, "tiny", steps=2)
+@pytest.mark.parametrize(
+    "algo, interface, model",
+    [(a, "accel", "ideal") for a in sorted(METHODS)] + [("egcbf+", "accel", "closed_loop"), ("gcbf+", "torque", "")],
+)
+def test_each_method_trains_end_to_end(tmp_path, algo, interface, model):
+    changes = {"command_model": model} if model else {}
+    cfg = TrainConfig.preset(algo, "tiny", steps=2, model={"interface": interface}, **changes)
     learner = _quiet(cfg, tmp_path)
     assert learner.step == 2
     ckpt = find_checkpoint(tmp_path)

@@ -1,4 +1,4 @@
-"""Controls in units of the actuator box, and how the policy's residual becomes a control.
+"""Body controls in units of the actuator box (the torque interface's command, :mod:`egcbf.algo.interface`).
 
 The body-frame control ``u = (tau (3), F3)`` mixes units (N m, N) and scales (``|tau| <= 1e-2``, ``F3 <= 0.59``).
 Learning, the QP and the loss all work with the *normalized* control ``u~ = u / u_max`` with
@@ -9,14 +9,12 @@ Learning, the QP and the loss all work with the *normalized* control ``u~ = u / 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
 from torch import Tensor
 
 from ..dynamics.quadrotor import DEFAULT_PARAMS, QuadrotorParams
 
-__all__ = ["control_bounds", "control_scale", "normalize", "policy_control", "unnormalize"]
+__all__ = ["control_bounds", "control_scale", "normalize", "unnormalize"]
 
 
 def control_scale(params: QuadrotorParams = DEFAULT_PARAMS, like: Tensor | None = None) -> Tensor:
@@ -39,23 +37,3 @@ def normalize(u: Tensor, params: QuadrotorParams = DEFAULT_PARAMS) -> Tensor:
 def unnormalize(u_norm: Tensor, params: QuadrotorParams = DEFAULT_PARAMS) -> Tensor:
     """``u~ * u_max``."""
     return u_norm * control_scale(params, u_norm)
-
-
-def policy_control(
-    residual: Tensor,
-    u_nom: Tensor,
-    action_scale: float | Sequence[float],
-    params: QuadrotorParams = DEFAULT_PARAMS,
-):
-    """The applied normalized control ``clip(u~_nom + action_scale * residual)`` (GCBF+: ``clip(2 pi + u_ref)``).
-
-    ``residual`` ``(..., 4)`` is the policy output in ``[-1, 1]^4``; ``u_nom`` the nominal control in physical
-    units; ``action_scale`` one number or four (per channel: ``ModelConfig.action_scales``). Returns the
-    normalized control (multiply by :func:`control_scale` for physical units). The clip is a ``clamp`` (its
-    gradient is zero where the box is active, as for the applied control).
-    """
-    lo, hi = control_bounds(residual)
-    if not isinstance(action_scale, (int, float)):
-        action_scale = torch.as_tensor(action_scale, dtype=residual.dtype, device=residual.device)
-    u = normalize(u_nom, params).to(residual.dtype) + action_scale * residual
-    return torch.maximum(torch.minimum(u, hi), lo)

@@ -21,6 +21,7 @@ resets from ``(seed, update)`` (:func:`rollout_seed`), buffer sampling and shuff
 from __future__ import annotations
 
 import copy
+import dataclasses
 import time
 from collections import defaultdict
 
@@ -34,11 +35,11 @@ from ..dynamics import quadrotor as dyn
 from ..env import EnvConfig, SwarmEnv, SwarmState
 from ..graph import SwarmGraph, build_graph, refresh_graph
 from ..nn import CBFNet, ModelConfig, PolicyNet
-from .actions import normalize, policy_control, unnormalize
 from .buffer import Samples, TrajectoryBuffer, UnsafeBuffer
+from .interface import AccelInterface, CommandInterface, make_interface
 from .labels import finite_horizon_labels
 from .loss import cbf_loss
-from .qp import cbf_lie_derivatives, solve_cbf_qp
+from .qp import solve_cbf_qp
 
 __all__ = ["DTYPES", "GraphCBFLearner", "LearnedController", "rollout_seed"]
 
@@ -53,8 +54,10 @@ def rollout_seed(seed: int, update: int) -> int:
 class LearnedController:
     """A trained policy as an evaluation controller: ``u, info = ctrl(state, env_config)``.
 
-    Builds the graph of ``state`` (casting LiDAR), runs the policy and returns the applied control
-    ``clip(u_nom + action_scale * u_max * pi)`` in physical units; ``info["u_ref"]`` is the nominal control.
+    Builds the graph of ``state`` (casting LiDAR), runs the policy and returns the applied body control: the
+    command ``clip(c_nom + scale * pi)`` of the model's interface turned into torque and thrust (for ``"accel"``
+    by the attitude loop). ``info["u_ref"]`` is the nominal controller's control (for the reward). No QP, barrier
+    or other controller is involved.
     """
 
     name = "learned"
@@ -75,15 +78,24 @@ class LearnedController:
         return u, info
 
 
+def policy_command(
+    policy: PolicyNet, model_config: ModelConfig, itf: CommandInterface, graph: SwarmGraph, x: Tensor, goals: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The policy's command ``clip(c_nom + scale * pi)`` ``(B, N, k)`` and the nominal command ``c_nom``."""
+    b, n, _ = x.shape
+    residual = policy(graph).view(b, n, itf.dim)
+    c_nom = itf.nominal(x, goals).to(residual.dtype)
+    scales = torch.as_tensor(model_config.action_scales, dtype=residual.dtype, device=residual.device)
+    return itf.clip(x, c_nom + scales * residual), c_nom
+
+
 def act(
     policy: PolicyNet, model_config: ModelConfig, graph: SwarmGraph, state: SwarmState, params: dyn.QuadrotorParams
 ) -> tuple[Tensor, Tensor]:
-    """The policy's control ``(B, N, 4)`` in physical units, and the nominal control it started from."""
-    b, n, _ = state.x.shape
-    residual = policy(graph).view(b, n, 4)
-    u_nom = nominal_control(state.x, state.goals, params)
-    u = unnormalize(policy_control(residual, u_nom, model_config.action_scales, params), params)
-    return u, u_nom
+    """The policy's body control ``(B, N, 4)`` in physical units, and the nominal controller's control."""
+    itf = make_interface(model_config.interface, params)
+    c, _ = policy_command(policy, model_config, itf, graph, state.x, state.goals)
+    return itf.apply(state.x, c), nominal_control(state.x, state.goals, params)
 
 
 class GraphCBFLearner:
@@ -99,6 +111,7 @@ class GraphCBFLearner:
         self.dtype = dtype or DTYPES[config.dtype]
         self.env_config = config.env_config()
         self.params = self.env_config.params
+        self.interface = make_interface(config.model.interface, self.params, **config.interface_options())
         torch.manual_seed(config.seed)
         self.cbf = CBFNet(config.model).to(self.device, self.dtype)
         self.policy = PolicyNet(config.model).to(self.device, self.dtype)
@@ -121,6 +134,8 @@ class GraphCBFLearner:
         """Roll out ``rollout_envs`` episodes of ``rollout_steps`` steps from ``reset(seed)`` with the current
         policy; returns labelled samples ``(B, L, ...)`` (one row per trajectory)."""
         cfg = self.env_config
+        if self.config.area_sizes:
+            cfg = dataclasses.replace(cfg, area_size=self.config.area_of_update(self.step))
         env = SwarmEnv(cfg, device=self.device, dtype=self.dtype)
         state = env.reset(seed)
         unsafe = env.info(state).unsafe
@@ -156,23 +171,29 @@ class GraphCBFLearner:
     # --------------------------------------------------------------------------------------------- targets
     @torch.no_grad()
     def reference(self, data: Samples) -> tuple[Tensor, dict]:
-        """The normalized reference control ``(S, N, 4)`` of every sample, and QP statistics (empty for nominal)."""
-        cfg = self.config
-        u_nom = nominal_control(data.x, data.goals, self.params)
+        """The reference command ``(S, N, k)`` of every sample (world-frame, normalized), and QP statistics (empty
+        for the nominal reference)."""
+        cfg, itf = self.config, self.interface
+        c_nom = itf.nominal(data.x, data.goals)
         if cfg.reference == "nominal":
-            return normalize(u_nom, self.params), {}
+            return c_nom, {}
         out, stats = [], defaultdict(float)
         t0 = time.perf_counter()
         for k in range(0, len(data), cfg.qp_chunk):
             chunk = data[k : k + cfg.qp_chunk]
+            x, cn = chunk.x, c_nom[k : k + cfg.qp_chunk]
             graph = chunk.graph(self.env_config)
-            h, lf, lg = cbf_lie_derivatives(self.cbf_target, graph, chunk.x, self.params)
+            if isinstance(itf, AccelInterface):
+                h, lf, lg = itf.lie_derivatives(self.cbf_target, graph, x, self.env_config, cn)
+            else:
+                h, lf, lg = itf.lie_derivatives(self.cbf_target, graph, x)
+            lo, hi = itf.bounds(h)
             res = solve_cbf_qp(
-                h, lf, lg, u_nom[k : k + cfg.qp_chunk], alpha=cfg.qp_alpha, params=self.params,
+                h, lf, itf.to_local(x[:, None].to(lg.dtype), lg), itf.to_local(x, cn), lo, hi, alpha=cfg.qp_alpha,
                 slack_linear=cfg.qp_slack_linear, slack_quadratic=cfg.qp_slack_quadratic, tol=cfg.qp_tol,
                 max_iter=cfg.qp_max_iter, chunk=cfg.qp_chunk,
             )  # fmt: skip
-            out.append(res.u.to(self.dtype))
+            out.append(itf.from_local(x.to(res.u.dtype), res.u).to(self.dtype))
             s = res.stats()
             for key in ("num_slack", "num_failed", "num_constraints"):
                 stats[key] += s[key]
@@ -183,22 +204,22 @@ class GraphCBFLearner:
 
     # ------------------------------------------------------------------------------------------------ loss
     def loss(self, batch: Samples, u_ref: Tensor) -> dict[str, Tensor]:
-        """The loss terms of a minibatch ``(S, ...)`` against its normalized reference controls ``(S, N, 4)``."""
-        cfg, env_cfg = self.config, self.env_config
+        """The loss terms of a minibatch ``(S, ...)`` against its reference commands ``(S, N, k)``."""
+        cfg, env_cfg, itf = self.config, self.env_config, self.interface
         graph = batch.graph(env_cfg)
-        s, n = batch.x.shape[:2]
+        k = itf.dim
         h = self.cbf(graph)
-        residual = self.policy(graph).view(s, n, 4)
-        u_nom = nominal_control(batch.x, batch.goals, self.params)
-        u = policy_control(residual, u_nom, cfg.model.action_scales, self.params)
-        x_next = dyn.step(batch.x, unnormalize(u, self.params), env_cfg.dt, self.params, env_cfg.substeps,
-                          env_cfg.integrator)  # fmt: skip
+        c, _ = policy_command(self.policy, cfg.model, itf, graph, batch.x, batch.goals)
+        x_next = itf.model_step(batch.x, c, env_cfg)
         graph_next = refresh_graph(graph, x_next)
-        h_next = self.cbf(graph_next)
-        frozen = {k: v.detach() for k, v in self.cbf.named_parameters()}
-        h_next_frozen = functional_call(self.cbf, frozen, (graph_next,))
+        # h(x') with the CBF's parameters for labelled agents and with them frozen for the others (cbf_loss): each
+        # on the edges into its own agents only, so the two passes cost one
+        labelled = (batch.safe | batch.unsafe).reshape(-1)
+        h_next = self.cbf(graph_next.with_receivers(labelled))
+        frozen = {name: v.detach() for name, v in self.cbf.named_parameters()}
+        h_next_frozen = functional_call(self.cbf, frozen, (graph_next.with_receivers(~labelled),))
         return cbf_loss(
-            h, h_next, batch.safe.reshape(-1), batch.unsafe.reshape(-1), u.reshape(-1, 4), u_ref.reshape(-1, 4),
+            h, h_next, batch.safe.reshape(-1), batch.unsafe.reshape(-1), c.reshape(-1, k), u_ref.reshape(-1, k),
             env_cfg.dt, gamma=cfg.gamma, alpha=cfg.alpha, eta_d=cfg.eta_d, eta_c=cfg.eta_c, eta_safe=cfg.eta_safe,
             eta_unsafe=cfg.eta_unsafe, control=cfg.control_loss, h_next_frozen=h_next_frozen,
         )  # fmt: skip
@@ -232,7 +253,10 @@ class GraphCBFLearner:
         self.buffer.append(rollout)
         flat = rollout.flatten()
         self.unsafe_buffer.add(flat)
-        return Samples.cat([flat, None if memory is None else memory.flatten(), unsafe])
+        data = Samples.cat([flat, None if memory is None else memory.flatten()])
+        if cfg.train_graphs is not None and cfg.train_graphs < len(data):
+            data = data[torch.randperm(len(data), generator=self.generator)[: cfg.train_graphs].to(data.x.device)]
+        return Samples.cat([data, unsafe])
 
     def fit(self, data: Samples, u_ref: Tensor, epochs: int | None = None) -> dict[str, float]:
         """Step 4: ``epochs`` shuffled passes in minibatches; returns the mean of each term over the last epoch."""

@@ -1,23 +1,24 @@
 """The QP target ``u_QP`` of GCBF+ / EGCBF+: the centralized CBF-QP with the learned CBF, batched over graphs.
 
 For one environment of ``N`` agents, with the learned CBF ``h`` (the slowly updated target copy), the nominal
-control ``u_nom`` and normalized controls ``u~ = u / u_max`` (:mod:`egcbf.algo.actions`)::
+command ``c_nom`` and the commands ``c`` of a control interface (:mod:`egcbf.algo.interface`: normalized
+accelerations in each agent's yaw frame, or normalized torque and thrust)::
 
-    min_{u~, s}  1/2 ||u~ - u~_nom||^2 + sum_i ( 1/2 w2 s_i^2 + w1 s_i )
-    s.t.         Lf h_i + sum_j (Lg_j h_i . u_max) u~_j + alpha h_i + s_i >= 0      for every agent i
-                 lo <= u~ <= hi,  s >= 0
+    min_{c, s}  1/2 ||c - c_nom||^2 + sum_i ( 1/2 w2 s_i^2 + w1 s_i )
+    s.t.        Lf h_i + sum_j Lg_j h_i . c_j + alpha h_i + s_i >= 0      for every agent i
+                lo <= c <= hi,  s >= 0
 
-``Lf h_i = sum_j dh_i/dx_j . f0(x_j)`` and ``Lg_j h_i = dh_i/dx_j f1(x_j)``; the Jacobian ``dh_i/dx_j`` comes from
-autograd with the graph's topology, goals and LiDAR hits held fixed (the states enter as in
-:func:`egcbf.graph.refresh_graph`, as GCBF+ does), in *one* backward pass: every edge reads its own copy of its
-sender's state, so the gradient of ``sum_i h_i`` with respect to the copies separates into every ``dh_i/dx_j``
-(:func:`cbf_jacobian`). Entries for agents outside ``i``'s neighbourhood are exactly zero. GCBF+'s constants:
-``alpha`` = 0.1 times the loss's class-K slope, ``w1 = 1e3``, ``w2 = 10``.
+``Lf h_i`` and ``Lg_j h_i`` (the derivative of ``h_i`` along agent ``j``'s command) come from the interface's model,
+built on the Jacobian ``dh_i/dx_j``, which comes from autograd with the graph's topology, goals and LiDAR hits held
+fixed (the states enter as in :func:`egcbf.graph.refresh_graph`, as GCBF+ does), in *one* backward pass: every
+edge reads its own copy of its sender's state, so the gradient of ``sum_i h_i`` with respect to the copies
+separates into every ``dh_i/dx_j`` (:func:`cbf_jacobian`). Entries for agents outside ``i``'s neighbourhood are
+exactly zero. GCBF+'s constants: ``alpha`` = 0.1 times the loss's class-K slope, ``w1 = 1e3``, ``w2 = 10``.
 
-The QP is always feasible (the slack absorbs conflicts; the box contains the nominal control's clip). It is solved
-by a primal-dual interior-point method (Mehrotra predictor-corrector) batched over environments, in float64, that
-uses the problem's structure (one ``4N x 4N`` Cholesky per iteration; ``_solve_structured``). It runs on the device
-of the data (CPU or GPU), with no host round trip; checked against proxsuite in the tests.
+The QP is always feasible (the slack absorbs conflicts; the box contains the clipped reference). It is solved by a
+primal-dual interior-point method (Mehrotra predictor-corrector) batched over environments, in float64, that uses
+the problem's structure (one ``kN x kN`` Cholesky per iteration; ``_solve_structured``). It runs on the device of
+the data (CPU or GPU), with no host round trip; checked against proxsuite in the tests.
 """
 
 from __future__ import annotations
@@ -28,11 +29,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from ..dynamics import quadrotor as dyn
 from ..graph import SwarmGraph, _agent_features, _edge_attr, _frames
-from .actions import control_bounds, control_scale
 
-__all__ = ["CBFQPResult", "cbf_jacobian", "cbf_lie_derivatives", "solve_cbf_qp"]
+__all__ = ["CBFQPResult", "cbf_jacobian", "solve_cbf_qp"]
 
 
 def _max_step(v: Tensor, dv: Tensor) -> Tensor:
@@ -97,17 +96,6 @@ def cbf_jacobian(cbf: nn.Module, graph: SwarmGraph, x: Tensor) -> tuple[Tensor, 
     own = torch.arange(m, device=xf.device)
     jac.index_put_((own, own % n), g_recv, accumulate=True)
     return h.detach().view(b, n), jac.view(b, n, n, -1)
-
-
-def cbf_lie_derivatives(
-    cbf: nn.Module, graph: SwarmGraph, x: Tensor, params: dyn.QuadrotorParams = dyn.DEFAULT_PARAMS
-) -> tuple[Tensor, Tensor, Tensor]:
-    """``h`` ``(B, N)``, ``Lf h`` ``(B, N)`` and ``Lg h`` ``(B, N, N, 4)`` (``[b, i, j]`` = ``dh_i/dx_j f1(x_j)``)."""
-    h, jac = cbf_jacobian(cbf, graph, x)
-    xd = x.detach()
-    lf = torch.einsum("bijs,bjs->bi", jac, dyn.f0(xd, params))
-    lg = torch.einsum("bijs,bjsk->bijk", jac, dyn.f1(xd, params))
-    return h, lf, lg
 
 
 # ------------------------------------------------------------------------------------------ the learned CBF-QP
@@ -241,7 +229,7 @@ class CBFQPResult:
     """Solution of a batch of learned-CBF QPs.
 
     Attributes:
-        u: ``(B, N, 4)`` the normalized QP control ``u~_QP``.
+        u: ``(B, N, k)`` the QP's commands (in the coordinates of the box).
         slack: ``(B, N)`` the CBF slacks ``s_i >= 0``.
         residual: ``(B, N)`` the CBF constraint value ``Lf h + Lg h u + alpha h`` at the solution (``>= -slack``).
         converged: ``(B,)`` the interior-point method met its tolerance.
@@ -269,10 +257,11 @@ def solve_cbf_qp(
     h: Tensor,
     lf: Tensor,
     lg: Tensor,
-    u_nom: Tensor,
+    u_ref: Tensor,
+    lo: Tensor,
+    hi: Tensor,
     *,
     alpha: float,
-    params: dyn.QuadrotorParams = dyn.DEFAULT_PARAMS,
     slack_linear: float = 1e3,
     slack_quadratic: float = 10.0,
     tol: float = 1e-8,
@@ -281,25 +270,29 @@ def solve_cbf_qp(
 ) -> CBFQPResult:
     """Solve the centralized learned-CBF QP of every environment (module doc), in float64.
 
+    The variables are the agents' commands in the coordinates where their bounds are the box ``[lo, hi]``
+    (:meth:`egcbf.algo.interface.CommandInterface.to_local`; normalized torque and thrust, or accelerations in each
+    agent's yaw frame).
+
     Args:
-        h, lf: ``(B, N)``; lg: ``(B, N, N, 4)`` from :func:`cbf_lie_derivatives`.
-        u_nom: ``(B, N, 4)`` the nominal control in physical units.
+        h, lf: ``(B, N)``; lg: ``(B, N, N, k)`` ``[b, i, j]`` = the derivative of ``h_i`` along agent ``j``'s command.
+        u_ref: ``(B, N, k)`` the reference command (clipped into the box here).
+        lo, hi: ``(k,)`` the box.
         alpha: slope of the linear class-K function in the constraint.
         slack_linear, slack_quadratic: ``w1`` and ``w2`` of the slack cost.
         chunk: environments per batched solve.
     """
     b, n = h.shape
+    k = lg.shape[-1]
     f64 = torch.float64
-    h, lf, lg, u_nom = (t.detach().to(f64) for t in (h, lf, lg, u_nom))
-    umax = control_scale(params, h)
-    lo, hi = control_bounds(h)
+    h, lf, lg, u_ref, lo, hi = (t.detach().to(f64) for t in (h, lf, lg, u_ref, lo, hi))
     lo_v, hi_v = lo.repeat(n), hi.repeat(n)
-    a = (lg * umax).reshape(b, n, 4 * n)  # rows: agent i; columns: (agent j, channel k)
+    a = lg.reshape(b, n, k * n)  # rows: agent i; columns: (agent j, channel)
     rhs = lf + alpha * h
-    u_ref = (u_nom / umax).clamp(lo, hi).reshape(b, 4 * n)
+    u_ref = torch.maximum(torch.minimum(u_ref, hi), lo).reshape(b, k * n)
     us, ss, conv, iters = [], [], [], 0
-    for k in range(0, b, chunk):
-        sl = slice(k, min(k + chunk, b))
+    for c in range(0, b, chunk):
+        sl = slice(c, min(c + chunk, b))
         u, s, ok, it = _solve_structured(
             a[sl], rhs[sl], u_ref[sl], lo_v, hi_v, slack_linear, slack_quadratic, tol, max_iter
         )
@@ -310,4 +303,4 @@ def solve_cbf_qp(
     u = torch.cat(us)
     slack = torch.cat(ss)
     residual = lf + (a @ u[..., None])[..., 0] + alpha * h
-    return CBFQPResult(u.reshape(b, n, 4), slack, residual, torch.cat(conv), iters)
+    return CBFQPResult(u.reshape(b, n, k), slack, residual, torch.cat(conv), iters)

@@ -6,7 +6,8 @@ One layer reads the bipartite graph of :mod:`egcbf.graph` (senders: agents, goal
 agents) and returns one feature vector per receiver:
 
 * node encoder: an MLP on the raw 18 node channels (kind one-hot, v, R, w), shared by senders and receivers;
-* edge encoder: an MLP on ``[dp, |dp|]`` (the relative position of the sender and its length);
+* edge encoder: an MLP on ``[dp, |dp|]`` (the relative position of the sender and its length), or on
+  ``[dp, dv, |dp|]`` with the relative velocity (so that one edge's message can read how fast it closes in);
 * local multi-head attention over each receiver's incoming edges: ``torch_geometric.nn.TransformerConv`` with the
   encoded edge as ``edge_dim`` input (keys and values see the edge), no root weight (the residual is explicit);
 * residual ``z = f_v + A(F)_v`` and a feed-forward block with its own residual, ``out = z + FF(LayerNorm(z))``.
@@ -42,7 +43,8 @@ class GraphTransformerLayer(nn.Module):
 
     Args:
         node_dim: raw node channels (18 for :data:`egcbf.graph.NODE_TYPE`).
-        edge_dim: raw edge channels (3: the relative position ``dp``); ``|dp|`` is appended inside.
+        edge_dim: raw edge channels (3: the relative position ``dp``; 6: ``dp`` and the relative velocity ``dv``);
+            the length of the first three (``|dp|``) is appended inside.
         hidden: width of every hidden representation and of the output.
         heads: attention heads (``hidden`` must be divisible by ``heads``).
     """
@@ -63,6 +65,6 @@ class GraphTransformerLayer(nn.Module):
     def forward(self, x: tuple[Tensor, Tensor], edge_index: Tensor, edge_attr: Tensor) -> Tensor:
         x_src, x_dst = x
         h_src, h_dst = self.node_enc(x_src), self.node_enc(x_dst)
-        e = self.edge_enc(torch.cat((edge_attr, edge_attr.norm(dim=-1, keepdim=True)), dim=-1))
+        e = self.edge_enc(torch.cat((edge_attr, edge_attr[:, :3].norm(dim=-1, keepdim=True)), dim=-1))
         z = h_dst + self.attn((h_src, h_dst), edge_index, edge_attr=e)
         return z + self.ff(self.norm(z))

@@ -3,16 +3,22 @@
 Both follow the paper (Architecture & Training)::
 
     h_phi(G_i)    = m_phi2 ( phi_{g_i^-1} M_phi1(G_i) )                    (invariant scalar, tanh-bounded)
-    pi_theta(G_i) = psi_{g_i} m_theta2 ( phi_{g_i^-1} M_theta1(G_i) )      (body-frame control residual)
+    pi_theta(G_i) = psi_{g_i} m_theta2 ( phi_{g_i^-1} M_theta1(G_i) )      (command residual)
 
 ``M`` is :class:`~egcbf.nn.layers.GraphTransformerLayer` wrapped with ``groupcanon.Canonicalize`` over the group
 named in the config: ``"se2xr"`` (EGCBF, EGCBF+) or ``"trivial"`` (GCBF, GCBF+). It is the *same code*: with the
 trivial group every action is the identity, so the layer sees world-frame features and the network is the
 ordinary non-equivariant GNN. The layer's output type is ``Scalar(hidden)`` (invariant features expressed in the
-receiver's frame), so the heads are plain MLPs and both outputs are invariant: the CBF value by construction, the
-policy output because the control ``u = (tau, F3)`` lives in the body frame, on which SE(2) x R acts trivially
-(``psi_g(u) = u``; :data:`egcbf.dynamics.quadrotor.CONTROL_TYPE`). Equivalently the policy is equivariant as a map
-from world-frame states to body-frame controls.
+receiver's frame), so the heads are plain MLPs. The CBF value is invariant by construction. The policy's output
+depends on the control interface (``ModelConfig.interface``, :mod:`egcbf.algo.interface`):
+
+* ``"accel"``: a desired-acceleration residual, produced in the agent's own frame and mapped back to the world by
+  the agent's frame, ``psi_{g_i}`` acting on a ``Vector(3)``: the command rotates with the scene. The attitude loop
+  then turns it into body torque and thrust, which are invariant.
+* ``"torque"``: a body torque and thrust residual; the body-frame control is invariant (``psi_g(u) = u``,
+  :data:`egcbf.dynamics.quadrotor.CONTROL_TYPE`).
+
+Either way the whole controller ``state -> (tau, F3)`` is SE(2) x R equivariant (tested).
 
 CBF and policy are separate networks (GCBF+), each with its own graph layer.
 """
@@ -37,15 +43,21 @@ __all__ = [
     "GraphEncoder",
     "ModelConfig",
     "PolicyNet",
+    "closest_approach",
     "edge_type",
     "frames_for",
     "make_group",
     "node_type",
+    "sensing",
 ]
 
 GROUPS = {"se2xr": SE2xR, "trivial": Trivial}
 #: the body-rate channels ``w`` of the node features (:data:`egcbf.graph.NODE_TYPE`: kind 3, v 3, R 9, w 3)
 W_SLICE = slice(NODE_DIM - 3, NODE_DIM)
+#: the velocity channels ``v`` (world frame)
+V_SLICE = slice(3, 6)
+#: the attitude channels ``R`` (row-major)
+R_SLICE = slice(6, 15)
 
 
 def make_group(name: str) -> Group:
@@ -61,9 +73,25 @@ def node_type(group: Group) -> FieldType:
     return FieldType(group, {"kind": Scalar(3), "v": Vector(3), "R": Rotation(3), "w": Scalar(3)})
 
 
-def edge_type(group: Group) -> FieldType:
-    """:data:`egcbf.graph.EDGE_TYPE` declared over ``group`` (the relative position, a vector)."""
-    return FieldType(group, {"dp": Vector(3)})
+def edge_type(group: Group, velocity: bool = False, closest_approach: bool = False) -> FieldType:
+    """:data:`egcbf.graph.EDGE_TYPE` declared over ``group`` (the relative position, a vector), with the relative
+    velocity ``dv = v_sender - v_receiver`` (a vector) appended if ``velocity``, and the closest approach
+    ``(d_min, t_min)`` (two invariant scalars, :func:`closest_approach`) after it if ``closest_approach``."""
+    fields = {"dp": Vector(3)}
+    if velocity:
+        fields["dv"] = Vector(3)
+        if closest_approach:
+            fields["approach"] = Scalar(2)
+    return FieldType(group, fields)
+
+
+def closest_approach(dp: Tensor, dv: Tensor, horizon: float) -> Tensor:
+    """``(E, 2)``: the distance ``d_min`` and time ``t_min`` of closest approach of two points at relative
+    position ``dp`` and velocity ``dv`` moving straight, within ``[0, horizon]`` seconds:
+    ``t_min = clip(-dp . dv / |dv|^2, 0, horizon)``, ``d_min = |dp + t_min dv|``. Invariant under rotations and
+    translations (norms and dot products of vectors), so an invariant edge feature."""
+    t = (-(dp * dv).sum(-1, keepdim=True) / dv.square().sum(-1, keepdim=True).clamp_min(1e-6)).clamp(0.0, horizon)
+    return torch.cat(((dp + t * dv).norm(dim=-1, keepdim=True), t), -1)
 
 
 def frames_for(group: Group, graph: SwarmGraph) -> Tensor:
@@ -111,8 +139,29 @@ class ModelConfig:
             global thrust bias that shifts hover points out of the goal radius (docs/learning.md, "CPU recipe").
             Mirror symmetry makes ``dh/dv_z`` odd in the vertical arrangement (climb if the neighbour is below,
             descend if above) and zero for a level scene. Costs a second CBF evaluation.
+        cbf_attitude: whether the CBF reads the attitude ``R`` (zeroed otherwise: the zero matrix is fixed by the
+            group action, so equivariance is untouched). With the acceleration interface and its ideal model the
+            CBF is a function of positions and velocities, the states that model moves.
+        edge_velocity: edges also carry the relative velocity ``dv = v_sender - v_receiver`` (a vector, rotated into
+            the receiver's frame like ``dp``), so that one edge's message can tell an approaching neighbour from a
+            receding one (GCBF+'s edge feature is the whole state difference). Without it, the layer combines
+            ``dp`` and the sender's velocity only additively per edge (TransformerConv's value is
+            ``W_v h_src + W_e e``), and closing speed is hard to express in one layer.
+        edge_closest_approach: with ``edge_velocity``, edges also carry the distance and time of closest approach
+            of sender and receiver moving straight, within ``closest_approach_horizon`` seconds (two invariant
+            scalars, :func:`closest_approach`): the quantities a collision depends on, which one graph layer
+            otherwise has to synthesise from ``dp`` and ``dv`` (docs/learning.md, "Edge features").
         policy_init_scale: the last layer of the policy head is initialised with weights scaled by this and zero
             bias, so that an untrained policy stays close to the nominal controller.
+        interface: what the policy commands (:mod:`egcbf.algo.interface`): ``"accel"``, a desired acceleration
+            (a world-frame vector, produced in the agent's frame and mapped back by the group: ``psi_{g_i}``)
+            tracked by the attitude loop; or ``"torque"``, body torque and thrust (invariant).
+        accel_action_scale: with ``"accel"``, the residual ``pi`` in ``[-1, 1]^3`` is multiplied by this (in units
+            of ``AccelInterface.accel_unit``, 5 m/s^2) and added to the nominal command.
+        policy_gate_isolated: the residual is zero for an agent that senses nothing (no neighbour agent and no
+            LiDAR hit): with nothing to avoid there is no reason to leave the nominal controller, and the data
+            says little about such agents (docs/learning.md, "isolated agents"). The gate is a function of edge
+            kinds, an invariant.
     """
 
     group: str = "se2xr"
@@ -125,7 +174,14 @@ class ModelConfig:
     cbf_body_rates: bool = True
     cbf_goal_edges: bool = True
     cbf_z_symmetric: bool = False
+    cbf_attitude: bool = True
+    edge_velocity: bool = False
+    edge_closest_approach: bool = False
+    closest_approach_horizon: float = 1.0
     policy_init_scale: float = 0.1
+    interface: str = "torque"
+    accel_action_scale: float = 1.0
+    policy_gate_isolated: bool = False
 
     def __post_init__(self) -> None:
         make_group(self.group)
@@ -137,10 +193,22 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.action_scale must be > 0, got {self.action_scale}")
         if self.torque_action_scale is not None and not self.torque_action_scale > 0:
             raise ValueError(f"ModelConfig.torque_action_scale must be > 0 or None, got {self.torque_action_scale}")
+        if self.interface not in ("accel", "torque"):
+            raise ValueError(f"ModelConfig.interface must be 'accel' or 'torque', got {self.interface!r}")
+        if not self.accel_action_scale > 0:
+            raise ValueError(f"ModelConfig.accel_action_scale must be > 0, got {self.accel_action_scale}")
 
     @property
-    def action_scales(self) -> tuple[float, float, float, float]:
-        """The per-channel residual scale ``(torque (3), thrust)`` in units of the actuator box."""
+    def action_dim(self) -> int:
+        """Channels of the command: 3 (acceleration) or 4 (torque, thrust)."""
+        return 3 if self.interface == "accel" else 4
+
+    @property
+    def action_scales(self) -> tuple[float, ...]:
+        """The per-channel residual scale: ``(torque (3), thrust)`` in units of the actuator box, or the
+        acceleration residual's scale (3 equal channels, so scaling commutes with rotations) in ``accel_unit``."""
+        if self.interface == "accel":
+            return (self.accel_action_scale,) * 3
         t = self.action_scale if self.torque_action_scale is None else self.torque_action_scale
         return (t, t, t, self.action_scale)
 
@@ -151,29 +219,42 @@ class ModelConfig:
 class GraphEncoder(nn.Module):
     """The canonicalized graph transformer layer: ``SwarmGraph -> (M, hidden)`` invariant agent features."""
 
-    def __init__(self, config: ModelConfig, body_rates: bool = True, goal_edges: bool = True):
+    def __init__(self, config: ModelConfig, body_rates: bool = True, goal_edges: bool = True, attitude: bool = True):
         super().__init__()
         self.body_rates = body_rates
+        self.attitude = attitude
         self.goal_edges = goal_edges
+        self.edge_velocity = config.edge_velocity
+        self.closest_approach = config.edge_closest_approach
+        self.horizon = config.closest_approach_horizon
         self.group = make_group(config.group)
-        nt, et = node_type(self.group), edge_type(self.group)
+        nt, et = node_type(self.group), edge_type(self.group, self.edge_velocity, self.closest_approach)
         out = FieldType(self.group, [Scalar(config.hidden)])
         canon = Canonicalize(
             self.group, in_type=(nt, nt), out_type=out, edge_type=et, mode="pair", self_loops=config.self_loops
         )
-        self.layer = canon(GraphTransformerLayer(NODE_DIM, 3, config.hidden, config.heads))
+        self.layer = canon(GraphTransformerLayer(NODE_DIM, et.dim, config.hidden, config.heads))
 
     def forward(self, graph: SwarmGraph) -> Tensor:
         frames = frames_for(self.group, graph)
         x_src, x_dst = graph.x_src, graph.x_dst
-        if not self.body_rates:  # w is an invariant scalar block: zeroing it commutes with the group action
+        if not (self.body_rates and self.attitude):
+            # w is an invariant scalar block and the zero matrix is fixed by R -> Rz R: zeroing commutes with the action
             keep = torch.ones(NODE_DIM, dtype=x_src.dtype, device=x_src.device)
-            keep[W_SLICE] = 0
+            if not self.body_rates:
+                keep[W_SLICE] = 0
+            if not self.attitude:
+                keep[R_SLICE] = 0
             x_src, x_dst = x_src * keep, x_dst * keep
         edge_index, edge_attr = graph.edge_index, graph.edge_attr
         if not self.goal_edges:  # an edge subset chosen by kind (an invariant): commutes with the group action
             sel = graph.edge_kind != KIND_GOAL
             edge_index, edge_attr = edge_index[:, sel], edge_attr[sel]
+        if self.edge_velocity:  # world-frame velocities of sender and receiver (goals and hits: 0): a vector
+            dv = (graph.x_src[edge_index[0], V_SLICE] - graph.x_dst[edge_index[1], V_SLICE]).to(edge_attr.dtype)
+            edge_attr = torch.cat((edge_attr, dv), -1)
+            if self.closest_approach:
+                edge_attr = torch.cat((edge_attr, closest_approach(edge_attr[:, :3], dv, self.horizon)), -1)
         return self.layer((x_src, x_dst), edge_index, frames=frames, edge_attr=edge_attr)
 
 
@@ -183,7 +264,9 @@ class CBFNet(nn.Module):
     def __init__(self, config: ModelConfig):
         super().__init__()
         self.config = config
-        self.encoder = GraphEncoder(config, body_rates=config.cbf_body_rates, goal_edges=config.cbf_goal_edges)
+        self.encoder = GraphEncoder(
+            config, body_rates=config.cbf_body_rates, goal_edges=config.cbf_goal_edges, attitude=config.cbf_attitude
+        )
         self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, 1])
 
     def raw(self, graph: SwarmGraph) -> Tensor:
@@ -198,24 +281,39 @@ class CBFNet(nn.Module):
 
 
 class PolicyNet(nn.Module):
-    """The policy residual ``pi_i = tanh(m(M(G_i)))`` in ``[-1, 1]^4`` (body frame, in units of the actuator box).
+    """The policy residual ``pi_i``: ``(M, 4)`` body-frame torque/thrust residual in ``[-1, 1]^4`` (``"torque"``),
+    or ``(M, 3)`` world-frame acceleration residual ``psi_{g_i}(tanh(m(M(G_i))))`` (``"accel"``: the head's output
+    is the residual in the agent's own frame, each component in ``[-1, 1]``, rotated back to the world by the
+    agent's frame: a ``Vector(3)`` output of the group).
 
-    The applied control is ``clip(u_nom + action_scale * u_max * pi)``: see :func:`egcbf.algo.actions.policy_control`.
+    The applied command is ``clip(c_nom + action_scales * pi)``: see :mod:`egcbf.algo.interface`.
     """
 
-    def __init__(self, config: ModelConfig, action_dim: int = 4):
+    def __init__(self, config: ModelConfig, action_dim: int | None = None):
         super().__init__()
         self.config = config
         self.encoder = GraphEncoder(config)
-        self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, action_dim])
+        dim = config.action_dim if action_dim is None else action_dim
+        self.out_type = FieldType(self.encoder.group, [Vector(3)] if config.interface == "accel" else [Scalar(dim)])
+        self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, dim])
         last = self.head[-1]
         with torch.no_grad():
             last.weight.mul_(config.policy_init_scale)
             last.bias.zero_()
 
     def raw(self, graph: SwarmGraph) -> Tensor:
-        """The pre-``tanh`` output ``(M, 4)``."""
+        """The pre-``tanh`` output ``(M, k)`` in the agents' own frames."""
         return self.head(self.encoder(graph))
 
     def forward(self, graph: SwarmGraph) -> Tensor:
-        return torch.tanh(self.raw(graph))
+        out = self.out_type.act(frames_for(self.encoder.group, graph), torch.tanh(self.raw(graph)))
+        if self.config.policy_gate_isolated:
+            out = out * sensing(graph).to(out.dtype)[:, None]
+        return out
+
+
+def sensing(graph: SwarmGraph) -> Tensor:
+    """``(M,)`` bool: the agent has an incoming edge from another agent or a LiDAR hit."""
+    sel = graph.edge_kind != KIND_GOAL
+    out = torch.zeros(graph.num_dst, dtype=torch.bool, device=graph.edge_index.device)
+    return out.index_fill(0, graph.edge_index[1, sel], True)

@@ -258,15 +258,15 @@ class TrainConfig:
             model.update(
                 interface="accel", cbf_body_rates=False, cbf_attitude=False, cbf_goal_edges=False,
                 cbf_z_symmetric=False, accel_action_scale=1.0, policy_gate_isolated=True, edge_velocity=True,
-                edge_closest_approach=True,
+                edge_closest_approach=True, cbf_head="edge_min",
             )  # fmt: skip
             # training covers the evaluation's densities (docs/learning.md, "Density"): 32 agents in arenas of side
             # 1.6 / 2.0 / 2.5 m in turn (7.8 / 4 / 2 agents per m^3; N = 512 at l = 4 is 8 per m^3), validation on
             # 64 agents at l = 2 (8 per m^3)
             base.update(
                 num_agents=32, area_sizes=[1.6, 2.0, 2.5], num_obstacles=4, memory_trajectories=2,
-                train_graphs=192, unsafe_samples=64, epochs=2, batch_size=32, lr_cbf=3e-4, lr_policy=1e-4,
-                max_wall_minutes=60.0, gamma=0.1, eta_d=1.0,
+                train_graphs=192, unsafe_samples=64, epochs=2, batch_size=32, lr_cbf=3e-4, lr_policy=1e-3,
+                max_wall_minutes=50.0,
                 eval_num_agents=64, eval_area_size=2.0, eval_num_obstacles=0, eval_episodes=4,
             )  # fmt: skip
             if reference == "nominal":

@@ -16,7 +16,7 @@ from egcbf.algo.learner import LearnedController, policy_command
 from egcbf.config import TrainConfig
 from egcbf.dynamics import quadrotor as dyn
 from egcbf.env import EnvConfig, SwarmState
-from egcbf.graph import GROUP, build_graph
+from egcbf.graph import GROUP, KIND_GOAL, build_graph
 from egcbf.nn import CBFNet, GraphTransformerLayer, ModelConfig, PolicyNet
 from groupcanon import FieldType
 from groupcanon.features import Vector
@@ -33,7 +33,12 @@ def _nets(group: str, preset: str | None = None):
         cfg = ModelConfig(group=group, hidden=32, heads=4, head_hidden=32)
     else:
         cfg = dataclasses.replace(TrainConfig.preset("egcbf+", preset).model, group=group)
-    return CBFNet(cfg).double(), PolicyNet(cfg).double(), cfg
+    cbf, pol = CBFNet(cfg).double(), PolicyNet(cfg).double()
+    if preset is not None:  # equivariance holds for any weights: move zero-initialized last layers off their priors
+        with torch.no_grad():
+            for p in (*cbf.parameters(), *pol.parameters()):
+                p.add_(0.05 * torch.randn_like(p))
+    return cbf, pol, cfg
 
 
 def _outputs(group: str, state: SwarmState, cfg: EnvConfig, preset: str | None = None):
@@ -81,10 +86,13 @@ def test_egcbf_is_invariant_and_gcbf_is_not(scene, g):
     assert isinstance(_nets("se2xr", "cpu")[1].out_type.features[0], Vector)
     # the same test fails for GCBF (the same layers over the trivial group) under a quarter turn
     quarter = torch.tensor([[0.0, 1.0, 0.5, -0.5, 0.2]], dtype=F64).expand(cfg.num_envs, 5)
-    for preset in (None, "cpu"):
-        a = _outputs("trivial", state, cfg, preset)
-        b = _outputs("trivial", state.transform(quarter), cfg, preset)
-        assert (a[0] - b[0]).abs().max() > 1e-6 and (a[2] - b[2]).abs().max() > 1e-4, preset
+    a = _outputs("trivial", state, cfg)
+    b = _outputs("trivial", state.transform(quarter), cfg)
+    assert (a[0] - b[0]).abs().max() > 1e-6 and (a[2] - b[2]).abs().max() > 1e-4
+    # the cpu preset's untrained heads start at invariant priors (closest approach; zero residual), its features not
+    a = _outputs("trivial", state, cfg, "cpu")
+    b = _outputs("trivial", state.transform(quarter), cfg, "cpu")
+    assert (a[2] - b[2]).abs().max() > 1e-4
 
 
 def test_gcbf_is_not_rotation_invariant_but_translation_invariant():
@@ -280,3 +288,41 @@ def test_edge_velocity_reads_closing_speed():
     moved = SwarmState(dyn.state_from_parts(p, rot, v2, w), state.goals, state.obstacles)
     with torch.no_grad():
         assert not torch.allclose(cbf(build_graph(state, cfg)), cbf(build_graph(moved, cfg)))
+
+
+def test_edge_min_head_starts_at_the_closest_approach_barrier():
+    """Untrained, the soft-min head is ``tanh(-tau log(sum_j exp(-(d_min,j - D) / tau) + exp(-(1 - D) / tau)))``
+    over the agent's neighbours and LiDAR hits, computed here independently, agent by agent."""
+    cfg = EnvConfig(num_agents=5, num_envs=2, n_rays=8, lidar_max_hits=4, area_size=1.0, num_obstacles=2)
+    state = moving_scene(cfg, 11)
+    torch.manual_seed(0)
+    mcfg = ModelConfig(hidden=16, heads=2, head_hidden=16, cbf_head="edge_min", cbf_attitude=False)
+    cbf = CBFNet(mcfg).double()
+    graph = build_graph(state, cfg)
+    with torch.no_grad():
+        h = cbf(graph)
+    d, tau = mcfg.cbf_distance, mcfg.cbf_temperature
+    for i in range(graph.num_dst):
+        sel = (graph.edge_index[1] == i) & (graph.edge_kind != KIND_GOAL)
+        src = graph.edge_index[0, sel]
+        dp = graph.pos_src[src] - graph.pos_dst[i]
+        dv = graph.x_src[src, 3:6] - graph.x_dst[i, 3:6]
+        t = (-(dp * dv).sum(-1) / dv.square().sum(-1).clamp_min(1e-6)).clamp(0, mcfg.closest_approach_horizon)
+        dmin = (dp + t[:, None] * dv).norm(dim=-1)
+        terms = torch.cat((-(dmin - d) / tau, torch.tensor([-(1 - d) / tau], dtype=F64)))
+        assert abs(float(h[i]) - math.tanh(-tau * float(torch.logsumexp(terms, 0)))) <= 1e-12
+    assert (h < 0).any() or (h > 0).all()  # well defined either way; the scene decides
+
+
+def test_edge_min_head_gradients_are_finite_for_isolated_agents():
+    cfg = EnvConfig(num_agents=1, num_envs=1, n_rays=8, lidar_max_hits=4, num_obstacles=0)
+    state = moving_scene(cfg, 1)
+    torch.manual_seed(0)
+    cbf = CBFNet(ModelConfig(hidden=16, heads=2, head_hidden=16, cbf_head="edge_min")).double()
+    x = state.x.clone().requires_grad_(True)
+    from egcbf.graph import refresh_graph
+
+    h = cbf(refresh_graph(build_graph(state, cfg), x))
+    assert torch.allclose(h, torch.tanh(torch.tensor([1 - 0.15], dtype=F64)))
+    (grad,) = torch.autograd.grad(h.sum(), x)
+    assert torch.isfinite(grad).all()

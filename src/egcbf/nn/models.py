@@ -35,6 +35,7 @@ from groupcanon.features import Rotation, Scalar, Vector
 from groupcanon.groups import SE2xR, Trivial
 
 from ..graph import KIND_GOAL, NODE_DIM, SwarmGraph
+from .edge_min import EdgeMinHead, closest_approach
 from .layers import GraphTransformerLayer, mlp
 
 __all__ = [
@@ -84,14 +85,6 @@ def edge_type(group: Group, velocity: bool = False, closest_approach: bool = Fal
             fields["approach"] = Scalar(2)
     return FieldType(group, fields)
 
-
-def closest_approach(dp: Tensor, dv: Tensor, horizon: float) -> Tensor:
-    """``(E, 2)``: the distance ``d_min`` and time ``t_min`` of closest approach of two points at relative
-    position ``dp`` and velocity ``dv`` moving straight, within ``[0, horizon]`` seconds:
-    ``t_min = clip(-dp . dv / |dv|^2, 0, horizon)``, ``d_min = |dp + t_min dv|``. Invariant under rotations and
-    translations (norms and dot products of vectors), so an invariant edge feature."""
-    t = (-(dp * dv).sum(-1, keepdim=True) / dv.square().sum(-1, keepdim=True).clamp_min(1e-6)).clamp(0.0, horizon)
-    return torch.cat(((dp + t * dv).norm(dim=-1, keepdim=True), t), -1)
 
 
 def frames_for(group: Group, graph: SwarmGraph) -> Tensor:
@@ -151,6 +144,9 @@ class ModelConfig:
             of sender and receiver moving straight, within ``closest_approach_horizon`` seconds (two invariant
             scalars, :func:`closest_approach`): the quantities a collision depends on, which one graph layer
             otherwise has to synthesise from ``dp`` and ``dv`` (docs/learning.md, "Edge features").
+        cbf_head: ``"mlp"`` (the paper's: an MLP on the receiver's graph-transformer features) or ``"edge_min"``
+            (:class:`egcbf.nn.edge_min.EdgeMinHead`: a smooth minimum over learned per-edge barrier values that start
+            at the closest-approach distance minus ``cbf_distance`` (m), temperature ``cbf_temperature`` (m)).
         policy_init_scale: the last layer of the policy head is initialised with weights scaled by this and zero
             bias, so that an untrained policy stays close to the nominal controller.
         interface: what the policy commands (:mod:`egcbf.algo.interface`): ``"accel"``, a desired acceleration
@@ -178,6 +174,9 @@ class ModelConfig:
     edge_velocity: bool = False
     edge_closest_approach: bool = False
     closest_approach_horizon: float = 1.0
+    cbf_head: str = "mlp"
+    cbf_distance: float = 0.15
+    cbf_temperature: float = 0.05
     policy_init_scale: float = 0.1
     interface: str = "torque"
     accel_action_scale: float = 1.0
@@ -195,6 +194,8 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.torque_action_scale must be > 0 or None, got {self.torque_action_scale}")
         if self.interface not in ("accel", "torque"):
             raise ValueError(f"ModelConfig.interface must be 'accel' or 'torque', got {self.interface!r}")
+        if self.cbf_head not in ("mlp", "edge_min"):
+            raise ValueError(f"ModelConfig.cbf_head must be 'mlp' or 'edge_min', got {self.cbf_head!r}")
         if not self.accel_action_scale > 0:
             raise ValueError(f"ModelConfig.accel_action_scale must be > 0, got {self.accel_action_scale}")
 
@@ -267,13 +268,25 @@ class CBFNet(nn.Module):
         self.encoder = GraphEncoder(
             config, body_rates=config.cbf_body_rates, goal_edges=config.cbf_goal_edges, attitude=config.cbf_attitude
         )
-        self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, 1])
+        if config.cbf_head == "edge_min":
+            self.head = EdgeMinHead(
+                self.encoder.group, config.hidden, config.head_hidden, config.cbf_distance,
+                config.cbf_temperature, config.closest_approach_horizon,
+            )  # fmt: skip
+        else:
+            self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, 1])
+
+    def _value(self, graph: SwarmGraph) -> Tensor:
+        z = self.encoder(graph)
+        if self.config.cbf_head == "edge_min":
+            return self.head(graph, z, frames_for(self.encoder.group, graph))
+        return self.head(z).squeeze(-1)
 
     def raw(self, graph: SwarmGraph) -> Tensor:
         """The pre-``tanh`` value ``(M,)`` (mirror-averaged with ``cbf_z_symmetric``)."""
-        out = self.head(self.encoder(graph)).squeeze(-1)
+        out = self._value(graph)
         if self.config.cbf_z_symmetric:
-            out = 0.5 * (out + self.head(self.encoder(graph.reflect_z())).squeeze(-1))
+            out = 0.5 * (out + self._value(graph.reflect_z()))
         return out
 
     def forward(self, graph: SwarmGraph) -> Tensor:

@@ -304,7 +304,7 @@ class TrainConfig:
         elif name == "tiny":
             model.update(
                 hidden=16, heads=2, head_hidden=16, interface="accel", cbf_attitude=False, cbf_body_rates=False,
-                edge_velocity=True,
+                edge_velocity=True, edge_closest_approach=True, cbf_head="edge_min",
             )  # fmt: skip
             base.update(
                 num_agents=3, area_size=1.5, area_sizes=[1.5, 1.2], num_obstacles=1,

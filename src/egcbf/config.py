@@ -66,7 +66,8 @@ class TrainConfig:
     (``lr_cbf``, ``lr_policy``, ``weight_decay``), gradient norm clipped to ``max_grad_norm`` per network.
 
     Loss (:func:`egcbf.algo.loss.cbf_loss`): ``gamma``, ``alpha``, ``eta_d``, ``eta_c``, ``eta_safe``,
-    ``eta_unsafe``, ``control_loss`` (``"squared"`` or ``"norm"``).
+    ``eta_unsafe``, ``control_loss`` (``"squared"`` or ``"norm"``), ``hdot_trains_cbf`` (``False``: the derivative
+    term trains the policy only, through the next state, with the CBF frozen for every agent).
 
     QP target (:mod:`egcbf.algo.qp`): ``qp_alpha`` (the constraint's class-K slope; GCBF+ uses 0.1 alpha),
     ``qp_slack_linear``/``qp_slack_quadratic`` (slack cost ``w1 s + w2 s^2 / 2``), ``qp_tol``, ``qp_max_iter``,
@@ -117,6 +118,7 @@ class TrainConfig:
     eta_safe: float = 1.0
     eta_unsafe: float = 1.0
     control_loss: str = "squared"
+    hdot_trains_cbf: bool = True
     # QP target
     qp_alpha: float = 0.1
     qp_slack_linear: float = 1e3

@@ -269,6 +269,23 @@ def test_update_with_no_unsafe_data_and_gradient_routing():
     assert any(p.grad is not None and p.grad.any() for p in learner.policy.parameters())
 
 
+def test_derivative_term_can_train_the_policy_only():
+    """``hdot_trains_cbf=False``: with the label terms off, labelled agents' derivative term reaches the policy and
+    not the CBF; with it on, the CBF learns from it too."""
+    for trains_cbf in (True, False):
+        cfg = TrainConfig.preset("egcbf+", "tiny", eta_safe=0.0, eta_unsafe=0.0, eta_c=0.0, eta_d=1.0, gamma=5.0,
+                                 hdot_trains_cbf=trains_cbf)  # fmt: skip
+        learner = GraphCBFLearner(cfg)
+        data = learner.assemble(learner.collect(0))
+        data.safe[:] = True  # every agent labelled; gamma = 5 makes every derivative term active
+        data.unsafe[:] = False
+        u_ref, _ = learner.reference(data)
+        learner.loss(data, u_ref)["total"].backward()
+        cbf_grad = any(p.grad is not None and p.grad.any() for p in learner.cbf.parameters())
+        assert cbf_grad == trains_cbf
+        assert any(p.grad is not None and p.grad.any() for p in learner.policy.parameters())
+
+
 @pytest.mark.parametrize("algo", sorted(METHODS))
 def test_training_decreases_the_loss_on_a_fixed_batch(algo):
     cfg = TrainConfig.preset(algo, "tiny", lr_cbf=3e-3, lr_policy=3e-3)

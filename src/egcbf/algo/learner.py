@@ -215,6 +215,8 @@ class GraphCBFLearner:
         # h(x') with the CBF's parameters for labelled agents and with them frozen for the others (cbf_loss): each
         # on the edges into its own agents only, so the two passes cost one
         labelled = (batch.safe | batch.unsafe).reshape(-1)
+        if not cfg.hdot_trains_cbf:  # the derivative term trains the policy only
+            labelled = torch.zeros_like(labelled)
         h_next = self.cbf(graph_next.with_receivers(labelled))
         frozen = {name: v.detach() for name, v in self.cbf.named_parameters()}
         h_next_frozen = functional_call(self.cbf, frozen, (graph_next.with_receivers(~labelled),))
@@ -222,6 +224,7 @@ class GraphCBFLearner:
             h, h_next, batch.safe.reshape(-1), batch.unsafe.reshape(-1), c.reshape(-1, k), u_ref.reshape(-1, k),
             env_cfg.dt, gamma=cfg.gamma, alpha=cfg.alpha, eta_d=cfg.eta_d, eta_c=cfg.eta_c, eta_safe=cfg.eta_safe,
             eta_unsafe=cfg.eta_unsafe, control=cfg.control_loss, h_next_frozen=h_next_frozen,
+            hdot_labelled=labelled,
         )  # fmt: skip
 
     def train_step(self, batch: Samples, u_ref: Tensor) -> dict[str, float]:

@@ -50,6 +50,7 @@ def cbf_loss(
     control: str = "squared",
     h_frozen: Tensor | None = None,
     h_next_frozen: Tensor | None = None,
+    hdot_labelled: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """The loss terms and diagnostics (module doc).
 
@@ -60,6 +61,8 @@ def cbf_loss(
         dt: the control period of the finite difference.
         h_frozen, h_next_frozen: the same values from the CBF with frozen parameters (gradient to the action only),
             used for unlabelled agents; ``None``: use ``h`` and ``h_next`` everywhere.
+        hdot_labelled: ``(M,)`` bool, the agents whose derivative term trains the CBF too (default: the labelled
+            ones, ``safe | unsafe``); the others use the frozen values.
 
     Returns:
         dict with ``total`` and the weighted-sum parts ``unsafe``, ``safe``, ``hdot``, ``control`` (unweighted), and
@@ -76,7 +79,7 @@ def cbf_loss(
     if h_next_frozen is not None:
         hf = h.detach() if h_frozen is None else h_frozen
         v_frozen = torch.relu(gamma - (h_next_frozen - hf) / dt - alpha * hf.detach())
-        v = torch.where(safe | unsafe, v, v_frozen)
+        v = torch.where(safe | unsafe if hdot_labelled is None else hdot_labelled.bool(), v, v_frozen)
     l_hdot = v.mean()
     err = (u - u_ref.detach()).square().sum(-1)
     l_control = (err if control == "squared" else err.clamp_min(1e-12).sqrt()).mean()

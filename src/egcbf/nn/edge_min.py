@@ -97,5 +97,3 @@ class EdgeMinHead(nn.Module):
 
     def extra_repr(self) -> str:
         return f"distance={self.distance}, temperature={self.temperature}, horizon={self.horizon}"
-
-

@@ -86,7 +86,6 @@ def edge_type(group: Group, velocity: bool = False, closest_approach: bool = Fal
     return FieldType(group, fields)
 
 
-
 def frames_for(group: Group, graph: SwarmGraph) -> Tensor:
     """The receivers' frames as elements of ``group``: the graph's SE2xR frames, or identities of another group."""
     if isinstance(group, SE2xR):

@@ -268,7 +268,7 @@ class TrainConfig:
             base.update(
                 num_agents=32, area_sizes=[1.6, 2.0, 2.5], num_obstacles=4, memory_trajectories=2,
                 train_graphs=192, unsafe_samples=64, epochs=2, batch_size=32, lr_cbf=3e-4, lr_policy=1e-3,
-                max_wall_minutes=50.0,
+                max_wall_minutes=60.0,
                 eval_num_agents=64, eval_area_size=2.0, eval_num_obstacles=0, eval_episodes=4,
             )  # fmt: skip
             if reference == "nominal":

@@ -178,6 +178,6 @@ def test_max_wall_minutes_stops_with_a_final_evaluation_and_checkpoint(tmp_path)
     assert learner.step == 1  # the first update already ends past the budget
     assert find_checkpoint(tmp_path).name == "step_000001"
     assert [int(r["step"]) for r in _rows(tmp_path / "metrics.csv")] == [0, 1]
-    assert TrainConfig.preset("egcbf+", "cpu").max_wall_minutes == 50.0
+    assert TrainConfig.preset("egcbf+", "cpu").max_wall_minutes == 60.0
     with pytest.raises(ValueError, match="max_wall_minutes"):
         TrainConfig.preset("gcbf", "tiny", max_wall_minutes=0)

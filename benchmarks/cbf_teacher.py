@@ -20,7 +20,7 @@ import dataclasses
 
 import torch
 
-from egcbf.algo.qp import solve_cbf_qp
+from egcbf.algo.interface import solve_command_qp
 from egcbf.evaluate import evaluate
 from egcbf.graph import build_graph
 from egcbf.nn import CBFNet
@@ -38,12 +38,8 @@ class LearnedCBFQP:
         p = next(self.cbf.parameters())
         s = state.to(p.device, dtype=p.dtype)
         graph = build_graph(s, env_config)
-        c_nom = self.itf.nominal(s.x, s.goals)
-        h, lf, lg = self.itf.lie_derivatives(self.cbf, graph, s.x)
-        lo, hi = self.itf.bounds(h)
-        res = solve_cbf_qp(h, lf, self.itf.to_local(s.x[:, None], lg), self.itf.to_local(s.x, c_nom), lo, hi,
-                           alpha=self.alpha)  # fmt: skip
-        c = self.itf.from_local(s.x.to(res.u.dtype), res.u).to(s.x.dtype)
+        c, _ = solve_command_qp(self.itf, self.cbf, graph, s.x, self.itf.nominal(s.x, s.goals), env_config,
+                                alpha=self.alpha)  # fmt: skip
         return self.itf.apply(s.x, c).to(state.x), {}
 
 

@@ -20,8 +20,7 @@ import dataclasses
 
 import torch
 
-from egcbf.algo.interface import AccelInterface
-from egcbf.algo.qp import solve_cbf_qp
+from egcbf.algo.interface import AccelInterface, solve_command_qp
 from egcbf.report import replace_section
 from egcbf.train import load_learner
 
@@ -51,12 +50,12 @@ def main() -> None:
     for model in ("ideal", "closed_loop"):
         itf = AccelInterface(params=learner.params, model=model)
         c_nom = itf.nominal(data.x, data.goals)
-        h, lf, lg = itf.lie_derivatives(learner.cbf_target, graph, data.x, learner.env_config, c_nom)
+        _, _, lg = itf.lie_derivatives(learner.cbf_target, graph, data.x, learner.env_config, c_nom)
         lg_local = itf.to_local(data.x[:, None].to(lg.dtype), lg)
         own = torch.diagonal(lg_local, dim1=1, dim2=2).transpose(1, 2)  # (B, N, 3): dh_i / dc_i
-        lo, hi = itf.bounds(h)
-        res = solve_cbf_qp(h, lf, lg_local, itf.to_local(data.x, c_nom), lo, hi, alpha=learner.config.qp_alpha)
-        corr = res.u - itf.to_local(data.x, c_nom).double().clamp(lo.double(), hi.double())
+        c_qp, _ = solve_command_qp(itf, learner.cbf_target, graph, data.x, c_nom, learner.env_config,
+                                   alpha=learner.config.qp_alpha)  # fmt: skip
+        corr = itf.to_local(data.x, c_qp - c_nom).double()  # c_nom is inside the box already (clipped)
         moved = corr.norm(dim=-1) > 1e-4
         ch, cv = corr[..., :2].norm(dim=-1)[moved].mean(), corr[..., 2].abs()[moved].mean()
         lines.append(

@@ -153,6 +153,12 @@ class SwarmGraph:
             frames=self.frames * frame,
         )
 
+    def relative_velocity(self, edge_index: Tensor) -> Tensor:
+        """``(E, 3)`` world-frame ``v_sender - v_receiver`` of the edges ``edge_index`` (goals and hits: ``v = 0``),
+        read from the node features (so it follows :func:`refresh_graph` and the edge-expanded Jacobian graph)."""
+        v = slice(3, 6)  # NODE_TYPE channels: kind 0:3 | v 3:6 | R 6:15 | w 15:18
+        return self.x_src[edge_index[0], v] - self.x_dst[edge_index[1], v]
+
     def with_receivers(self, keep: Tensor) -> SwarmGraph:
         """The same graph with only the edges into the receivers where ``keep`` ``(M,)`` is true.
 

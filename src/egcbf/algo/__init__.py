@@ -7,7 +7,14 @@ learned-CBF QP target), ``loss`` (the paper's loss), ``learner`` (the update), `
 
 from .actions import control_bounds, control_scale, normalize, unnormalize
 from .buffer import Samples, TrajectoryBuffer, UnsafeBuffer
-from .interface import INTERFACES, AccelInterface, CommandInterface, TorqueInterface, make_interface
+from .interface import (
+    INTERFACES,
+    AccelInterface,
+    CommandInterface,
+    TorqueInterface,
+    make_interface,
+    solve_command_qp,
+)
 from .labels import finite_horizon_labels
 from .learner import GraphCBFLearner, LearnedController, policy_command, rollout_seed
 from .loss import cbf_loss
@@ -34,5 +41,6 @@ __all__ = [
     "policy_command",
     "rollout_seed",
     "solve_cbf_qp",
+    "solve_command_qp",
     "unnormalize",
 ]

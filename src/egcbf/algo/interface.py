@@ -39,17 +39,28 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from groupcanon import FieldType, Group
-from groupcanon.features import Scalar, Vector
-
-from ..control.nominal import DEFAULT_GAINS, NominalGains, desired_heading, nominal_acceleration, track_acceleration
+from ..control.nominal import (
+    DEFAULT_GAINS,
+    NominalGains,
+    desired_heading,
+    nominal_acceleration,
+    nominal_control,
+    track_acceleration,
+)
 from ..dynamics import quadrotor as dyn
 from ..env import EnvConfig
 from ..graph import SwarmGraph, refresh_graph
 from .actions import control_bounds, control_scale, normalize, unnormalize
-from .qp import cbf_jacobian
+from .qp import CBFQPResult, cbf_jacobian, solve_cbf_qp
 
-__all__ = ["INTERFACES", "AccelInterface", "CommandInterface", "TorqueInterface", "make_interface"]
+__all__ = [
+    "INTERFACES",
+    "AccelInterface",
+    "CommandInterface",
+    "TorqueInterface",
+    "make_interface",
+    "solve_command_qp",
+]
 
 INTERFACES = ("accel", "torque")
 
@@ -59,10 +70,6 @@ class CommandInterface:
 
     name: str = ""
     dim: int = 0
-
-    def output_type(self, group: Group) -> FieldType:
-        """How ``group`` acts on a command (the policy's output type)."""
-        raise NotImplementedError
 
     def bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
         """``lo, hi`` ``(k,)``: the box of the local coordinates."""
@@ -85,7 +92,12 @@ class CommandInterface:
     def apply(self, x: Tensor, c: Tensor) -> Tensor:
         raise NotImplementedError
 
-    def lie_derivatives(self, cbf: nn.Module, graph: SwarmGraph, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def lie_derivatives(
+        self, cbf: nn.Module, graph: SwarmGraph, x: Tensor, env: EnvConfig | None = None, c_lin: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """``h``, ``Lf h`` ``(B, N)``, ``Lg h`` ``(B, N, N, k)`` over the world-frame commands of all agents.
+        ``env`` (control period, integrator) and ``c_lin`` (the linearization point) are needed by models that
+        step the closed loop only."""
         raise NotImplementedError
 
     def model_step(self, x: Tensor, c: Tensor, env: EnvConfig) -> Tensor:
@@ -100,21 +112,18 @@ class TorqueInterface(CommandInterface):
     name = "torque"
     dim = 4
 
-    def output_type(self, group: Group) -> FieldType:
-        return FieldType(group, [Scalar(4)])
-
     def bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
         return control_bounds(like)
 
     def nominal(self, x: Tensor, goals: Tensor) -> Tensor:
-        from ..control.nominal import nominal_control
-
         return normalize(nominal_control(x, goals, self.params), self.params)
 
     def apply(self, x: Tensor, c: Tensor) -> Tensor:
         return unnormalize(c, self.params)
 
-    def lie_derivatives(self, cbf: nn.Module, graph: SwarmGraph, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def lie_derivatives(
+        self, cbf: nn.Module, graph: SwarmGraph, x: Tensor, env: EnvConfig | None = None, c_lin: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
         h, jac = cbf_jacobian(cbf, graph, x)
         xd = x.detach()
         lf = torch.einsum("bijs,bjs->bi", jac, dyn.f0(xd, self.params))
@@ -158,9 +167,6 @@ class AccelInterface(CommandInterface):
                 raise ValueError(f"AccelInterface.{f} must be > 0, got {getattr(self, f)!r}")
         if self.model not in ("ideal", "closed_loop"):
             raise ValueError(f"AccelInterface.model must be 'ideal' or 'closed_loop', got {self.model!r}")
-
-    def output_type(self, group: Group) -> FieldType:
-        return FieldType(group, [Vector(3)])
 
     def bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
         kw = {"dtype": like.dtype, "device": like.device}
@@ -231,3 +237,26 @@ def make_interface(name: str, params: dyn.QuadrotorParams = dyn.DEFAULT_PARAMS, 
     if name == "torque":
         return TorqueInterface(params=params)
     raise ValueError(f"unknown control interface {name!r}; choose one of {INTERFACES}")
+
+
+def solve_command_qp(
+    itf: CommandInterface,
+    cbf: nn.Module,
+    graph: SwarmGraph,
+    x: Tensor,
+    c_nom: Tensor,
+    env: EnvConfig,
+    *,
+    alpha: float,
+    **solver,
+) -> tuple[Tensor, CBFQPResult]:
+    """The learned-CBF QP over the commands of ``itf`` (:mod:`egcbf.algo.qp`) for the states ``x`` ``(B, N, 18)``
+    of ``graph``: ``Lg h`` by the interface's model, variables in the coordinates where the bounds are a box,
+    reference ``c_nom`` ``(B, N, k)``. Returns the QP's commands in world coordinates (dtype of ``x``) and the
+    solver's result. ``solver``: ``slack_linear``, ``slack_quadratic``, ``tol``, ``max_iter``, ``chunk``."""
+    h, lf, lg = itf.lie_derivatives(cbf, graph, x, env, c_nom)
+    lo, hi = itf.bounds(h)
+    res = solve_cbf_qp(
+        h, lf, itf.to_local(x[:, None].to(lg.dtype), lg), itf.to_local(x, c_nom), lo, hi, alpha=alpha, **solver
+    )
+    return itf.from_local(x.to(res.u.dtype), res.u).to(x.dtype), res

@@ -36,10 +36,9 @@ from ..env import EnvConfig, SwarmEnv, SwarmState
 from ..graph import SwarmGraph, build_graph, refresh_graph
 from ..nn import CBFNet, ModelConfig, PolicyNet
 from .buffer import Samples, TrajectoryBuffer, UnsafeBuffer
-from .interface import AccelInterface, CommandInterface, make_interface
+from .interface import CommandInterface, make_interface, solve_command_qp
 from .labels import finite_horizon_labels
 from .loss import cbf_loss
-from .qp import solve_cbf_qp
 
 __all__ = ["DTYPES", "GraphCBFLearner", "LearnedController", "rollout_seed"]
 
@@ -181,19 +180,12 @@ class GraphCBFLearner:
         t0 = time.perf_counter()
         for k in range(0, len(data), cfg.qp_chunk):
             chunk = data[k : k + cfg.qp_chunk]
-            x, cn = chunk.x, c_nom[k : k + cfg.qp_chunk]
-            graph = chunk.graph(self.env_config)
-            if isinstance(itf, AccelInterface):
-                h, lf, lg = itf.lie_derivatives(self.cbf_target, graph, x, self.env_config, cn)
-            else:
-                h, lf, lg = itf.lie_derivatives(self.cbf_target, graph, x)
-            lo, hi = itf.bounds(h)
-            res = solve_cbf_qp(
-                h, lf, itf.to_local(x[:, None].to(lg.dtype), lg), itf.to_local(x, cn), lo, hi, alpha=cfg.qp_alpha,
-                slack_linear=cfg.qp_slack_linear, slack_quadratic=cfg.qp_slack_quadratic, tol=cfg.qp_tol,
-                max_iter=cfg.qp_max_iter, chunk=cfg.qp_chunk,
+            c_qp, res = solve_command_qp(
+                itf, self.cbf_target, chunk.graph(self.env_config), chunk.x, c_nom[k : k + cfg.qp_chunk],
+                self.env_config, alpha=cfg.qp_alpha, slack_linear=cfg.qp_slack_linear,
+                slack_quadratic=cfg.qp_slack_quadratic, tol=cfg.qp_tol, max_iter=cfg.qp_max_iter, chunk=cfg.qp_chunk,
             )  # fmt: skip
-            out.append(itf.from_local(x.to(res.u.dtype), res.u).to(self.dtype))
+            out.append(c_qp.to(self.dtype))
             s = res.stats()
             for key in ("num_slack", "num_failed", "num_constraints"):
                 stats[key] += s[key]

@@ -31,8 +31,6 @@ from .layers import mlp
 
 __all__ = ["EdgeMinHead", "closest_approach", "edge_features"]
 
-V_SLICE = slice(3, 6)
-
 
 def closest_approach(dp: Tensor, dv: Tensor, horizon: float) -> Tensor:
     """``(E, 2)``: the distance ``d_min`` and time ``t_min`` of closest approach of two points at relative
@@ -49,9 +47,10 @@ def edge_features(
     """Per agent and LiDAR-hit edge: ``[dp, dv (receiver's frame), |dp|, d_min, t_min, is_hit, z_receiver]``
     ``(E', 10 + hidden)``, and the receiver of each edge ``(E',)``. All invariant under the group."""
     sel = graph.edge_kind != KIND_GOAL
-    src, dst = graph.edge_index[:, sel]
+    edge_index = graph.edge_index[:, sel]
+    dst = edge_index[1]
     dp = graph.edge_attr[sel]
-    dv = (graph.x_src[src, V_SLICE] - graph.x_dst[dst, V_SLICE]).to(dp.dtype)
+    dv = graph.relative_velocity(edge_index).to(dp.dtype)
     approach = closest_approach(dp, dv, horizon)
     local = vectors.act(group.inverse(frames)[dst], torch.cat((dp, dv), -1))
     is_hit = (graph.edge_kind[sel] == KIND_HIT).to(dp.dtype)[:, None]

@@ -55,8 +55,6 @@ __all__ = [
 GROUPS = {"se2xr": SE2xR, "trivial": Trivial}
 #: the body-rate channels ``w`` of the node features (:data:`egcbf.graph.NODE_TYPE`: kind 3, v 3, R 9, w 3)
 W_SLICE = slice(NODE_DIM - 3, NODE_DIM)
-#: the velocity channels ``v`` (world frame)
-V_SLICE = slice(3, 6)
 #: the attitude channels ``R`` (row-major)
 R_SLICE = slice(6, 15)
 
@@ -251,7 +249,7 @@ class GraphEncoder(nn.Module):
             sel = graph.edge_kind != KIND_GOAL
             edge_index, edge_attr = edge_index[:, sel], edge_attr[sel]
         if self.edge_velocity:  # world-frame velocities of sender and receiver (goals and hits: 0): a vector
-            dv = (graph.x_src[edge_index[0], V_SLICE] - graph.x_dst[edge_index[1], V_SLICE]).to(edge_attr.dtype)
+            dv = graph.relative_velocity(edge_index).to(edge_attr.dtype)
             edge_attr = torch.cat((edge_attr, dv), -1)
             if self.closest_approach:
                 edge_attr = torch.cat((edge_attr, closest_approach(edge_attr[:, :3], dv, self.horizon)), -1)

@@ -260,8 +260,11 @@ class TrainConfig:
             model.update(
                 interface="accel", cbf_body_rates=False, cbf_attitude=False, cbf_goal_edges=False,
                 cbf_z_symmetric=False, accel_action_scale=1.0, policy_gate_isolated=True, edge_velocity=True,
-                edge_closest_approach=True, cbf_head="edge_min",
+                edge_closest_approach=True, cbf_head="edge_min", policy_head="edge_sum", cbf_distance=0.25,
             )  # fmt: skip
+            # the policy head sums learned coefficients of each edge's geometric vectors (docs/learning.md, "The
+            # policy's edge-sum head"); the CBF's prior barrier is 0 at a closest approach of 0.25 m (collision at
+            # 0.1 m): the policy imitates the QP imperfectly, and a more cautious teacher was safer at N = 512
             # training covers the evaluation's densities (docs/learning.md, "Density"): 32 agents in arenas of side
             # 1.6 / 2.0 / 2.5 m in turn (7.8 / 4 / 2 agents per m^3; N = 512 at l = 4 is 8 per m^3), validation on
             # 64 agents at l = 2 (8 per m^3)
@@ -306,7 +309,7 @@ class TrainConfig:
         elif name == "tiny":
             model.update(
                 hidden=16, heads=2, head_hidden=16, interface="accel", cbf_attitude=False, cbf_body_rates=False,
-                edge_velocity=True, edge_closest_approach=True, cbf_head="edge_min",
+                edge_velocity=True, edge_closest_approach=True, cbf_head="edge_min", policy_head="edge_sum",
             )  # fmt: skip
             base.update(
                 num_agents=3, area_size=1.5, area_sizes=[1.5, 1.2], num_obstacles=1,

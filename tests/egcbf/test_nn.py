@@ -326,3 +326,76 @@ def test_edge_min_head_gradients_are_finite_for_isolated_agents():
     assert torch.allclose(h, torch.tanh(torch.tensor([1 - 0.15], dtype=F64)))
     (grad,) = torch.autograd.grad(h.sum(), x)
     assert torch.isfinite(grad).all()
+
+
+def _edge_sum_policy(seed: int = 0) -> PolicyNet:
+    torch.manual_seed(seed)
+    mcfg = ModelConfig(hidden=16, heads=2, head_hidden=16, interface="accel", policy_head="edge_sum",
+                       edge_velocity=True, edge_closest_approach=True)  # fmt: skip
+    return PolicyNet(mcfg).double()
+
+
+def test_edge_sum_head_starts_at_zero_and_is_the_weighted_sum_of_edge_vectors():
+    """Untrained, the edge-sum head adds nothing (the policy is the paper's MLP head). With its last layer set to
+    fixed coefficients ``(a, b, c)``, its output is ``sum_j w_j (a dp^ + b dv^ + c q^)`` in the agent's own frame,
+    ``w`` the soft-min weights of the closest-approach distances, computed here independently, agent by agent."""
+    cfg = EnvConfig(num_agents=5, num_envs=2, n_rays=8, lidar_max_hits=4, area_size=1.0, num_obstacles=2)
+    state = moving_scene(cfg, 13)
+    pol = _edge_sum_policy()
+    head, mcfg = pol.edge_head, pol.config
+    graph = build_graph(state, cfg)
+    frames = graph.frames
+    z = pol.encoder(graph)
+    with torch.no_grad():
+        assert head(graph, z, frames).abs().max() == 0
+        coef = torch.tensor([0.3, -0.7, 1.1], dtype=F64)
+        head.edge_mlp[-1].bias.copy_(coef)
+        out = head(graph, z, frames)
+    tau, free, eps = mcfg.policy_temperature, mcfg.policy_free_distance, head.eps
+    horizon = mcfg.closest_approach_horizon
+    to_local = FieldType(GROUP, [Vector(3, 3)])
+    for i in range(graph.num_dst):
+        sel = (graph.edge_index[1] == i) & (graph.edge_kind != KIND_GOAL)
+        src = graph.edge_index[0, sel]
+        dp = graph.pos_src[src] - graph.pos_dst[i]
+        dv = graph.x_src[src, 3:6] - graph.x_dst[i, 3:6]
+        t = (-(dp * dv).sum(-1) / dv.square().sum(-1).clamp_min(1e-6)).clamp(0, horizon)
+        q = dp + t[:, None] * dv
+        dmin = q.norm(dim=-1)
+        w = torch.softmax(torch.cat((-dmin / tau, torch.tensor([-free / tau], dtype=F64))), 0)[:-1]
+        inv = GROUP.inverse(frames[i : i + 1]).expand(len(src), 5)
+        local = to_local.act(inv, torch.cat((dp, dv, q), -1)).view(-1, 3, 3)
+        unit = local / (local.square().sum(-1, keepdim=True) + eps**2).sqrt()
+        expected = (w[:, None] * (coef[:, None] * unit).sum(1)).sum(0)
+        assert (out[i] - expected).abs().max() <= 1e-12
+
+
+@given(g=gst.elements(GROUP, batch=(2,)), seed=st.integers(0, 2**20))
+@settings(max_examples=20, deadline=None)
+def test_edge_sum_policy_is_equivariant(g, seed):
+    """The whole policy with the edge-sum head (perturbed off its zero start): its command rotates with the scene
+    (float64, 1e-10)."""
+    cfg = EnvConfig(num_agents=5, num_envs=2, n_rays=8, lidar_max_hits=4, area_size=1.2, num_obstacles=2)
+    pol = _perturbed_edge_sum_policy()
+    rotate = FieldType(GROUP, [Vector(3)])
+    state = moving_scene(cfg, seed)
+    with torch.no_grad():
+        a = pol(build_graph(state, cfg)).view(2, 5, 3)
+        b = pol(build_graph(state.transform(g), cfg)).view(2, 5, 3)
+    assert (rotate.act(g[:, None].expand(2, 5, 5), a) - b).abs().max() <= 1e-10
+
+
+@functools.cache
+def _perturbed_edge_sum_policy() -> PolicyNet:
+    pol = _edge_sum_policy(1)
+    with torch.no_grad():
+        for p in pol.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    return pol
+
+
+def test_edge_sum_head_needs_the_acceleration_interface():
+    with pytest.raises(ValueError, match="edge_sum"):
+        ModelConfig(policy_head="edge_sum", interface="torque")
+    with pytest.raises(ValueError, match="policy_head"):
+        ModelConfig(policy_head="mean", interface="accel")

@@ -60,7 +60,8 @@ def test_config_presets_and_json_roundtrip(tmp_path):
 )
 def test_each_method_trains_end_to_end(tmp_path, algo, interface, model):
     changes = {"command_model": model} if model else {}
-    cfg = TrainConfig.preset(algo, "tiny", steps=2, model={"interface": interface}, **changes)
+    head = {} if interface == "accel" else {"policy_head": "mlp"}  # the edge-sum head needs a vector command
+    cfg = TrainConfig.preset(algo, "tiny", steps=2, model={"interface": interface, **head}, **changes)
     learner = _quiet(cfg, tmp_path)
     assert learner.step == 2
     ckpt = find_checkpoint(tmp_path)

@@ -29,7 +29,17 @@ from groupcanon.features import Vector
 from ..graph import KIND_GOAL, KIND_HIT, SwarmGraph
 from .layers import mlp
 
-__all__ = ["EdgeMinHead", "closest_approach", "edge_features"]
+__all__ = ["EdgeMinHead", "closest_approach", "edge_features", "segment_logsumexp"]
+
+
+def segment_logsumexp(score: Tensor, dst: Tensor, num: int, free: float) -> Tensor:
+    """``(num,)``: ``log(exp(free) + sum_{j: dst_j = i} exp(score_j))`` per receiver ``i``, stabilised by the
+    (detached) per-receiver maximum. ``free`` is the score of a slot every receiver has (the value with nothing
+    in range), so receivers without edges get ``free``."""
+    shift = torch.full((num,), free, dtype=score.dtype, device=score.device)
+    shift = shift.scatter_reduce(0, dst, score.detach(), "amax", include_self=True)
+    total = torch.exp(free - shift).index_add(0, dst, torch.exp(score - shift[dst]))
+    return torch.log(total) + shift
 
 
 def closest_approach(dp: Tensor, dv: Tensor, horizon: float) -> Tensor:
@@ -85,14 +95,8 @@ class EdgeMinHead(nn.Module):
         feats, dst = edge_features(graph, z, frames, self.group, self.vectors, self.horizon)
         approach = feats[:, 7:9]
         b = approach[:, 0] - self.distance + self.edge_mlp(feats).squeeze(-1)
-        # softmin over {b_ij} and b_free, shifted by the (detached) per-receiver maximum of -b / tau for stability
         tau = self.temperature
-        free = (1.0 - self.distance) / tau
-        neg = -b / tau
-        shift = torch.full((graph.num_dst,), -free, dtype=b.dtype, device=b.device)
-        shift = shift.index_reduce(0, dst, neg.detach(), "amax", include_self=True)
-        total = torch.exp(-free - shift).index_add(0, dst, torch.exp(neg - shift[dst]))
-        return -tau * (torch.log(total) + shift)
+        return -tau * segment_logsumexp(-b / tau, dst, graph.num_dst, -(1.0 - self.distance) / tau)
 
     def extra_repr(self) -> str:
         return f"distance={self.distance}, temperature={self.temperature}, horizon={self.horizon}"

@@ -36,6 +36,7 @@ from groupcanon.groups import SE2xR, Trivial
 
 from ..graph import KIND_GOAL, NODE_DIM, SwarmGraph
 from .edge_min import EdgeMinHead, closest_approach
+from .edge_sum import EdgeSumHead
 from .layers import GraphTransformerLayer, mlp
 
 __all__ = [
@@ -151,6 +152,11 @@ class ModelConfig:
             tracked by the attitude loop; or ``"torque"``, body torque and thrust (invariant).
         accel_action_scale: with ``"accel"``, the residual ``pi`` in ``[-1, 1]^3`` is multiplied by this (in units
             of ``AccelInterface.accel_unit``, 5 m/s^2) and added to the nominal command.
+        policy_head: ``"mlp"`` (the paper's: an MLP on the agent's graph-transformer features) or ``"edge_sum"``
+            (with ``"accel"``: that MLP plus :class:`egcbf.nn.edge_sum.EdgeSumHead`, a soft-min weighted sum over
+            the agent's edges of learned coefficients times the edge's relative position, relative velocity and
+            closest-approach vectors, with soft-min temperature ``policy_temperature`` (m) and a free slot at
+            ``policy_free_distance`` (m)).
         policy_gate_isolated: the residual is zero for an agent that senses nothing (no neighbour agent and no
             LiDAR hit): with nothing to avoid there is no reason to leave the nominal controller, and the data
             says little about such agents (docs/learning.md, "isolated agents"). The gate is a function of edge
@@ -178,6 +184,9 @@ class ModelConfig:
     interface: str = "torque"
     accel_action_scale: float = 1.0
     policy_gate_isolated: bool = False
+    policy_head: str = "mlp"
+    policy_temperature: float = 0.1
+    policy_free_distance: float = 1.0
 
     def __post_init__(self) -> None:
         make_group(self.group)
@@ -193,6 +202,12 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.interface must be 'accel' or 'torque', got {self.interface!r}")
         if self.cbf_head not in ("mlp", "edge_min"):
             raise ValueError(f"ModelConfig.cbf_head must be 'mlp' or 'edge_min', got {self.cbf_head!r}")
+        if self.policy_head not in ("mlp", "edge_sum"):
+            raise ValueError(f"ModelConfig.policy_head must be 'mlp' or 'edge_sum', got {self.policy_head!r}")
+        if self.policy_head == "edge_sum" and self.interface != "accel":
+            raise ValueError("ModelConfig.policy_head = 'edge_sum' needs interface = 'accel' (a vector residual)")
+        if not (self.policy_temperature > 0 and self.policy_free_distance > 0):
+            raise ValueError("ModelConfig.policy_temperature and policy_free_distance must be > 0")
         if not self.accel_action_scale > 0:
             raise ValueError(f"ModelConfig.accel_action_scale must be > 0, got {self.accel_action_scale}")
 
@@ -310,10 +325,20 @@ class PolicyNet(nn.Module):
         with torch.no_grad():
             last.weight.mul_(config.policy_init_scale)
             last.bias.zero_()
+        self.edge_head = None
+        if config.policy_head == "edge_sum":
+            self.edge_head = EdgeSumHead(
+                self.encoder.group, config.hidden, config.head_hidden, config.policy_temperature,
+                config.policy_free_distance, config.closest_approach_horizon,
+            )  # fmt: skip
 
     def raw(self, graph: SwarmGraph) -> Tensor:
         """The pre-``tanh`` output ``(M, k)`` in the agents' own frames."""
-        return self.head(self.encoder(graph))
+        z = self.encoder(graph)
+        out = self.head(z)
+        if self.edge_head is not None:
+            out = out + self.edge_head(graph, z, frames_for(self.encoder.group, graph))
+        return out
 
     def forward(self, graph: SwarmGraph) -> Tensor:
         out = self.out_type.act(frames_for(self.encoder.group, graph), torch.tanh(self.raw(graph)))

@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
@@ -18,6 +20,7 @@ import torch
 import typer
 
 from .report import machine_info
+from .threads import choose_threads
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Equivariant graph CBFs for quadrotor swarms.")
 
@@ -39,6 +42,33 @@ def _device(name: str) -> torch.device:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise typer.BadParameter("--device cuda was given but torch.cuda.is_available() is False")
     return dev
+
+
+_THREADS_HELP = (
+    "torch CPU threads (default: automatic: OMP_NUM_THREADS if set, else the CPUs available minus the 1-minute "
+    "load average, at least 1, so that another busy process does not oversubscribe the cores); "
+    "printed on stderr and recorded in run.json"
+)
+
+
+def _threads(requested: int | None) -> tuple[int, str]:
+    """``(threads, reason)`` from :func:`egcbf.threads.choose_threads`; a bad ``--threads`` is a usage error."""
+    try:
+        return choose_threads(requested)
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
+
+
+@contextmanager
+def _torch_threads(threads: int, reason: str) -> Iterator[None]:
+    """Run the body with ``threads`` torch threads, said on stderr; the previous count is restored afterwards."""
+    typer.echo(f"threads: {threads} ({reason})", err=True)
+    saved = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(saved)
 
 
 def format_table(rows: list[dict], title: str = "") -> str:
@@ -92,8 +122,48 @@ def eval_cmd(
         Path | None,
         typer.Option(help="evaluate a trained policy: a checkpoint directory or a run directory (newest checkpoint)"),
     ] = None,
+    threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json."""
+    n_threads, reason = _threads(threads)
+    with _torch_threads(n_threads, reason):
+        _eval(
+            controller=controller,
+            num_agents=num_agents,
+            area=area,
+            obstacles=obstacles,
+            episodes=episodes,
+            seed=seed,
+            out=out,
+            render=render,
+            max_steps=max_steps,
+            batch=batch,
+            device=device,
+            dtype=dtype,
+            progress=progress,
+            checkpoint=checkpoint,
+            threads_reason=reason,
+        )
+
+
+def _eval(
+    controller: str,
+    num_agents: str,
+    area: float,
+    obstacles: int,
+    episodes: int,
+    seed: int,
+    out: Path,
+    render: bool,
+    max_steps: int | None,
+    batch: int | None,
+    device: str,
+    dtype: str,
+    progress: bool,
+    checkpoint: Path | None,
+    threads_reason: str,
+) -> None:
+    """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set."""
     from .control.controllers import CONTROLLERS, make_controller
     from .evaluate import evaluate
 
@@ -143,6 +213,8 @@ def eval_cmd(
         "episodes": episodes,
         "seed": seed,
         "wall_s": round(time.time() - t0, 1),
+        "threads": torch.get_num_threads(),
+        "threads_reason": threads_reason,
         "machine": machine_info(),
     }
     (out / "run.json").write_text(json.dumps(meta, indent=2) + "\n")
@@ -198,7 +270,7 @@ def demo(
     out: Annotated[Path, typer.Option(help="output directory")] = Path("out/demo"),
     max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's)")] = None,
     device: Annotated[str, typer.Option()] = "cpu",
-    threads: Annotated[int, typer.Option(help="torch CPU threads (small matrices: 1 is fastest on a shared CPU)")] = 1,
+    threads: Annotated[int | None, typer.Option(help=_THREADS_HELP.replace("run.json", "demo.json"))] = None,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
 ) -> None:
     """The main job: the learned EGCBF+ policy and GCBF+ on the same episodes (64 agents, l = 4, 8 obstacles by
@@ -209,52 +281,55 @@ def demo(
         baseline = "none" if _demo_source(method, checkpoints) is None else "gcbf+"
     names = [method] + ([] if baseline.lower() in ("none", "") or baseline == method else [baseline])
     sources = {name: _demo_source(name, checkpoints) for name in names}  # fail before any work
-    if threads < 1:
-        raise typer.BadParameter("--threads must be >= 1")
-    torch.set_num_threads(threads)
-    rows = {}
-    for name, ckpt in sources.items():
-        eval_cmd(
-            controller=name if ckpt is None else "nominal",
-            num_agents=str(num_agents),
-            area=area,
-            obstacles=obstacles,
-            episodes=episodes,
-            seed=seed,
-            out=out / name,
-            render=name == method,
-            max_steps=max_steps,
-            batch=None,
-            device=device,
-            dtype="float32",
-            progress=progress,
-            checkpoint=ckpt,
-        )
-        rows[name] = json.loads((out / name / "metrics.json").read_text())[0]
-    if len(rows) == 2:
-        (a, ra), (b, rb) = rows.items()
-        parts = ", ".join(
-            f"{k} {100 * ra[f'{k}_rate']:.1f}% vs {100 * rb[f'{k}_rate']:.1f}%" for k in ("safe", "reach", "success")
-        )
-        typer.echo(f"{a} vs {b} on the same {episodes} episodes (N={num_agents}, l={area:g}, seed {seed}): {parts}")
-    summary = {
-        "command": " ".join(["egcbf", *sys.argv[1:]]),
-        "method": method,
-        "baseline": None if len(rows) == 1 else names[1],
-        "checkpoints": {k: None if v is None else str(v) for k, v in sources.items()},
-        "num_agents": num_agents,
-        "area": area,
-        "obstacles": obstacles,
-        "episodes": episodes,
-        "seed": seed,
-        "max_steps": max_steps,
-        "metrics": rows,
-        "wall_s": round(time.time() - t0, 1),
-        "machine": machine_info(),
-    }
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "demo.json").write_text(json.dumps(summary, indent=2) + "\n")
-    typer.echo(f"wrote {out / 'demo.json'}")
+    n_threads, reason = _threads(threads)
+    with _torch_threads(n_threads, reason):
+        rows = {}
+        for name, ckpt in sources.items():
+            _eval(
+                controller=name if ckpt is None else "nominal",
+                num_agents=str(num_agents),
+                area=area,
+                obstacles=obstacles,
+                episodes=episodes,
+                seed=seed,
+                out=out / name,
+                render=name == method,
+                max_steps=max_steps,
+                batch=None,
+                device=device,
+                dtype="float32",
+                progress=progress,
+                checkpoint=ckpt,
+                threads_reason=reason,
+            )
+            rows[name] = json.loads((out / name / "metrics.json").read_text())[0]
+        if len(rows) == 2:
+            (a, ra), (b, rb) = rows.items()
+            parts = ", ".join(
+                f"{k} {100 * ra[f'{k}_rate']:.1f}% vs {100 * rb[f'{k}_rate']:.1f}%"
+                for k in ("safe", "reach", "success")
+            )
+            typer.echo(f"{a} vs {b} on the same {episodes} episodes (N={num_agents}, l={area:g}, seed {seed}): {parts}")
+        summary = {
+            "command": " ".join(["egcbf", *sys.argv[1:]]),
+            "method": method,
+            "baseline": None if len(rows) == 1 else names[1],
+            "checkpoints": {k: None if v is None else str(v) for k, v in sources.items()},
+            "num_agents": num_agents,
+            "area": area,
+            "obstacles": obstacles,
+            "episodes": episodes,
+            "seed": seed,
+            "max_steps": max_steps,
+            "metrics": rows,
+            "wall_s": round(time.time() - t0, 1),
+            "threads": torch.get_num_threads(),
+            "threads_reason": reason,
+            "machine": machine_info(),
+        }
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "demo.json").write_text(json.dumps(summary, indent=2) + "\n")
+        typer.echo(f"wrote {out / 'demo.json'}")
 
 
 @app.command()

@@ -16,7 +16,7 @@ SHIPPED = sorted(p.parent for p in ROOT.glob("**/model.safetensors"))
 
 
 def test_the_command_interface_methods_are_at_the_top_level():
-    for algo in ("egcbf+",):
+    for algo in ("egcbf+", "gcbf+"):
         cfg = TrainConfig.from_json(ROOT / algo / "config.json")
         assert cfg.model.interface == "accel" and cfg.model.policy_head == "edge_sum", algo
 

@@ -59,6 +59,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/run.py
 	$(PY) benchmarks/env_scaling.py --threads 1
 	$(PY) benchmarks/qp_scaling.py
+	$(PY) benchmarks/policy_scaling.py
 
 clean:
 	rm -rf $(VENV) $(ESCNN_VENV) .pytest_cache .ruff_cache .hypothesis

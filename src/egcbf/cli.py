@@ -19,12 +19,15 @@ from typing import Annotated
 import torch
 import typer
 
+from .allocator import keep_freed_memory
 from .report import machine_info
 from .threads import choose_threads
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Equivariant graph CBFs for quadrotor swarms.")
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
+#: the process's allocator setting (:mod:`egcbf.allocator`), set by :func:`main`; recorded in run.json
+_ALLOCATOR = "default (the CLI's entry point did not run)"
 
 
 def _parse_sizes(text: str) -> list[int]:
@@ -215,6 +218,7 @@ def _eval(
         "wall_s": round(time.time() - t0, 1),
         "threads": torch.get_num_threads(),
         "threads_reason": threads_reason,
+        "allocator": _ALLOCATOR,
         "machine": machine_info(),
     }
     (out / "run.json").write_text(json.dumps(meta, indent=2) + "\n")
@@ -325,6 +329,7 @@ def demo(
             "wall_s": round(time.time() - t0, 1),
             "threads": torch.get_num_threads(),
             "threads_reason": reason,
+            "allocator": _ALLOCATOR,
             "machine": machine_info(),
         }
         out.mkdir(parents=True, exist_ok=True)
@@ -479,6 +484,8 @@ def reproduce(
 
 
 def main() -> None:  # pragma: no cover
+    global _ALLOCATOR
+    _ALLOCATOR = keep_freed_memory()[1]
     app()
 
 

@@ -185,8 +185,8 @@ def _search(x, y, radius, batch_x, batch_y, cells_per_radius, max_candidates, so
         qi = torch.repeat_interleave(query, cnt, output_size=n)
         # position in the sorted order: run start + rank within the run = start - (exclusive cumsum) + arange
         shift = start[a * n_off : b * n_off] - (torch.cumsum(cnt, 0) - cnt)
-        j = order[torch.repeat_interleave(shift, cnt, output_size=n) + torch.arange(n, device=device)]
-        d2 = (px[qi] - py[j]).square().sum(-1)
+        j = order.index_select(0, torch.repeat_interleave(shift, cnt, output_size=n) + torch.arange(n, device=device))
+        d2 = (px.index_select(0, qi) - py.index_select(0, j)).square().sum(-1)  # index_select: faster than [] on CPU
         keep = d2 < r2
         if exclude_self:
             keep &= qi != j
@@ -197,7 +197,7 @@ def _search(x, y, radius, batch_x, batch_y, cells_per_radius, max_candidates, so
     src, dst = torch.cat(srcs), torch.cat(dsts)
     if sort:
         perm = torch.argsort(dst * ny + src)
-        src, dst = src[perm], dst[perm]
+        src, dst = src.index_select(0, perm), dst.index_select(0, perm)
     return torch.stack((src, dst))
 
 

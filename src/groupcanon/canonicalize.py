@@ -282,7 +282,7 @@ class CanonicalizedLayer(nn.Module):
         spec = self.spec
         src, dst = edge_index[0], edge_index[1]
         inv = self.group.inverse(frames)  # N_dst inverses, gathered per edge
-        inv_e = inv[dst]
+        inv_e = inv.index_select(0, dst)
         xs = spec.src_type.act_gathered(inv_e, x_src, src)  # (E, in): each source seen in its receiver's frame
         xd = spec.dst_type.act(inv, x_dst)  # (N_dst, in)
         num_edges, n_dst = src.shape[0], xd.shape[0]
@@ -318,7 +318,7 @@ class CanonicalizedLayer(nn.Module):
         src, dst = edge_index[0], edge_index[1]
         n = x.shape[0]
         inv = self.group.inverse(frames)
-        inv_e = inv[dst]
+        inv_e = inv.index_select(0, dst)
         x_union = torch.cat((spec.dst_type.act(inv, x), spec.src_type.act_gathered(inv_e, x, src)))  # (N + E, in)
         rows = n + torch.arange(src.shape[0], device=src.device)
         pos_pair = self._pos_inputs(pos, src, inv, inv_e)

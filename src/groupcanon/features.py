@@ -322,6 +322,55 @@ def _fuse(features: Sequence[FeatureType], slices: Sequence[slice]) -> list[tupl
     return plan
 
 
+def _rotates_first_two_axes(group: Group) -> bool:
+    """Whether the group's linear part is the rotation of the first two coordinates by its planar rotation
+    (``R(g) = [[c, -s, 0], [s, c, 0], [0, 0, I]]``): SO2, SE2, SE2xR and products with one planar factor."""
+    d = group.space_dim
+    if d is None or d < 2:
+        return False
+    try:
+        g = group.sample(5, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+        cs, rot = group.planar_rotation(g), group.rotation(g)
+    except (NotImplementedError, TypeError, ValueError):
+        return False
+    expected = torch.eye(d, dtype=torch.float64).repeat(5, 1, 1)
+    expected[:, :2, :2] = torch.stack((torch.stack((cs[:, 0], -cs[:, 1]), -1), cs.flip(-1)), -2)
+    return rot.shape == expected.shape and torch.allclose(rot, expected, rtol=0.0, atol=1e-12)
+
+
+def _planar_basis(group: Group, features: Sequence[FeatureType], slices: Sequence[slice]) -> Tensor | None:
+    """``(dim, 3 dim)`` matrices ``[A0 | A1 | A2]`` with ``rho(g) x = x A0 + c (x A1) + s (x A2)`` for a group that
+    rotates the first two axes (``(c, s)`` its planar rotation), if every non-invariant field is a built-in
+    ``Vector`` or ``Rotation`` (linear in ``R(g)``, so in ``(c, s)``); else ``None``.
+
+    A vector's ``(x, y)`` channels map to ``(c x - s y, s x + c y)``, every other channel to itself. The product
+    ``x [A0 | A1 | A2]`` only copies or negates channels (one non-zero per column), so the result is the same
+    floating-point number as rotating the channels one by one. It does not depend on ``g``: canonicalization
+    computes it once per node and gathers it to the edges (:meth:`FieldType.act_gathered`), one small matrix
+    product and two fused multiply-adds whatever the number of fields."""
+    if not _rotates_first_two_axes(group):
+        return None
+    pairs: list[tuple[int, int]] = []
+    for f, s in zip(features, slices):
+        if f.invariant:
+            continue
+        if type(f) is Vector:
+            pairs += [(s.start + i * f.d, s.start + i * f.d + 1) for i in range(f.n)]
+        elif type(f) is Rotation:  # X -> R X: rows 0 and 1 of X (row-major) rotate as the x and y of each column
+            pairs += [(s.start + c, s.start + f.d + c) for c in range(f.d)]
+        else:
+            return None
+    if not pairs:
+        return None
+    dim = sum(f.dim for f in features)
+    a0, a1, a2 = torch.eye(dim), torch.zeros(dim, dim), torch.zeros(dim, dim)
+    for ix, iy in pairs:  # column j of A holds output channel j
+        a0[ix, ix] = a0[iy, iy] = 0.0
+        a1[ix, ix] = a1[iy, iy] = 1.0
+        a2[iy, ix], a2[ix, iy] = -1.0, 1.0
+    return torch.cat((a0, a1, a2), dim=1)
+
+
 class FieldType:
     """The direct sum of feature types under one group: a feature vector is their concatenation.
 
@@ -358,6 +407,8 @@ class FieldType:
         self._slices = tuple(slice(a, a + f.dim) for a, f in zip(offsets, self.features))
         self.invariant = all(f.invariant for f in self.features)
         self._plan = _fuse(self.features, self._slices)
+        self._planar = _planar_basis(group, self.features, self._slices)
+        self._planar_on: dict[tuple[torch.device, torch.dtype], Tensor] = {}
 
     # ------------------------------------------------------------------ access
     def __len__(self) -> int:
@@ -419,6 +470,8 @@ class FieldType:
             ) from None
         if self.invariant:
             return x.expand(*batch, self.dim)
+        if self._planar is not None:
+            return self._planar_combine(g, self._planar_lift(x))
         if len(self._plan) == 1 and self._plan[0][1] == slice(0, self.dim):
             return self._plan[0][0].act(g, x)
         # invariant channels are copied once; only the transformed fields are computed and written over them
@@ -436,6 +489,8 @@ class FieldType:
         """
         check_element_shape(self.group, g)
         self.check(x)
+        if self._planar is not None and not self.invariant:
+            return self._planar_combine(g, self._planar_lift(x).index_select(0, index))
         out = x.index_select(0, index)
         if self.invariant:
             return out
@@ -444,6 +499,21 @@ class FieldType:
         for f, s in self._plan:
             out[:, s] = f.act(g, x[:, s].index_select(0, index))
         return out
+
+    def _planar_lift(self, x: Tensor) -> Tensor:
+        """``x [A0 | A1 | A2]`` ``(*batch, 3 dim)`` (see :func:`_planar_basis`)."""
+        key = (x.device, x.dtype)
+        basis = self._planar_on.get(key)
+        if basis is None:
+            basis = self._planar_on[key] = self._planar.to(device=x.device, dtype=x.dtype)
+        return x @ basis
+
+    def _planar_combine(self, g: Tensor, lifted: Tensor) -> Tensor:
+        """``y0 + c y1 + s y2`` from lifted features ``(*batch, 3 dim)`` and elements ``g``."""
+        cs = self.group.planar_rotation(g)
+        d = self.dim
+        out = torch.addcmul(lifted[..., :d], cs[..., :1], lifted[..., d : 2 * d])
+        return out.addcmul_(cs[..., 1:], lifted[..., 2 * d :])
 
     def __repr__(self) -> str:
         items = [f"{n}={f!r}" if n else repr(f) for n, f in zip(self.names, self.features)]

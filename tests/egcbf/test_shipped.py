@@ -36,3 +36,19 @@ def test_shipped_checkpoint_loads_and_acts(path):
     state = SwarmEnv(env_cfg).reset(0)
     u, info = ctrl(state, env_cfg)
     assert u.shape == (1, 4, 4) and torch.isfinite(u).all() and info["num_failed"] == 0
+
+
+@pytest.mark.parametrize("method", ["egcbf+", "gcbf+"])
+def test_shipped_policy_outputs_are_unchanged(method):
+    """Regression: the shipped networks compute what they computed when recorded (tests/egcbf/shipped_reference.py;
+    recorded by the code before the performance work). float64, 1e-9: only rounding may differ."""
+    import shipped_reference as ref
+
+    data = json.loads(ref.DATA.read_text())[method]
+    if data["sha256"] != ref.checkpoint_hash(method):
+        pytest.fail(f"checkpoints/{method} was replaced: regenerate with `python tests/egcbf/shipped_reference.py`")
+    now = ref.outputs(method)
+    for key in ("pi", "h", "u"):
+        got, expected = torch.tensor(now[key], dtype=torch.float64), torch.tensor(data[key], dtype=torch.float64)
+        assert got.shape == expected.shape, key
+        assert torch.allclose(got, expected, rtol=0.0, atol=1e-9), (key, (got - expected).abs().max().item())

@@ -264,7 +264,7 @@ def safety_masks(positions: Tensor, goals: Tensor, obstacles: Obstacles, agent_r
     p = positions.detach().reshape(b * n, 3)
     batch = torch.arange(b, device=p.device).repeat_interleave(n)
     src, dst = radius_neighbors(p, 2.5 * r, batch, sort=False)  # every pair closer than 2.5 r
-    close = (p[src] - p[dst]).norm(dim=-1) < 2 * r
+    close = (p.index_select(0, src) - p.index_select(0, dst)).norm(dim=-1) < 2 * r
     agent_unsafe = torch.zeros(b * n, dtype=torch.bool, device=p.device)
     agent_unsafe[dst] = True
     agent_coll = torch.zeros_like(agent_unsafe)

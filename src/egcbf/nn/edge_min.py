@@ -27,7 +27,7 @@ from groupcanon import FieldType, Group
 from groupcanon.features import Vector
 
 from ..graph import KIND_GOAL, KIND_HIT, SwarmGraph
-from .layers import mlp
+from .layers import mlp, mlp_on_edges
 
 __all__ = ["EdgeMinHead", "closest_approach", "edge_features", "segment_logsumexp"]
 
@@ -38,7 +38,7 @@ def segment_logsumexp(score: Tensor, dst: Tensor, num: int, free: float) -> Tens
     in range), so receivers without edges get ``free``."""
     shift = torch.full((num,), free, dtype=score.dtype, device=score.device)
     shift = shift.scatter_reduce(0, dst, score.detach(), "amax", include_self=True)
-    total = torch.exp(free - shift).index_add(0, dst, torch.exp(score - shift[dst]))
+    total = torch.exp(free - shift).index_add(0, dst, torch.exp(score - shift.index_select(0, dst)))
     return torch.log(total) + shift
 
 
@@ -52,19 +52,20 @@ def closest_approach(dp: Tensor, dv: Tensor, horizon: float) -> Tensor:
 
 
 def edge_features(
-    graph: SwarmGraph, z: Tensor, frames: Tensor, group: Group, vectors: FieldType, horizon: float
+    graph: SwarmGraph, frames: Tensor, group: Group, vectors: FieldType, horizon: float
 ) -> tuple[Tensor, Tensor]:
-    """Per agent and LiDAR-hit edge: ``[dp, dv (receiver's frame), |dp|, d_min, t_min, is_hit, z_receiver]``
-    ``(E', 10 + hidden)``, and the receiver of each edge ``(E',)``. All invariant under the group."""
+    """Per agent and LiDAR-hit edge: ``[dp, dv (receiver's frame), |dp|, d_min, t_min, is_hit]`` ``(E', 10)``, and
+    the receiver of each edge ``(E',)``. All invariant under the group. (The head's MLP also reads the receiver's
+    features ``z_i``, appended by :func:`egcbf.nn.layers.mlp_on_edges`.)"""
     sel = graph.edge_kind != KIND_GOAL
     edge_index = graph.edge_index[:, sel]
     dst = edge_index[1]
     dp = graph.edge_attr[sel]
     dv = graph.relative_velocity(edge_index).to(dp.dtype)
     approach = closest_approach(dp, dv, horizon)
-    local = vectors.act(group.inverse(frames)[dst], torch.cat((dp, dv), -1))
+    local = vectors.act(group.inverse(frames).index_select(0, dst), torch.cat((dp, dv), -1))
     is_hit = (graph.edge_kind[sel] == KIND_HIT).to(dp.dtype)[:, None]
-    return torch.cat((local, dp.norm(dim=-1, keepdim=True), approach, is_hit, z[dst]), -1), dst
+    return torch.cat((local, dp.norm(dim=-1, keepdim=True), approach, is_hit), -1), dst
 
 
 class EdgeMinHead(nn.Module):
@@ -92,9 +93,9 @@ class EdgeMinHead(nn.Module):
             self.edge_mlp[-1].bias.zero_()
 
     def forward(self, graph: SwarmGraph, z: Tensor, frames: Tensor) -> Tensor:
-        feats, dst = edge_features(graph, z, frames, self.group, self.vectors, self.horizon)
+        feats, dst = edge_features(graph, frames, self.group, self.vectors, self.horizon)
         approach = feats[:, 7:9]
-        b = approach[:, 0] - self.distance + self.edge_mlp(feats).squeeze(-1)
+        b = approach[:, 0] - self.distance + mlp_on_edges(self.edge_mlp, feats, z, dst).squeeze(-1)
         tau = self.temperature
         return -tau * segment_logsumexp(-b / tau, dst, graph.num_dst, -(1.0 - self.distance) / tau)
 

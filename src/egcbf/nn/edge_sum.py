@@ -31,7 +31,7 @@ from groupcanon.features import Vector
 
 from ..graph import KIND_GOAL, KIND_HIT, SwarmGraph
 from .edge_min import closest_approach, segment_logsumexp
-from .layers import mlp
+from .layers import mlp, mlp_on_edges
 
 __all__ = ["EdgeSumHead"]
 
@@ -73,15 +73,18 @@ class EdgeSumHead(nn.Module):
         dv = graph.relative_velocity(edge_index).to(dp.dtype)
         approach = closest_approach(dp, dv, self.horizon)
         q = dp + approach[:, 1:2] * dv
-        local = self.vectors.act(self.group.inverse(frames)[dst], torch.cat((dp, dv, q), -1))
+        local = self.vectors.act(self.group.inverse(frames).index_select(0, dst), torch.cat((dp, dv, q), -1))
         is_hit = (graph.edge_kind[sel] == KIND_HIT).to(dp.dtype)[:, None]
         norms = torch.cat((dp.norm(dim=-1, keepdim=True), dv.norm(dim=-1, keepdim=True)), -1)
-        coef = self.edge_mlp(torch.cat((local, norms, approach, is_hit, z[dst]), -1))  # (E', 3)
+        coef = mlp_on_edges(self.edge_mlp, torch.cat((local, norms, approach, is_hit), -1), z, dst)  # (E', 3)
         basis = _fading_unit(local.view(-1, 3, 3), self.eps)  # (E', [dp, dv, q], xyz)
         vec = (coef[:, :, None] * basis).sum(1)
         # soft-min weights over each receiver's edges and its free slot
         score = -approach[:, 0] / self.temperature
-        w = torch.exp(score - segment_logsumexp(score, dst, graph.num_dst, -self.free_distance / self.temperature)[dst])
+        w = torch.exp(
+            score
+            - segment_logsumexp(score, dst, graph.num_dst, -self.free_distance / self.temperature).index_select(0, dst)
+        )
         return torch.zeros(graph.num_dst, 3, dtype=vec.dtype, device=vec.device).index_add(0, dst, w[:, None] * vec)
 
     def extra_repr(self) -> str:

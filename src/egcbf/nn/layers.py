@@ -9,7 +9,8 @@ agents) and returns one feature vector per receiver:
 * edge encoder: an MLP on ``[dp, |dp|]`` (the relative position of the sender and its length), or on
   ``[dp, dv, |dp|]`` with the relative velocity (so that one edge's message can read how fast it closes in);
 * local multi-head attention over each receiver's incoming edges: ``torch_geometric.nn.TransformerConv`` with the
-  encoded edge as ``edge_dim`` input (keys and values see the edge), no root weight (the residual is explicit);
+  encoded edge as ``edge_dim`` input (keys and values see the edge), no root weight (the residual is explicit),
+  computed by :class:`egcbf.nn.attention.EdgeAttention` (the same parameters and results, fewer passes over edges);
 * residual ``z = f_v + A(F)_v`` and a feed-forward block with its own residual, ``out = z + FF(LayerNorm(z))``.
 
 The layer has no notion of a group: equivariance is added from outside by :class:`groupcanon.Canonicalize`,
@@ -23,12 +24,25 @@ import itertools
 
 import torch
 from torch import Tensor, nn
-from torch_geometric.nn import TransformerConv
+from torch.nn import functional as F
 
-__all__ = ["GraphTransformerLayer", "mlp"]
+from .attention import EdgeAttention
+
+__all__ = ["GraphTransformerLayer", "SiLU", "mlp", "mlp_on_edges"]
 
 
-def mlp(sizes: list[int], act: type[nn.Module] = nn.SiLU, last_act: bool = False) -> nn.Sequential:
+class SiLU(nn.SiLU):
+    """``nn.SiLU`` that overwrites its input when no gradient flows through it (inference, rollouts).
+
+    On CPU, allocating the output of an activation over ``E`` edges costs several times the activation itself; in
+    :func:`mlp` every activation follows a ``Linear`` whose output nothing else holds, so overwriting it is safe.
+    With autograd recording (training) it is the ordinary out-of-place SiLU."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.silu(x, inplace=not (torch.is_grad_enabled() and x.requires_grad))
+
+
+def mlp(sizes: list[int], act: type[nn.Module] = SiLU, last_act: bool = False) -> nn.Sequential:
     """A plain MLP ``sizes[0] -> ... -> sizes[-1]`` with ``act`` between layers (and after the last if asked)."""
     layers: list[nn.Module] = []
     for i, (a, b) in enumerate(itertools.pairwise(sizes)):
@@ -36,6 +50,27 @@ def mlp(sizes: list[int], act: type[nn.Module] = nn.SiLU, last_act: bool = False
         if i < len(sizes) - 2 or last_act:
             layers.append(act())
     return nn.Sequential(*layers)
+
+
+def mlp_on_edges(net: nn.Sequential, edge_features: Tensor, node_features: Tensor, dst: Tensor) -> Tensor:
+    """``net(cat(edge_features, node_features[dst]))`` ``(E, out)`` for an :func:`mlp` ``net``, without building the
+    ``(E, k + d)`` concatenation: the first layer's node block runs once per node and is gathered to the edges
+    (``W [a; b_dst] + c = W_a a + (W_b b + c)_dst``), so a per-node context costs ``N``, not ``E``, matrix rows.
+
+    Args:
+        net: an MLP whose first module is an ``nn.Linear`` over ``k + d`` inputs.
+        edge_features: ``(E, k)``; node_features: ``(N, d)``; dst: ``(E,)`` long, the node of each edge.
+    """
+    first = net[0]
+    k = edge_features.shape[-1]
+    if first.in_features != k + node_features.shape[-1]:
+        raise ValueError(
+            f"mlp_on_edges: the first layer takes {first.in_features} inputs, got {k} edge + "
+            f"{node_features.shape[-1]} node features"
+        )
+    hidden = F.linear(node_features, first.weight[:, k:], first.bias).index_select(0, dst)
+    hidden = torch.addmm(hidden, edge_features, first.weight[:, :k].t())
+    return net[1:](hidden)
 
 
 class GraphTransformerLayer(nn.Module):
@@ -56,9 +91,7 @@ class GraphTransformerLayer(nn.Module):
         self.node_dim, self.edge_dim, self.hidden, self.heads = node_dim, edge_dim, hidden, heads
         self.node_enc = mlp([node_dim, hidden, hidden], last_act=True)
         self.edge_enc = mlp([edge_dim + 1, hidden, hidden], last_act=True)
-        self.attn = TransformerConv(
-            hidden, hidden // heads, heads=heads, concat=True, edge_dim=hidden, root_weight=False
-        )
+        self.attn = EdgeAttention(hidden, hidden // heads, heads=heads, concat=True, edge_dim=hidden, root_weight=False)
         self.norm = nn.LayerNorm(hidden)
         self.ff = mlp([hidden, 2 * hidden, hidden])
 

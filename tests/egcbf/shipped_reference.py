@@ -1,0 +1,62 @@
+"""Reference outputs of the shipped EGCBF+ and GCBF+ on a fixed scene, for the regression test in test_shipped.py.
+
+Speed-ups and refactors must not change what a trained network computes. This records, in float64, the policy
+residual, the CBF value and the applied control of ``checkpoints/egcbf+`` and ``checkpoints/gcbf+`` on one fixed
+scene (32 agents, 3 obstacles, after 5 steps of the nominal controller), with each checkpoint's sha256, into
+``tests/egcbf/data/shipped_reference.json``. Regenerate it only when a checkpoint is replaced (the test says so
+when the hash differs), never to make a code change pass:
+
+    python tests/egcbf/shipped_reference.py
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import torch
+
+from egcbf.control.nominal import nominal_control
+from egcbf.env import EnvConfig, SwarmEnv
+from egcbf.graph import build_graph
+from egcbf.train import load_learner
+
+ROOT = Path(__file__).resolve().parents[2]
+DATA = Path(__file__).resolve().parent / "data" / "shipped_reference.json"
+METHODS = ("egcbf+", "gcbf+")
+
+
+def checkpoint_hash(method: str) -> str:
+    return hashlib.sha256((ROOT / "checkpoints" / method / "model.safetensors").read_bytes()).hexdigest()
+
+
+@torch.no_grad()
+def outputs(method: str) -> dict[str, list]:
+    """``pi`` (policy residual, world frame), ``h`` (CBF) and ``u`` (applied control) on the fixed scene, float64."""
+    learner = load_learner(ROOT / "checkpoints" / method)
+    learner.policy.double()
+    learner.cbf.double()
+    cfg = EnvConfig(num_agents=32, area_size=2.0, num_obstacles=3, num_envs=1)
+    env = SwarmEnv(cfg, dtype=torch.float64)
+    state = env.reset(7)
+    for _ in range(5):
+        state, _ = env.step(state, nominal_control(state.x, state.goals, cfg.params))
+    graph = build_graph(state, cfg)
+    u, _ = learner.controller()(state, cfg)
+    return {
+        "pi": learner.policy(graph).tolist(),
+        "h": learner.cbf(graph).tolist(),
+        "u": u.reshape(-1, u.shape[-1]).tolist(),
+    }
+
+
+def main() -> None:
+    data = {m: {"sha256": checkpoint_hash(m), **outputs(m)} for m in METHODS}
+    DATA.parent.mkdir(parents=True, exist_ok=True)
+    DATA.write_text(json.dumps(data) + "\n")
+    print(f"wrote {DATA}")
+
+
+if __name__ == "__main__":
+    main()

@@ -147,8 +147,10 @@ print(json.dumps({k: statistics.median(r[k] for r in rows) for k in keys}))
 """
 
 
-def _child(code: str, *args: str, src: Path | None = None) -> dict:
-    env = None if src is None else dict(os.environ, PYTHONPATH=str(src))
+def _child(code: str, *args: str, src: Path | None = None, env_vars: dict | None = None) -> dict:
+    env = dict(os.environ, **(env_vars or {}))
+    if src is not None:
+        env["PYTHONPATH"] = str(src)
     out = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, check=False, env=env)
     if out.returncode != 0:
         raise RuntimeError(f"benchmark child failed ({' '.join(args)}):\n{out.stderr[-3000:]}")
@@ -195,11 +197,12 @@ def _area(n: int) -> float:
     return round(DENSITY_AREA * (n / 512) ** (1 / 3), 3)
 
 
-def measure_step(name: str, n: int, area: float, envs: int, args, src: Path | None = None) -> dict:
+def measure_step(
+    name: str, n: int, area: float, envs: int, args, src: Path | None = None, env_vars: dict | None = None
+) -> dict:
     ckpt = "" if name == "nominal" else str(ROOT / "checkpoints" / name)
-    res = _child(
-        STEP_CHILD, name, str(n), str(area), str(envs), str(args.steps), args.device, args.threads, ckpt, src=src
-    )
+    cmd = (name, str(n), str(area), str(envs), str(args.steps), args.device, args.threads, ckpt)
+    res = _child(STEP_CHILD, *cmd, src=src, env_vars=env_vars)
     res.update(controller=name, n=n, area=area, envs=envs)
     print(
         f"{'baseline ' if src else ''}{name:>7} N={n:>5} l={area:<6g} envs={envs}: {res['ms']:8.2f} ms/step  "
@@ -300,6 +303,10 @@ def main() -> None:
     density = [measure_step(c, n, _area(n), 1, args) for n in sizes for c in CONTROLLERS]
     fixed = [] if quick else [measure_step(c, 1024, DENSITY_AREA, 1, args) for c in CONTROLLERS]
     batched = [] if quick else [measure_step(c, 512, DENSITY_AREA, 4, args) for c in CONTROLLERS]
+    no_keep = []
+    if not quick:  # the allocator setting's share: the same step with glibc's defaults
+        no_keep = [measure_step(c, 512, DENSITY_AREA, 1, args, env_vars={"EGCBF_KEEP_FREED_MEMORY": "0"})
+                   for c in CONTROLLERS]  # fmt: skip
     loaded = []
     if args.load and not quick:
         with BusyProcess():
@@ -349,6 +356,11 @@ def main() -> None:
         change = ", ".join(f"{c} {old:.1f} -> {new:.1f} ms (x{old / new:.2f} faster)" for c, old, new in pairs)
         lines += ["", f"**Before / after** (N = 512, l = 4, the code of commit `{args.baseline}` against this tree, "
                   f"same checkpoints, same run): {change}."]  # fmt: skip
+    if no_keep:
+        pairs = [(c, cell(no_keep, c, 512)["ms"], base[c]["ms"]) for c in CONTROLLERS]
+        change = ", ".join(f"{c} {off:.1f} -> {on:.1f} ms" for c, off, on in pairs)
+        lines += ["", f"**Allocator** (N = 512, l = 4; `EGCBF_KEEP_FREED_MEMORY=0`, glibc's defaults -> the CLI's "
+                  f"setting): {change}."]  # fmt: skip
     if profile:
         intro = (
             "**Where the time goes** (one thread, fixed density; wall time of each stage per step, averaged over "
@@ -369,10 +381,10 @@ def main() -> None:
     if args.no_write:
         return
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(
-        json.dumps({"baseline": baseline, "density": density, "fixed_area": fixed, "batched": batched, "loaded": loaded,
-                    "updates": updates, "args": vars(args), "cpu": cpu_name(), "wall_s": wall}, indent=1) + "\n"
-    )  # fmt: skip
+    record = {"baseline": baseline, "allocator_off": no_keep, "density": density, "fixed_area": fixed,
+              "batched": batched, "loaded": loaded, "updates": updates, "args": vars(args), "cpu": cpu_name(),
+              "wall_s": wall}  # fmt: skip
+    RESULTS.write_text(json.dumps(record, indent=1) + "\n")
     _figure(density, args.device)
     replace_section(DOC, "policy-scaling", body, heading="## Learned policy at scale")
     print(f"wrote {DOC}, {RESULTS}, {FIGURE}")

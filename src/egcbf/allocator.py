@@ -3,10 +3,11 @@
 A learned policy's step at 512 agents allocates tens of tensors of a few MB (one row per graph edge) and frees them
 within the step. With glibc's defaults, blocks above its mmap threshold are mapped from the OS and returned on free,
 and a heap top above the trim threshold is returned too, so every step the kernel zero-fills the same pages again:
-on the project's 2-core machine that page-faulting was a quarter of an EGCBF+ step at 512 agents (49 -> 37 ms on
-one thread) and a third at 4096 (438 -> 289 ms). :func:`keep_freed_memory` turns both off (``mallopt``:
-``M_MMAP_MAX = 0``, ``M_TRIM_THRESHOLD`` = 2^30), so freed blocks stay in the heap and are reused. The price: the
-process keeps its peak memory until it exits, which is what a CLI run wants.
+on the project's 2-core machine that page-faulting was about a quarter of an EGCBF+ step at 512 agents and a third
+at 4096 (``benchmarks/policy_scaling.py`` measures it: the "Allocator" line of docs/benchmarks.md).
+:func:`keep_freed_memory` turns both off (``mallopt``: ``M_MMAP_MAX = 0``, ``M_TRIM_THRESHOLD`` = 2^30), so freed
+blocks stay in the heap and are reused. The price: the process keeps its peak memory until it exits, which is what
+a CLI run wants.
 
 ``egcbf eval``, ``demo``, ``train`` and ``reproduce`` call it at start (it is process-wide, so the library never does
 it behind a user's back: call it yourself in a script if you want it). ``EGCBF_KEEP_FREED_MEMORY=0`` in the

@@ -11,7 +11,7 @@ once more per edge, normalizes the attention weights per edge and scatters. :cla
 (the same ``lin_query``, ``lin_key``, ``lin_value``, ``lin_edge`` parameters, so state dicts are interchangeable)
 and computes the same quantities with fewer passes over the ``E`` edges:
 
-* keys and values in one matrix product, and the edge term added to both by one more (``[W_e; W_e]``);
+* keys and values in one matrix product, the edge term ``W_e e`` computed once and added to both in place;
 * no gather at all when the sources are already one row per edge in edge order (``groupcanon``'s pair mode hands
   the layer exactly that: each sender as its receiver sees it);
 * the softmax normalized after aggregation, at the receivers (``sum_j exp(s_ij - m_i) v_ij / sum_j exp(s_ij - m_i)``
@@ -72,8 +72,8 @@ class EdgeAttention(TransformerConv):
         kv = F.linear(x_src, weight, bias)  # (N_src, 2 * width): keys | values
         if not _is_edge_aligned(src, x_src.shape[0]):
             kv = kv.index_select(0, src)
-        w_edge = self.lin_edge.weight
-        kv = kv.addmm_(edge_attr, torch.cat((w_edge, w_edge)).t())  # (E, 2 * width); no backward reads kv
+        edge_term = self.lin_edge(edge_attr)  # (E, width), added to keys and values alike
+        kv = kv.view(-1, 2, width).add_(edge_term[:, None, :]).view(-1, 2 * width)  # no backward reads kv
         key, value = kv[:, :width], kv[:, width:]
 
         query = self.lin_query(x_dst).index_select(0, dst)  # (E, width)

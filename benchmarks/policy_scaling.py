@@ -237,6 +237,8 @@ def _table(rows: list[dict], title: str) -> list[str]:
         mb = " | ".join(f"{cell[c]['mem_mb']:.0f}" if c in cell else "" for c in CONTROLLERS)
         ratio = cell["egcbf+"]["ms"] / cell["gcbf+"]["ms"] if {"egcbf+", "gcbf+"} <= cell.keys() else float("nan")
         lines.append(f"| {key[0]} | {key[1]:g} | {key[2]} | {ms} | {ratio:.2f}x | {mb} |")
+    used = sorted({r["threads"] for r in rows})
+    lines += ["", f"Torch threads chosen in these rows: {', '.join(map(str, used))}."]
     return lines
 
 

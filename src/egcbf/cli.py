@@ -48,8 +48,8 @@ def _device(name: str) -> torch.device:
 
 
 _THREADS_HELP = (
-    "torch CPU threads (default: automatic: OMP_NUM_THREADS if set, else the CPUs available minus the 1-minute "
-    "load average, at least 1, so that another busy process does not oversubscribe the cores); "
+    "torch CPU threads (default: automatic: OMP_NUM_THREADS if set, else the CPUs available minus the busy ones "
+    "(sampled over 0.2 s), at least 1, so that another busy process does not oversubscribe the cores); "
     "printed on stderr and recorded in run.json"
 )
 

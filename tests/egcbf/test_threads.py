@@ -14,8 +14,10 @@ from egcbf.threads import choose_threads
 
 @pytest.fixture
 def machine(monkeypatch):
-    """A fake machine: ``machine(cpus, load)``; ``load=None`` for an OS without a load average."""
+    """A fake machine: ``machine(cpus, load)``; ``load=None`` for an OS without a load average. The CPU-time
+    sample is unavailable (as off Linux) unless a test sets ``threads.busy_cpus`` itself."""
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(threads, "busy_cpus", lambda window=threads.BUSY_WINDOW_S: None)
 
     def set_machine(cpus: int, load: float | None) -> None:
         monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cpus)), raising=False)
@@ -116,3 +118,35 @@ def test_demo_chooses_threads_automatically_and_records_them(tmp_path, monkeypat
     assert 1 <= summary["threads"] == run["threads"] == summary["machine"]["threads"] <= threads.available_cpus()
     assert "CPUs available" in summary["threads_reason"] and abs(summary["threads"] - expected) <= 1
     assert torch.get_num_threads() == before
+
+
+@pytest.mark.parametrize("cpus, busy, expected", [(2, 0.05, 2), (2, 0.4, 2), (2, 0.9, 1), (2, 1.7, 1), (8, 2.6, 5)])
+def test_sampled_busy_cpus_take_precedence_over_the_load_average(machine, monkeypatch, cpus, busy, expected):
+    """A just-finished job still raises the 1-minute load average; the short CPU-time sample does not see it."""
+    machine(cpus, 1.0)
+    monkeypatch.setattr(threads, "busy_cpus", lambda window=threads.BUSY_WINDOW_S: busy)
+    assert choose_threads() == (expected, f"{cpus} CPUs available, {busy:.1f} busy")
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/stat") or not hasattr(os, "sched_getaffinity"), reason="Linux only")
+def test_busy_cpus_measures_this_machine():
+    busy = threads.busy_cpus(window=0.05)
+    assert busy is not None and 0.0 <= busy <= len(os.sched_getaffinity(0)) + 1e-9
+
+
+def test_busy_cpus_sees_a_busy_process():
+    """One CPU-bound child on this process's CPUs shows as (about) one busy CPU."""
+    if not os.path.exists("/proc/stat") or not hasattr(os, "sched_getaffinity"):
+        pytest.skip("Linux only")
+    import subprocess
+    import sys
+    import time
+
+    child = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.3)
+        busy = threads.busy_cpus(window=0.3)
+    finally:
+        child.kill()
+        child.wait()
+    assert busy is not None and busy >= 0.7

@@ -68,8 +68,11 @@ def _with_shape_check(fn, name: str, count: int):
 
     @functools.wraps(fn)
     def checked(self, *args, **kwargs):
+        shape = self.element_shape
         for i in range(min(count, len(args))):
-            check_element_shape(self, args[i], f"{name}() argument {i + 1}")
+            g = args[i]
+            if not isinstance(g, Tensor) or g.shape[g.dim() - len(shape) :] != shape or g.dim() < len(shape):
+                check_element_shape(self, g, f"{name}() argument {i + 1}")  # raises, naming the expected shape
         return fn(self, *args, **kwargs)
 
     checked._checks_elements = True

@@ -317,6 +317,7 @@ def demo(
         baseline = "none" if _demo_source(method, checkpoints) is None else "gcbf+"
     names = [method] + ([] if baseline.lower() in ("none", "") or baseline == method else [baseline])
     sources = {name: _demo_source(name, checkpoints) for name in names}  # fail before any work
+    n_threads, reason = _threads(threads)
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     require(num_agents >= 1, f"--num-agents must be >= 1, got {num_agents}")
     dev = parse_device(device)
@@ -327,7 +328,6 @@ def demo(
     prepare_out(out, overwrite, ("demo.json",))
     for name in names:
         prepare_out(out / name, overwrite, _EVAL_RESULTS)
-    n_threads, reason = _threads(threads)
     with _torch_threads(n_threads, reason):
         rows = {}
         for name, ckpt in sources.items():

@@ -25,7 +25,15 @@ import typer
 
 from .allocator import keep_freed_memory
 from .atomic import write_json_atomic
-from .cli_checks import check_env_flags, parse_device, parse_sizes, prepare_out, require, usage_error
+from .cli_checks import (
+    check_env_flags,
+    check_policy_memory,
+    parse_device,
+    parse_sizes,
+    prepare_out,
+    require,
+    usage_error,
+)
 from .report import machine_info
 from .threads import choose_threads
 
@@ -204,7 +212,9 @@ def _eval(
     else:
         controller = controller or "nominal"
         require(controller in CONTROLLERS, f"--controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
-    check_env_flags(sizes, area, obstacles, max_steps, env_overrides)
+    configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides)
+    if checkpoint is not None:
+        check_policy_memory(configs, episodes, batch, train_cfg.model.hidden, dev)
     prepare_out(out, overwrite, _EVAL_RESULTS)
     t0 = time.time()
     meta = {

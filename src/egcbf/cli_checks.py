@@ -22,7 +22,9 @@ import typer
 
 __all__ = [
     "UsageError",
+    "available_memory",
     "check_env_flags",
+    "check_policy_memory",
     "parse_device",
     "parse_sizes",
     "prepare_out",
@@ -118,6 +120,62 @@ def check_env_flags(
             )
         configs.append(cfg)
     return configs
+
+
+#: Peak memory per graph edge of a learned policy's step with hidden width 64 (measured on CPU for the shipped
+#: EGCBF+ policy: 1.8 KB per edge, graph building included), rounded up; scaled linearly with the hidden width.
+_BYTES_PER_EDGE_64 = 2048
+
+
+def available_memory(device: torch.device) -> int | None:
+    """Bytes the run may still allocate: free GPU memory for CUDA, ``MemAvailable`` of ``/proc/meminfo`` on the
+    CPU; ``None`` where it cannot be told (then nothing is refused)."""
+    if device.type == "cuda":
+        try:
+            return int(torch.cuda.mem_get_info(device)[0])
+        except (RuntimeError, AssertionError):
+            return None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+def policy_memory(num_agents: int, area: float, comm_radius: float, num_envs: int, hidden: int) -> tuple[int, int]:
+    """``(bytes, edges)``: an estimate of a learned policy's peak memory for one step of ``num_envs`` environments.
+
+    Edges: each agent's neighbours within ``comm_radius`` at the mean density ``N / l^3`` (an overestimate near the
+    walls), at most ``N - 1``; bytes: :data:`_BYTES_PER_EDGE_64` per edge, scaled by ``hidden / 64``."""
+    ball = (4 / 3) * math.pi * comm_radius**3
+    neighbours = min(num_agents - 1, num_agents / area**3 * ball)
+    edges = int(num_envs * num_agents * neighbours)
+    return int(edges * _BYTES_PER_EDGE_64 * max(1.0, hidden / 64)), edges
+
+
+def _size(num_bytes: float) -> str:
+    return f"{num_bytes / 2**30:.1f} GiB" if num_bytes >= 2**30 else f"{num_bytes / 2**20:.1f} MiB"
+
+
+def check_policy_memory(configs: Sequence, episodes: int, batch: int | None, hidden: int, device: torch.device) -> None:
+    """Refuse (usage error, with the numbers) a learned-policy evaluation whose estimated step memory
+    (:func:`policy_memory`) exceeds :func:`available_memory`, before anything is allocated."""
+    free = available_memory(device)
+    if free is None:
+        return
+    for cfg in configs:
+        n = cfg.num_agents
+        envs = batch or max(1, min(episodes, 4096 // n))  # as egcbf.evaluate.evaluate batches episodes
+        need, edges = policy_memory(n, cfg.area_size, cfg.comm_radius, envs, hidden)
+        if need > free:
+            usage_error(
+                f"--num-agents {n} at --area {cfg.area_size:g}: the learned policy needs about {_size(need)} "
+                f"(~{edges:,} graph edges, {envs} episode(s) at once), more than the {_size(free)} available; "
+                "use fewer agents, a larger --area or a smaller --batch"
+            )
 
 
 def prepare_out(out: Path, overwrite: bool, results: Sequence[str], flag: str = "--out") -> Path:

@@ -150,3 +150,22 @@ def test_each_size_is_written_and_the_run_marked_complete(cli, tmp_path):
     run = json.loads((out / "run.json").read_text())
     assert run["finished"] == [4, 6] and run["complete"] is True
     assert not list(out.glob(".*.tmp"))
+
+
+def test_a_learned_policy_that_cannot_fit_in_memory_is_refused_with_the_numbers(cli, tmp_path, tiny_run, monkeypatch):
+    import egcbf.cli_checks as checks
+
+    monkeypatch.setattr(checks, "available_memory", lambda device: 1 << 20)  # 1 MiB free
+    out = tmp_path / "ev"
+    res = cli("eval", "--checkpoint", tiny_run, "--num-agents", "4,64", "--area", "2", "--episodes", "1",
+              "--max-steps", "3", "--out", out, "--no-progress")  # fmt: skip
+    assert_usage_error(res, "--num-agents 64", "MiB", "available")
+    assert not (out / "metrics.json").exists()
+
+
+def test_policy_memory_estimate_grows_with_density():
+    from egcbf.cli_checks import policy_memory
+
+    sparse, _ = policy_memory(1000, 20.0, 1.0, 1, 64)
+    dense, edges = policy_memory(100_000, 20.0, 1.0, 1, 64)
+    assert dense > 1000 * sparse and edges > 4_000_000  # ~52 neighbours each at 12.5 agents per m^3

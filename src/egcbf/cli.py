@@ -25,17 +25,12 @@ import typer
 
 from .allocator import keep_freed_memory
 from .atomic import write_json_atomic
-from .cli_checks import (
-    check_env_flags,
-    check_policy_memory,
-    parse_device,
-    parse_sizes,
-    prepare_out,
-    require,
-    usage_error,
-)
+from .cli_checks import check_env_flags, parse_device, parse_sizes, prepare_out, require, usage_error
+from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval
 from .report import machine_info
 from .threads import choose_threads
+
+__all__ = ["app", "format_table", "main"]
 
 app = typer.Typer(
     add_completion=False,
@@ -43,13 +38,8 @@ app = typer.Typer(
     help="Equivariant graph CBFs for quadrotor swarms. (EGCBF_DEBUG=1 shows the traceback of a usage error.)",
 )
 
-_DTYPES = {"float32": torch.float32, "float64": torch.float64}
 #: the process's allocator setting (:mod:`egcbf.allocator`), set by :func:`main`; recorded in run.json
 _ALLOCATOR = "default (the CLI's entry point did not run)"
-
-
-#: the files an evaluation writes into --out (a new run refuses a folder holding any of them without --overwrite)
-_EVAL_RESULTS = ("metrics.json", "run.json", "*_N*.gif", "*_N*_topdown.png")
 
 
 _THREADS_HELP = (
@@ -77,38 +67,6 @@ def _torch_threads(threads: int, reason: str) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(saved)
-
-
-def format_table(rows: list[dict], title: str = "") -> str:
-    """A fixed-width table of metric rows (rates in %)."""
-    head = f"{'N':>5} {'Safe%':>7} {'Reach%':>7} {'Succ%':>7} {'Cost (min/max)':>20} {'Reward':>10} {'step ms':>8}"
-    has_qp = any("qp_ms_median" in r for r in rows)
-    if has_qp:
-        head += f" {'QP ms':>7} {'slack':>6}"
-    lines = [title, head, "-" * len(head)] if title else [head, "-" * len(head)]
-    for r in rows:
-        cost = f"{r['cost']:.3f} ({r['cost_min']:.2f}/{r['cost_max']:.2f})"
-        line = (
-            f"{r['num_agents']:>5} {100 * r['safe_rate']:>7.1f} {100 * r['reach_rate']:>7.1f} "
-            f"{100 * r['success_rate']:>7.1f} {cost:>20} {r['reward']:>10.2f} {r['step_ms_median']:>8.2f}"
-        )
-        if has_qp:
-            line += f" {r.get('qp_ms_median', float('nan')):>7.2f} {r.get('qp_slack_steps', 0):>6}"
-        lines.append(line)
-    return "\n".join(lines)
-
-
-def _render(records: dict, out: Path, area: float, tag: str) -> list[Path]:
-    from .render import render_gif, render_topdown
-
-    paths = []
-    for n, rec in records.items():
-        traj = torch.stack(rec.positions)
-        coll = torch.stack(rec.collided)
-        args = (traj, rec.goals, rec.centers, rec.radii, coll)
-        paths.append(render_gif(out / f"{tag}_N{n}.gif", *args, area_size=area, title=f"{tag} N={n}"))
-        paths.append(render_topdown(out / f"{tag}_N{n}_topdown.png", *args, area_size=area, title=f"{tag} N={n}"))
-    return paths
 
 
 @app.command("eval")
@@ -140,7 +98,7 @@ def eval_cmd(
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)
     with _torch_threads(n_threads, reason):
-        _eval(
+        run_eval(
             controller=controller,
             num_agents=num_agents,
             area=area,
@@ -157,115 +115,8 @@ def eval_cmd(
             checkpoint=checkpoint,
             threads_reason=reason,
             overwrite=overwrite,
+            allocator=_ALLOCATOR,
         )
-
-
-def _load_policy(checkpoint: Path, dev: torch.device, dtype: torch.dtype, flag: str = "--checkpoint"):
-    """``(checkpoint directory, controller, training config)`` of ``checkpoint``, or a usage error naming it."""
-    from .train import CheckpointError, find_checkpoint, load_controller
-
-    try:
-        ckpt = find_checkpoint(checkpoint)
-        learned, train_cfg = load_controller(ckpt, device=dev, dtype=dtype)
-    except (FileNotFoundError, CheckpointError) as err:
-        usage_error(f"{flag} {checkpoint}: {err}", err)
-    return ckpt, learned, train_cfg
-
-
-def _eval(
-    controller: str | None,
-    num_agents: str,
-    area: float,
-    obstacles: int,
-    episodes: int,
-    seed: int,
-    out: Path,
-    render: bool,
-    max_steps: int | None,
-    batch: int | None,
-    device: str,
-    dtype: str,
-    progress: bool,
-    checkpoint: Path | None,
-    threads_reason: str,
-    overwrite: bool = False,
-) -> None:
-    """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
-
-    Every input is checked first (flags, all swarm sizes, the checkpoint, ``out``); then each finished swarm size
-    is written at once (``metrics.json`` with the rows so far, its renders, ``run.json``), atomically."""
-    from .control.controllers import CONTROLLERS, make_controller
-    from .evaluate import evaluate
-
-    require(dtype in _DTYPES, f"--dtype must be one of {sorted(_DTYPES)}, got {dtype!r}")
-    require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
-    require(batch is None or batch >= 1, f"--batch must be >= 1 (episodes simulated together), got {batch}")
-    sizes = parse_sizes(num_agents)
-    dev = parse_device(device)
-    env_overrides, ckpt = None, None
-    if checkpoint is not None:  # a learned policy: everything it needs is in the checkpoint directory
-        if controller is not None:
-            usage_error("--controller and --checkpoint exclude each other (the checkpoint's policy is the controller)")
-        ckpt, learned, train_cfg = _load_policy(checkpoint, dev, _DTYPES[dtype])
-        controller = train_cfg.algo
-        env_overrides = dict(train_cfg.env_overrides)  # the sensing the policy was trained with (radii, LiDAR)
-    else:
-        controller = controller or "nominal"
-        require(controller in CONTROLLERS, f"--controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
-    configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides)
-    if checkpoint is not None:
-        check_policy_memory(configs, episodes, batch, train_cfg.model.hidden, dev)
-    prepare_out(out, overwrite, _EVAL_RESULTS)
-    t0 = time.time()
-    meta = {
-        "command": " ".join(["egcbf", *sys.argv[1:]]),
-        "controller": controller,
-        "checkpoint": None if ckpt is None else str(ckpt),
-        "num_agents": sizes,
-        "finished": [],
-        "complete": False,
-        "area": area,
-        "obstacles": obstacles,
-        "episodes": episodes,
-        "seed": seed,
-        "wall_s": 0.0,
-        "threads": torch.get_num_threads(),
-        "threads_reason": threads_reason,
-        "allocator": _ALLOCATOR,
-        "machine": machine_info(),
-    }
-    write_json_atomic(out / "run.json", meta)
-    written: list[Path] = []
-
-    def save_size(rows: list[dict], record) -> None:  # a later failure never loses a finished size
-        write_json_atomic(out / "metrics.json", rows)
-        if record is not None:
-            written.extend(_render({rows[-1]["num_agents"]: record}, out, area, controller))
-        meta.update(finished=[r["num_agents"] for r in rows], wall_s=round(time.time() - t0, 1))
-        write_json_atomic(out / "run.json", meta)
-
-    rows, _ = evaluate(
-        (lambda cfg: learned) if checkpoint is not None else (lambda cfg: make_controller(controller)),
-        sizes,
-        area_size=area,
-        num_obstacles=obstacles,
-        episodes=episodes,
-        seed=seed,
-        batch=batch,
-        max_steps=max_steps,
-        device=dev,
-        dtype=_DTYPES[dtype],
-        record=render,
-        show_progress=progress,
-        env_overrides=env_overrides,
-        on_size=save_size,
-    )
-    meta.update(complete=True, wall_s=round(time.time() - t0, 1))
-    write_json_atomic(out / "run.json", meta)
-    typer.echo(format_table(rows, title=f"{controller}: l={area:g}, {obstacles} obstacles, {episodes} episodes"))
-    for p in written:
-        typer.echo(f"wrote {p}")
-    typer.echo(f"wrote {out / 'metrics.json'}")
 
 
 def _demo_source(name: str, checkpoints: Path) -> Path | None:
@@ -334,14 +185,14 @@ def demo(
     check_env_flags([num_agents], area, obstacles, max_steps)
     for ckpt in sources.values():
         if ckpt is not None:
-            _load_policy(ckpt, dev, torch.float32, "--checkpoints")
+            load_policy(ckpt, dev, torch.float32, "--checkpoints")
     prepare_out(out, overwrite, ("demo.json",))
     for name in names:
-        prepare_out(out / name, overwrite, _EVAL_RESULTS)
+        prepare_out(out / name, overwrite, EVAL_RESULTS)
     with _torch_threads(n_threads, reason):
         rows = {}
         for name, ckpt in sources.items():
-            _eval(
+            run_eval(
                 controller=name if ckpt is None else None,
                 num_agents=str(num_agents),
                 area=area,
@@ -358,6 +209,7 @@ def demo(
                 checkpoint=ckpt,
                 threads_reason=reason,
                 overwrite=True,  # checked above for every method
+                allocator=_ALLOCATOR,
             )
             rows[name] = json.loads((out / name / "metrics.json").read_text())[0]
         if len(rows) == 2:

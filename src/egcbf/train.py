@@ -51,7 +51,7 @@ from safetensors.torch import save_file
 from tqdm.auto import tqdm
 
 from .algo.learner import GraphCBFLearner, LearnedController
-from .atomic import recover_dir, replace_dir, write_text_atomic
+from .atomic import recover_dir, replace_dir, write_json_atomic, write_text_atomic
 from .ckpt_files import (
     CheckpointError,
     check_identity,
@@ -431,7 +431,7 @@ def train(
         out.mkdir(parents=True, exist_ok=True)
         learner = GraphCBFLearner(config)
         wall0 = 0.0
-    config.to_json(out / "config.json")
+    write_json_atomic(out / "config.json", config.to_dict())  # a kill never leaves a half-written config
     logger = _Logger(out, learner.step)
     best = [_best_key(out) if resume else None]
     t_start = time.perf_counter()

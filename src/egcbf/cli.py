@@ -394,6 +394,9 @@ def reproduce(
             validate(cfg)
     except (ValueError, FileNotFoundError, ImportError) as err:
         usage_error(str(err), err)
+    if not report_only:
+        prepare_out(out, True, ())  # writable (finished cells in it are reused, never overwritten)
+    prepare_out(report.parent, True, (), flag="--report")
     if report_only:
         records = load_cells(cfg)
     else:

@@ -157,3 +157,19 @@ def test_bad_reproduce_flag(cli, tmp_path, args, phrases):
               "--report", tmp_path / "r.md", "--no-progress", *args)  # fmt: skip
     assert_usage_error(res, *phrases)
     assert not (tmp_path / "r.md").exists()
+
+
+def test_reproduce_out_that_is_a_file_is_refused(cli, tmp_path):
+    f = tmp_path / "cells"
+    f.write_text("x")
+    res = cli("reproduce", "--methods", "nominal", "--obstacle-methods", "nominal", "--out", f,
+              "--report", tmp_path / "r.md", "--no-progress", "--episodes", "1", "--max-steps", "2")  # fmt: skip
+    assert_usage_error(res, "--out", "is a file")
+
+
+def test_reproduce_report_in_a_file_is_refused(cli, tmp_path):
+    f = tmp_path / "notadir"
+    f.write_text("x")
+    res = cli("reproduce", "--methods", "nominal", "--obstacle-methods", "nominal", "--out", tmp_path / "cells",
+              "--report", f / "r.md", "--no-progress", "--episodes", "1", "--max-steps", "2")  # fmt: skip
+    assert_usage_error(res, "--report", "is a file")

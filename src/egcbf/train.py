@@ -373,8 +373,12 @@ def _resume(out: Path, steps: int | None, log) -> tuple[GraphCBFLearner, TrainCo
             log(f"checkpoint {ckpt} cannot be loaded ({err}); trying the previous one")
             continue
         for bad in found[found.index(ckpt) + 1 :]:
-            os.replace(bad, bad.with_name(bad.name + ".corrupt"))
-            log(f"set aside {bad} as {bad.name}.corrupt; resuming from {ckpt}")
+            aside = bad.with_name(bad.name + ".corrupt")
+            k = 1
+            while aside.exists():  # an earlier fallback set aside the same step
+                aside, k = bad.with_name(f"{bad.name}.corrupt{k}"), k + 1
+            os.replace(bad, aside)
+            log(f"set aside {bad} as {aside.name}; resuming from {ckpt}")
         return learner, config, ckpt, saved
     raise CheckpointError(f"no checkpoint of {out} can be loaded: " + "; ".join(errors))
 

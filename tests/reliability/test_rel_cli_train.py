@@ -173,3 +173,12 @@ def test_reproduce_report_in_a_file_is_refused(cli, tmp_path):
     res = cli("reproduce", "--methods", "nominal", "--obstacle-methods", "nominal", "--out", tmp_path / "cells",
               "--report", f / "r.md", "--no-progress", "--episodes", "1", "--max-steps", "2")  # fmt: skip
     assert_usage_error(res, "--report", "is a file")
+
+
+def test_resume_falls_back_past_a_corrupted_checkpoint_and_says_so(cli, run_copy):
+    newest = sorted((run_copy / "checkpoints").glob("step_*"))[-1]
+    (newest / "training_state.pt").write_bytes(b"truncated")
+    res = cli("train", "--out", run_copy, "--resume", "--no-progress")
+    assert res.exit_code == 0, res.output
+    assert "cannot be loaded" in res.output and "training_state.pt" in res.output
+    assert "resuming from" in res.output and "step_000002" in res.output

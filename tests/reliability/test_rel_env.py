@@ -133,3 +133,25 @@ def test_separated_agents_rows_are_unchanged():
     pos = np.array([[0.0, 0.0, 0.0], [0.3, 0.4, 0.0]])
     rows = pair_constraints(pos, np.zeros((2, 3)), np.array([[0], [1]]), BarrierConfig(cull_radius=1.0))
     assert np.allclose(rows.normal, [[-0.6, -0.8, 0.0]])
+
+
+@pytest.mark.parametrize("name", ["ccbf", "dcbf"])
+def test_cbf_qps_refuse_an_entering_state_with_a_nan_obstacle(env, name):
+    from egcbf.control.controllers import make_controller
+
+    s = env.reset(0)
+    c = s.obstacles.centers.clone()
+    c[0, 0, 2] = float("nan")
+    with pytest.raises(ValueError, match="obstacle centers hold NaN"):
+        make_controller(name)(_with(s, centers=c), env.config)
+
+
+@pytest.mark.parametrize("name", ["ccbf", "dcbf"])
+def test_cbf_qps_give_finite_controls_for_coincident_agents(env, name):
+    from egcbf.control.controllers import make_controller
+
+    s = env.reset(0)
+    x = s.x.clone()
+    x[0, 1, dyn.P] = x[0, 0, dyn.P]  # agents 0 and 1 at exactly the same point
+    u, _ = make_controller(name)(_with(s, x=x), env.config)
+    assert u.shape == (1, 4, 4) and torch.isfinite(u).all()

@@ -25,7 +25,15 @@ import typer
 
 from .allocator import keep_freed_memory
 from .atomic import write_json_atomic
-from .cli_checks import check_env_flags, parse_device, parse_sizes, prepare_out, require, usage_error
+from .cli_checks import (
+    check_env_flags,
+    check_policy_memory,
+    parse_device,
+    parse_sizes,
+    prepare_out,
+    require,
+    usage_error,
+)
 from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval
 from .report import machine_info
 from .threads import choose_threads
@@ -183,9 +191,11 @@ def demo(
     require(num_agents >= 1, f"--num-agents must be >= 1, got {num_agents}")
     dev = parse_device(device)
     check_env_flags([num_agents], area, obstacles, max_steps)
-    for ckpt in sources.values():
+    for ckpt in sources.values():  # every checkpoint loads and fits in memory, before the first method runs
         if ckpt is not None:
-            load_policy(ckpt, dev, torch.float32, "--checkpoints")
+            _, _, train_cfg = load_policy(ckpt, dev, torch.float32, "--checkpoints")
+            configs = check_env_flags([num_agents], area, obstacles, max_steps, train_cfg.env_overrides)
+            check_policy_memory(configs, episodes, None, train_cfg.model.hidden, dev)
     prepare_out(out, overwrite, ("demo.json",))
     for name in names:
         prepare_out(out / name, overwrite, EVAL_RESULTS)

@@ -2,13 +2,15 @@
 file raises :class:`CheckpointError` (a ``ValueError``) instead of a raw parser error.
 
 Every checkpoint (and ``OUT/best``) records what it is in ``state.json``: ``format_version``
-(:data:`FORMAT_VERSION`), ``algo``, ``group`` and ``interface``. :func:`check_identity` compares them with the
-directory's ``config.json`` on load, so that one method's weights are never loaded under another's config.
-Checkpoints written before the format was versioned (no ``format_version``) are checked on ``algo`` only.
+(:data:`FORMAT_VERSION`), ``algo``, ``group``, ``interface`` and ``weights_sha256`` (the hash of its
+``model.safetensors``). :func:`check_identity` compares them with the directory's ``config.json`` and weights file
+on load, so that one method's weights (or another run's) are never loaded under another's config. Checkpoints
+written before the format was versioned (no ``format_version``) are checked on ``algo`` only.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -24,6 +26,7 @@ __all__ = [
     "read_state",
     "read_tensors",
     "read_training_state",
+    "sha256",
 ]
 
 #: Version of the checkpoint layout written by this code (``state.json["format_version"]``).
@@ -42,6 +45,15 @@ def identity(config) -> dict:
         "group": config.group,
         "interface": config.model.interface,
     }
+
+
+def sha256(path: Path) -> str:
+    """Hex SHA-256 of a file (read in 1 MiB blocks)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def read_config(ckpt: Path):
@@ -110,3 +122,9 @@ def check_identity(ckpt: Path, config, state: dict | None = None) -> None:
                 f"{ckpt}: state.json says the weights are {key} {state[key]!r} but config.json says "
                 f"{want[key]!r}; the files come from different runs (copy the whole checkpoint directory)"
             )
+    weights = Path(ckpt) / "model.safetensors"
+    if "weights_sha256" in state and weights.exists() and sha256(weights) != state["weights_sha256"]:
+        raise CheckpointError(
+            f"{weights} is not the file its state.json was written with (SHA-256 differs): replaced by another "
+            "run's weights, or corrupted; copy the whole checkpoint directory"
+        )

@@ -278,8 +278,8 @@ def find_method_checkpoint(root: str | Path, method: str) -> CheckpointInfo:
     if train_cfg.algo != method:
         raise ValueError(f"{path}/config.json is a {train_cfg.algo!r} checkpoint, expected {method!r}")
     state = read_state(path)
-    check_identity(path, train_cfg, state)
     read_tensors(path / "model.safetensors")  # a truncated or corrupted file fails here, before any cell runs
+    check_identity(path, train_cfg, state)
     step = state.get("step")
     return CheckpointInfo(method, path, _sha256(path / "model.safetensors"), step, train_cfg.seed)
 

@@ -60,6 +60,7 @@ from .ckpt_files import (
     read_state,
     read_tensors,
     read_training_state,
+    sha256,
 )
 from .config import TrainConfig
 from .evaluate import episode_seed, run_episodes
@@ -172,7 +173,7 @@ def _write_dir_atomically(learner: GraphCBFLearner, final: Path, state: dict, ex
     save_file({k: v.cpu() for k, v in learner.weights().items()}, str(tmp / "model.safetensors"))
     if extra is not None:
         extra(tmp)
-    state = {**state, **identity(learner.config)}
+    state = {**state, **identity(learner.config), "weights_sha256": sha256(tmp / "model.safetensors")}
     (tmp / "state.json").write_text(json.dumps(state, indent=2) + "\n")
     return replace_dir(tmp, final)
 
@@ -262,9 +263,9 @@ def load_learner(path: str | Path, device=None, dtype=None, config: TrainConfig 
     """The learner of checkpoint ``path`` (a checkpoint or run directory): weights, optimizers, RNG, buffers."""
     ckpt = find_checkpoint(path)
     cfg = config or read_config(ckpt)
+    weights = read_tensors(ckpt / "model.safetensors")
     check_identity(ckpt, cfg)
     learner = GraphCBFLearner(cfg, device=device, dtype=dtype)
-    weights = read_tensors(ckpt / "model.safetensors")
     _load_state_dict(
         ckpt, lambda: learner.load_weights({k: v.to(learner.device, learner.dtype) for k, v in weights.items()})
     )
@@ -314,9 +315,9 @@ def load_network(
         raise ValueError(f"part must be one of {sorted(nets)}, got {part!r}")
     ckpt = find_checkpoint(path)
     cfg = read_config(ckpt)
+    weights = read_tensors(ckpt / "model.safetensors")
     check_identity(ckpt, cfg)
     net = nets[part](cfg.model)
-    weights = read_tensors(ckpt / "model.safetensors")
     prefix = part + "."
     _load_state_dict(
         ckpt, lambda: net.load_state_dict({k[len(prefix) :]: v for k, v in weights.items() if k.startswith(prefix)})

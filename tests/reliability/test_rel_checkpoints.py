@@ -13,6 +13,12 @@ from egcbf.ckpt_files import FORMAT_VERSION, CheckpointError
 from egcbf.train import _truncate_csv, find_checkpoint, load_controller, load_learner, load_network, train
 
 
+def _tiny_config(**changes):
+    from egcbf.config import TrainConfig
+
+    return TrainConfig.preset("egcbf+", "tiny", steps=2, **changes)
+
+
 @pytest.fixture
 def run(tiny_run, tmp_path):
     dst = tmp_path / "run"
@@ -85,6 +91,8 @@ def test_weights_of_another_shape_are_refused(run):
     key = next(k for k in w if k.startswith("policy."))
     w[key] = torch.zeros(3, 3, 3)
     save_file(w, str(f))
+    st = run / "best" / "state.json"
+    st.write_text(json.dumps({k: v for k, v in json.loads(st.read_text()).items() if k != "weights_sha256"}))
     with pytest.raises(CheckpointError, match="does not match"):
         load_controller(run / "best")
 
@@ -141,3 +149,18 @@ def test_truncating_a_log_drops_a_half_written_last_row(tmp_path):
     with open(f, newline="") as fh:
         assert [r["step"] for r in csv.DictReader(fh)] == ["1", "2", "3"]
     assert not list(tmp_path.glob(".*tmp"))  # written through a temporary file, renamed over
+
+
+def test_weights_of_another_run_are_refused(run, tmp_path):
+    other = tmp_path / "other"
+    train(_tiny_config(seed=7), other, progress=False, log=lambda s: None)
+    shutil.copy(other / "best" / "model.safetensors", run / "best" / "model.safetensors")
+    with pytest.raises(CheckpointError, match="SHA-256 differs"):
+        load_controller(run / "best")
+
+
+def test_state_json_records_the_weights_hash(run):
+    from egcbf.ckpt_files import sha256
+
+    state = json.loads((run / "best" / "state.json").read_text())
+    assert state["weights_sha256"] == sha256(run / "best" / "model.safetensors")

@@ -3,6 +3,7 @@ writing each finished swarm size at once (atomically), and print the table."""
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -57,8 +58,12 @@ def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path
         traj = torch.stack(rec.positions)
         coll = torch.stack(rec.collided)
         args = (traj, rec.goals, rec.centers, rec.radii, coll)
-        paths.append(render_gif(out / f"{tag}_N{n}.gif", *args, area_size=area, title=f"{tag} N={n}"))
-        paths.append(render_topdown(out / f"{tag}_N{n}_topdown.png", *args, area_size=area, title=f"{tag} N={n}"))
+        for render, name in ((render_gif, f"{tag}_N{n}.gif"), (render_topdown, f"{tag}_N{n}_topdown.png")):
+            final = out / name
+            tmp = final.with_name(f".{final.stem}.partial{final.suffix}")  # a kill never leaves a half image
+            render(tmp, *args, area_size=area, title=f"{tag} N={n}")
+            os.replace(tmp, final)
+            paths.append(final)
     return paths
 
 

@@ -169,3 +169,27 @@ def test_policy_memory_estimate_grows_with_density():
     sparse, _ = policy_memory(1000, 20.0, 1.0, 1, 64)
     dense, edges = policy_memory(100_000, 20.0, 1.0, 1, 64)
     assert dense > 1000 * sparse and edges > 4_000_000  # ~52 neighbours each at 12.5 agents per m^3
+
+
+@pytest.mark.parametrize(
+    "name, content",
+    [("config.json", b"{"), ("config.json", b'{"algo": "nope"}'), ("model.safetensors", b"xx"), ("state.json", b"[")],
+)
+def test_corrupted_checkpoint_file_is_named(cli, tmp_path, tiny_run, name, content):
+    import shutil
+
+    ck = tmp_path / "ck"
+    shutil.copytree(tiny_run / "best", ck)
+    (ck / name).write_bytes(content)
+    assert_usage_error(_eval(cli, tmp_path / "ev", "--checkpoint", ck), "--checkpoint", name)
+    assert not (tmp_path / "ev" / "metrics.json").exists()
+
+
+def test_truncated_checkpoint_weights_are_named(cli, tmp_path, tiny_run):
+    import shutil
+
+    ck = tmp_path / "ck"
+    shutil.copytree(tiny_run / "best", ck)
+    f = ck / "model.safetensors"
+    f.write_bytes(f.read_bytes()[: f.stat().st_size // 3])
+    assert_usage_error(_eval(cli, tmp_path / "ev", "--checkpoint", ck), "model.safetensors", "truncated")

@@ -4,6 +4,10 @@ policy) and ``egcbf demo`` (the main job).
     egcbf eval --controller ccbf --num-agents 8,16,64 --area 4 --obstacles 0 --episodes 50 --seed 0 --out runs/ccbf
     egcbf train --algo egcbf+ --steps 300 --out runs/egcbf+          # CPU recipe; --preset paper --device cuda
     egcbf eval --checkpoint runs/egcbf+ --num-agents 8,16,64 --out runs/egcbf+/eval
+
+A user error (a bad flag value, an unusable file) ends a command with one ``Error: ...`` line naming the flag or
+file and exit code 2 (:mod:`egcbf.cli_checks`); ``EGCBF_DEBUG=1`` shows the traceback instead. Every input is
+checked before any work starts, and ``eval`` writes each swarm size's results as soon as it is finished.
 """
 
 from __future__ import annotations
@@ -20,31 +24,30 @@ import torch
 import typer
 
 from .allocator import keep_freed_memory
+from .atomic import write_json_atomic
+from .cli_checks import (
+    check_env_flags,
+    check_policy_memory,
+    parse_device,
+    parse_sizes,
+    prepare_out,
+    require,
+    usage_error,
+)
+from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval
 from .report import machine_info
 from .threads import choose_threads
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help="Equivariant graph CBFs for quadrotor swarms.")
+__all__ = ["app", "format_table", "main"]
 
-_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Equivariant graph CBFs for quadrotor swarms. (EGCBF_DEBUG=1 shows the traceback of a usage error.)",
+)
+
 #: the process's allocator setting (:mod:`egcbf.allocator`), set by :func:`main`; recorded in run.json
 _ALLOCATOR = "default (the CLI's entry point did not run)"
-
-
-def _parse_sizes(text: str) -> list[int]:
-    try:
-        sizes = [int(s) for s in text.replace(" ", "").split(",") if s]
-    except ValueError:
-        raise typer.BadParameter(f"--num-agents must be comma-separated integers, got {text!r}") from None
-    if not sizes or any(n < 1 for n in sizes):
-        raise typer.BadParameter(f"--num-agents needs positive integers, got {text!r}")
-    return sizes
-
-
-def _device(name: str) -> torch.device:
-    dev = torch.device(name)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise typer.BadParameter("--device cuda was given but torch.cuda.is_available() is False")
-    return dev
 
 
 _THREADS_HELP = (
@@ -59,7 +62,7 @@ def _threads(requested: int | None) -> tuple[int, str]:
     try:
         return choose_threads(requested)
     except ValueError as err:
-        raise typer.BadParameter(str(err)) from None
+        usage_error(str(err), err)
 
 
 @contextmanager
@@ -74,41 +77,11 @@ def _torch_threads(threads: int, reason: str) -> Iterator[None]:
         torch.set_num_threads(saved)
 
 
-def format_table(rows: list[dict], title: str = "") -> str:
-    """A fixed-width table of metric rows (rates in %)."""
-    head = f"{'N':>5} {'Safe%':>7} {'Reach%':>7} {'Succ%':>7} {'Cost (min/max)':>20} {'Reward':>10} {'step ms':>8}"
-    has_qp = any("qp_ms_median" in r for r in rows)
-    if has_qp:
-        head += f" {'QP ms':>7} {'slack':>6}"
-    lines = [title, head, "-" * len(head)] if title else [head, "-" * len(head)]
-    for r in rows:
-        cost = f"{r['cost']:.3f} ({r['cost_min']:.2f}/{r['cost_max']:.2f})"
-        line = (
-            f"{r['num_agents']:>5} {100 * r['safe_rate']:>7.1f} {100 * r['reach_rate']:>7.1f} "
-            f"{100 * r['success_rate']:>7.1f} {cost:>20} {r['reward']:>10.2f} {r['step_ms_median']:>8.2f}"
-        )
-        if has_qp:
-            line += f" {r.get('qp_ms_median', float('nan')):>7.2f} {r.get('qp_slack_steps', 0):>6}"
-        lines.append(line)
-    return "\n".join(lines)
-
-
-def _render(records: dict, out: Path, area: float, tag: str) -> list[Path]:
-    from .render import render_gif, render_topdown
-
-    paths = []
-    for n, rec in records.items():
-        traj = torch.stack(rec.positions)
-        coll = torch.stack(rec.collided)
-        args = (traj, rec.goals, rec.centers, rec.radii, coll)
-        paths.append(render_gif(out / f"{tag}_N{n}.gif", *args, area_size=area, title=f"{tag} N={n}"))
-        paths.append(render_topdown(out / f"{tag}_N{n}_topdown.png", *args, area_size=area, title=f"{tag} N={n}"))
-    return paths
-
-
 @app.command("eval")
 def eval_cmd(
-    controller: Annotated[str, typer.Option(help="nominal | ccbf | dcbf")] = "nominal",
+    controller: Annotated[
+        str | None, typer.Option(help="nominal (default) | ccbf | dcbf; not with --checkpoint")
+    ] = None,
     num_agents: Annotated[str, typer.Option("--num-agents", help="comma-separated swarm sizes")] = "8,16,64",
     area: Annotated[float, typer.Option(help="side l of the arena [0, l]^3 (m)")] = 4.0,
     obstacles: Annotated[int, typer.Option(help="number of sphere obstacles")] = 0,
@@ -126,11 +99,14 @@ def eval_cmd(
         typer.Option(help="evaluate a trained policy: a checkpoint directory or a run directory (newest checkpoint)"),
     ] = None,
     threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="replace the results already in OUT (default: refuse to mix runs)")
+    ] = False,
 ) -> None:
-    """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json."""
+    """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)
     with _torch_threads(n_threads, reason):
-        _eval(
+        run_eval(
             controller=controller,
             num_agents=num_agents,
             area=area,
@@ -146,87 +122,9 @@ def eval_cmd(
             progress=progress,
             checkpoint=checkpoint,
             threads_reason=reason,
+            overwrite=overwrite,
+            allocator=_ALLOCATOR,
         )
-
-
-def _eval(
-    controller: str,
-    num_agents: str,
-    area: float,
-    obstacles: int,
-    episodes: int,
-    seed: int,
-    out: Path,
-    render: bool,
-    max_steps: int | None,
-    batch: int | None,
-    device: str,
-    dtype: str,
-    progress: bool,
-    checkpoint: Path | None,
-    threads_reason: str,
-) -> None:
-    """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set."""
-    from .control.controllers import CONTROLLERS, make_controller
-    from .evaluate import evaluate
-
-    env_overrides = None
-    if checkpoint is not None:  # a learned policy: everything it needs is in the checkpoint directory
-        from .train import find_checkpoint, load_controller
-
-        try:
-            ckpt = find_checkpoint(checkpoint)
-        except FileNotFoundError as err:
-            raise typer.BadParameter(str(err)) from None
-        learned, train_cfg = load_controller(ckpt, device=_device(device), dtype=_DTYPES.get(dtype, torch.float32))
-        controller = train_cfg.algo
-        env_overrides = dict(train_cfg.env_overrides)  # the sensing the policy was trained with (radii, LiDAR)
-    elif controller not in CONTROLLERS:
-        raise typer.BadParameter(f"--controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
-    if dtype not in _DTYPES:
-        raise typer.BadParameter(f"--dtype must be one of {sorted(_DTYPES)}")
-    if episodes < 1:
-        raise typer.BadParameter("--episodes must be >= 1")
-    sizes = _parse_sizes(num_agents)
-    dev = _device(device)
-    t0 = time.time()
-    rows, records = evaluate(
-        (lambda cfg: learned) if checkpoint is not None else (lambda cfg: make_controller(controller)),
-        sizes,
-        area_size=area,
-        num_obstacles=obstacles,
-        episodes=episodes,
-        seed=seed,
-        batch=batch,
-        max_steps=max_steps,
-        device=dev,
-        dtype=_DTYPES[dtype],
-        record=render,
-        show_progress=progress,
-        env_overrides=env_overrides,
-    )
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(json.dumps(rows, indent=2) + "\n")
-    meta = {
-        "command": " ".join(["egcbf", *sys.argv[1:]]),
-        "controller": controller,
-        "checkpoint": None if checkpoint is None else str(ckpt),
-        "area": area,
-        "obstacles": obstacles,
-        "episodes": episodes,
-        "seed": seed,
-        "wall_s": round(time.time() - t0, 1),
-        "threads": torch.get_num_threads(),
-        "threads_reason": threads_reason,
-        "allocator": _ALLOCATOR,
-        "machine": machine_info(),
-    }
-    (out / "run.json").write_text(json.dumps(meta, indent=2) + "\n")
-    typer.echo(format_table(rows, title=f"{controller}: l={area:g}, {obstacles} obstacles, {episodes} episodes"))
-    if render:
-        for p in _render(records, out, area, controller):
-            typer.echo(f"wrote {p}")
-    typer.echo(f"wrote {out / 'metrics.json'}")
 
 
 def _demo_source(name: str, checkpoints: Path) -> Path | None:
@@ -238,7 +136,7 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
     if name in CONTROLLERS:
         return None
     if name not in METHODS:
-        raise typer.BadParameter(
+        usage_error(
             f"unknown method {name!r}: a learned method {sorted(METHODS)} or a controller {sorted(CONTROLLERS)}"
         )
     from .train import find_checkpoint
@@ -246,12 +144,12 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
     path = checkpoints / name
     try:
         return find_checkpoint(path)
-    except FileNotFoundError:
-        raise typer.BadParameter(
-            f"no {name} checkpoint at {path} (config.json + model.safetensors). Train one with\n"
-            f"  egcbf train --algo {name} --steps 200 --threads 1 --out runs/{name}\n"
-            f"and pass --checkpoints with a directory holding {name}/ (e.g. a copy of runs/{name}/best)."
-        ) from None
+    except FileNotFoundError as err:
+        usage_error(
+            f"--checkpoints: no {name} checkpoint at {path} (config.json + model.safetensors); train one with "
+            f"`egcbf train --algo {name} --out runs/{name}` and pass --checkpoints with a folder holding {name}/",
+            err,
+        )
 
 
 @app.command()
@@ -276,6 +174,9 @@ def demo(
     device: Annotated[str, typer.Option()] = "cpu",
     threads: Annotated[int | None, typer.Option(help=_THREADS_HELP.replace("run.json", "demo.json"))] = None,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="replace the results already in OUT (default: refuse to mix runs)")
+    ] = False,
 ) -> None:
     """The main job: the learned EGCBF+ policy and GCBF+ on the same episodes (64 agents, l = 4, 8 obstacles by
     default): both metrics tables, a one-line comparison, OUT/<method>/metrics.json, a GIF and a top-down PNG of
@@ -286,11 +187,23 @@ def demo(
     names = [method] + ([] if baseline.lower() in ("none", "") or baseline == method else [baseline])
     sources = {name: _demo_source(name, checkpoints) for name in names}  # fail before any work
     n_threads, reason = _threads(threads)
+    require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
+    require(num_agents >= 1, f"--num-agents must be >= 1, got {num_agents}")
+    dev = parse_device(device)
+    check_env_flags([num_agents], area, obstacles, max_steps)
+    for ckpt in sources.values():  # every checkpoint loads and fits in memory, before the first method runs
+        if ckpt is not None:
+            _, _, train_cfg = load_policy(ckpt, dev, torch.float32, "--checkpoints")
+            configs = check_env_flags([num_agents], area, obstacles, max_steps, train_cfg.env_overrides)
+            check_policy_memory(configs, episodes, None, train_cfg.model.hidden, dev)
+    prepare_out(out, overwrite, ("demo.json",))
+    for name in names:
+        prepare_out(out / name, overwrite, EVAL_RESULTS)
     with _torch_threads(n_threads, reason):
         rows = {}
         for name, ckpt in sources.items():
-            _eval(
-                controller=name if ckpt is None else "nominal",
+            run_eval(
+                controller=name if ckpt is None else None,
                 num_agents=str(num_agents),
                 area=area,
                 obstacles=obstacles,
@@ -305,6 +218,8 @@ def demo(
                 progress=progress,
                 checkpoint=ckpt,
                 threads_reason=reason,
+                overwrite=True,  # checked above for every method
+                allocator=_ALLOCATOR,
             )
             rows[name] = json.loads((out / name / "metrics.json").read_text())[0]
         if len(rows) == 2:
@@ -332,14 +247,13 @@ def demo(
             "allocator": _ALLOCATOR,
             "machine": machine_info(),
         }
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "demo.json").write_text(json.dumps(summary, indent=2) + "\n")
+        write_json_atomic(out / "demo.json", summary)
         typer.echo(f"wrote {out / 'demo.json'}")
 
 
 @app.command()
 def train(
-    algo: Annotated[str, typer.Option(help="gcbf | gcbf+ | egcbf | egcbf+")] = "egcbf+",
+    algo: Annotated[str | None, typer.Option(help="gcbf | gcbf+ | egcbf | egcbf+ (default; not with --resume)")] = None,
     out: Annotated[Path, typer.Option(help="run directory (config, logs, metrics.csv, checkpoints)")] = Path(
         "runs/train"
     ),
@@ -347,57 +261,70 @@ def train(
         Path | None, typer.Option(help="JSON file of TrainConfig fields overriding the preset (may set 'preset')")
     ] = None,
     preset: Annotated[str | None, typer.Option(help="cpu (default) | paper | tiny")] = None,
-    steps: Annotated[int | None, typer.Option(help="number of updates (default: the config's)")] = None,
+    steps: Annotated[
+        int | None, typer.Option(help="total number of updates (default: the config's; with --resume: extend to)")
+    ] = None,
     device: Annotated[str | None, typer.Option(help="cpu | cuda (default: the config's)")] = None,
     seed: Annotated[int | None, typer.Option(help="seed (default: the config's)")] = None,
     resume: Annotated[
-        bool, typer.Option("--resume", help="continue the run in OUT from its newest checkpoint")
+        bool, typer.Option("--resume", help="continue the run in OUT from its newest loadable checkpoint")
     ] = False,
     threads: Annotated[int | None, typer.Option(help="torch CPU threads (default: torch's)")] = None,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
 ) -> None:
     """Train GCBF, GCBF+, EGCBF or EGCBF+ (one learner; the group and the reference controller differ)."""
+    from .ckpt_files import CheckpointError
     from .config import METHODS, PRESETS, TrainConfig
+    from .train import checkpoint_step
     from .train import train as run_training
 
-    if algo not in METHODS:
-        raise typer.BadParameter(f"--algo must be one of {sorted(METHODS)}, got {algo!r}")
+    require(algo is None or algo in METHODS, f"--algo must be one of {sorted(METHODS)}, got {algo!r}")
+    require(steps is None or steps >= 1, f"--steps must be >= 1, got {steps}")
+    require(threads is None or threads >= 1, f"--threads must be >= 1, got {threads}")
+    if out.exists() and not out.is_dir():
+        usage_error(f"--out {out} is a file, not a run directory; choose another --out")
     if resume:
+        if algo is not None:
+            usage_error("--algo cannot change a resumed run (its method is in OUT/config.json); drop --algo")
         if config is not None or preset is not None or seed is not None or device is not None:
-            raise typer.BadParameter("--resume continues the saved config: only --steps and --threads may change")
+            usage_error("--resume continues the saved config: only --steps and --threads may change")
+        current = checkpoint_step(out)
+        if steps is not None and current is not None and steps < current:
+            usage_error(f"--steps {steps} is below the run's current update {current}; pass --steps >= {current}")
         if threads is not None:
             torch.set_num_threads(threads)
         try:
             run_training(TrainConfig(), out, resume=True, steps=steps, progress=progress)
-        except FileNotFoundError as err:
-            raise typer.BadParameter(str(err)) from None
+        except (FileNotFoundError, CheckpointError) as err:
+            usage_error(f"--resume --out {out}: {err}", err)
         return
+    algo = algo or "egcbf+"
     fields = {}
     if config is not None:
         try:
             fields = json.loads(config.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise typer.BadParameter(f"--config {config}: {err}") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            usage_error(f"--config {config}: {err}", err)
+        require(isinstance(fields, dict), f"--config {config} must hold a JSON object of TrainConfig fields")
         file_algo = fields.pop("algo", algo)
-        if file_algo != algo:
-            raise typer.BadParameter(f"--config says algo {file_algo!r} but --algo is {algo!r}")
+        require(file_algo == algo, f"--config {config} says algo {file_algo!r} but --algo is {algo!r}")
         fields.pop("reference", None)
     name = preset or fields.pop("preset", "cpu")
     fields.pop("preset", None)
-    if name not in PRESETS:
-        raise typer.BadParameter(f"--preset must be one of {PRESETS}, got {name!r}")
+    require(name in PRESETS, f"--preset must be one of {PRESETS}, got {name!r}")
     for key, value in (("steps", steps), ("device", device), ("seed", seed), ("num_threads", threads)):
         if value is not None:
             fields[key] = value
     try:
         cfg = TrainConfig.preset(algo, name, **fields)
     except (TypeError, ValueError) as err:
-        raise typer.BadParameter(str(err)) from None
-    _device(cfg.device)
+        usage_error(f"{'--config ' + str(config) + ': ' if config is not None else ''}{err}", err)
+    parse_device(cfg.device)
+    prepare_out(out, False, ())
     try:
         run_training(cfg, out, progress=progress)
     except FileExistsError as err:
-        raise typer.BadParameter(str(err)) from None
+        usage_error(f"--out {out}: {err}", err)
 
 
 def _parse_methods(text: str, option: str) -> tuple[str, ...]:
@@ -406,7 +333,7 @@ def _parse_methods(text: str, option: str) -> tuple[str, ...]:
     names = tuple(s for s in text.replace(" ", "").split(",") if s)
     bad = [m for m in names if m not in METHODS]
     if bad:
-        raise typer.BadParameter(f"{option}: unknown method(s) {bad}; choose from {', '.join(METHODS)}")
+        usage_error(f"{option}: unknown method(s) {bad}; choose from {', '.join(METHODS)}")
     return names
 
 
@@ -456,7 +383,7 @@ def reproduce(
     try:
         cfg = SweepConfig(
             methods=_parse_methods(methods, "--methods"),
-            num_agents=tuple(_parse_sizes(num_agents)),
+            num_agents=tuple(parse_sizes(num_agents)),
             area=area,
             obstacles=obstacles,
             obstacle_methods=_parse_methods(obstacle_methods, "--obstacle-methods"),
@@ -472,9 +399,14 @@ def reproduce(
             backend=backend,
         )
         if not report_only:
+            parse_device(device)
+            check_env_flags(cfg.num_agents, area, obstacles, max_steps)
             validate(cfg)
     except (ValueError, FileNotFoundError, ImportError) as err:
-        raise typer.BadParameter(str(err)) from None
+        usage_error(str(err), err)
+    if not report_only:
+        prepare_out(out, True, ())  # writable (finished cells in it are reused, never overwritten)
+    prepare_out(report.parent, True, (), flag="--report")
     if report_only:
         records = load_cells(cfg)
     else:

@@ -115,11 +115,18 @@ def evaluate(
     record: bool = False,
     show_progress: bool = True,
     env_overrides: dict | None = None,
+    on_size: Callable[[list[dict], EpisodeRecord | None], None] | None = None,
 ) -> tuple[list[dict], dict[int, EpisodeRecord]]:
     """Evaluate a controller at each swarm size; returns one metrics row per size (see ``docs/metrics.md``) and
-    the recorded first episode per size (if ``record``)."""
+    the recorded first episode per size (if ``record``).
+
+    ``on_size(rows, record)`` is called as soon as each size is finished, with the rows so far and that size's
+    record (or ``None``): the CLI writes its results there, so that a later failure loses no finished size.
+    """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if batch is not None and batch < 1:
+        raise ValueError(f"batch must be >= 1 or None, got {batch}")
     rows, records = [], {}
     for n in num_agents:
         overrides = dict(env_overrides or {})
@@ -155,4 +162,6 @@ def evaluate(
             row["qp_slack_steps"] = timing["num_slack"]
             row["qp_failed"] = timing["num_failed"]
         rows.append(row)
+        if on_size is not None:
+            on_size(list(rows), records.get(n))
     return rows, records

@@ -261,8 +261,11 @@ def _sha256(path: Path) -> str:
 
 
 def find_method_checkpoint(root: str | Path, method: str) -> CheckpointInfo:
-    """The checkpoint of ``method`` under ``root``: ``root/<method>`` itself, or its ``best`` subdirectory."""
-    from .config import TrainConfig
+    """The checkpoint of ``method`` under ``root``: ``root/<method>`` itself, or its ``best`` subdirectory.
+
+    Raises ``FileNotFoundError`` if there is none, :class:`~egcbf.ckpt_files.CheckpointError` (a ``ValueError``
+    naming the file) if its files are corrupted, truncated or of another method."""
+    from .ckpt_files import check_identity, read_config, read_state, read_tensors
 
     base = Path(root) / method
     path = next((d for d in (base, base / "best") if (d / "model.safetensors").exists()), None)
@@ -271,10 +274,12 @@ def find_method_checkpoint(root: str | Path, method: str) -> CheckpointInfo:
             f"no checkpoint for {method} in {base} (expected {base}/config.json and {base}/model.safetensors): "
             f"train one with `egcbf train --algo {method} --out runs/{method}`, then copy runs/{method}/best to {base}"
         )
-    train_cfg = TrainConfig.from_json(path / "config.json")
+    train_cfg = read_config(path)
     if train_cfg.algo != method:
         raise ValueError(f"{path}/config.json is a {train_cfg.algo!r} checkpoint, expected {method!r}")
-    state = json.loads((path / "state.json").read_text()) if (path / "state.json").exists() else {}
+    state = read_state(path)
+    read_tensors(path / "model.safetensors")  # a truncated or corrupted file fails here, before any cell runs
+    check_identity(path, train_cfg, state)
     step = state.get("step")
     return CheckpointInfo(method, path, _sha256(path / "model.safetensors"), step, train_cfg.seed)
 

@@ -22,18 +22,24 @@ Model selection uses the evaluation rollouts of training (fixed episodes from ``
 :func:`egcbf.evaluate.evaluate`), so ``OUT/best`` is a validation choice: the learned policies can degrade late in
 a run (docs/learning.md), and the best one seen is the one to ship.
 
-A checkpoint directory alone is enough to evaluate (:func:`load_controller`). Checkpoints are written to a temporary
-directory and renamed, so an interrupted write never leaves a half checkpoint; ``resume=True`` continues
-from the newest one (losing at most ``checkpoint_interval`` updates), truncating the CSV logs to its step, and
-continues bit for bit on CPU: every random number comes from the seed, the update index or the saved generator.
+A checkpoint directory alone is enough to evaluate (:func:`load_controller`). Checkpoints and ``OUT/best`` are
+written to a temporary directory and swapped into place (:mod:`egcbf.atomic`), so a kill at any moment leaves a
+complete directory (the new one or the previous one); ``state.json`` records what the weights are (method, group,
+interface, format version: :mod:`egcbf.ckpt_files`), checked on load. ``resume=True`` continues from the newest
+checkpoint that loads (losing at most ``checkpoint_interval`` updates; a corrupted newer one is set aside as
+``step_XXXXXX.corrupt`` and said so), cuts the CSV logs back to its step by writing a copy and renaming it over the
+original (never rewriting a log in place), and continues bit for bit on CPU: every random number comes from the
+seed, the update index or the saved generator.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 import platform
+import re
 import shutil
 import sys
 import time
@@ -41,16 +47,28 @@ import warnings
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from tqdm.auto import tqdm
 
 from .algo.learner import GraphCBFLearner, LearnedController
+from .atomic import recover_dir, replace_dir, write_json_atomic, write_text_atomic
+from .ckpt_files import (
+    CheckpointError,
+    check_identity,
+    identity,
+    read_config,
+    read_state,
+    read_tensors,
+    read_training_state,
+    sha256,
+)
 from .config import TrainConfig
 from .evaluate import episode_seed, run_episodes
 from .nn import CBFNet, PolicyNet
 
 __all__ = [
     "METRICS_FIELDS",
+    "CheckpointError",
     "evaluate_policy",
     "find_checkpoint",
     "load_controller",
@@ -63,6 +81,7 @@ __all__ = [
 
 METRICS_FIELDS = ("step", "wall_s", "safe_rate", "reach_rate", "success_rate", "cost", "reward", "num_episodes")
 _CKPT = "checkpoints"
+_STEP_DIR = re.compile(r"step_(\d+)")
 
 
 # ---------------------------------------------------------------------------------------------------- logging
@@ -102,16 +121,30 @@ class _Logger:
             self.tb.close()
 
 
+def _complete_row(row: dict, keep_upto: int) -> bool:
+    """A whole row (a kill in the middle of an append leaves a short last line) of a step ``<= keep_upto``."""
+    if None in row or any(v is None or v == "" for v in row.values()):
+        return False
+    try:
+        return int(row["step"]) <= keep_upto
+    except (KeyError, ValueError):
+        return False
+
+
 def _truncate_csv(path: Path, header: tuple[str, ...], keep_upto: int) -> None:
-    """Create ``path`` with ``header``, or keep only its rows with ``step <= keep_upto`` (resume)."""
+    """Create ``path`` with ``header``, or keep only its complete rows with ``step <= keep_upto`` (resume).
+
+    The new content is written to a temporary file and renamed over ``path``: a kill leaves the old log or the new
+    one, never an erased history."""
     rows = []
     if path.exists() and keep_upto > 0:
         with open(path, newline="") as f:
-            rows = [r for r in csv.DictReader(f) if int(r["step"]) <= keep_upto]
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, header)
-        w.writeheader()
-        w.writerows(rows)
+            rows = [r for r in csv.DictReader(f) if _complete_row(r, keep_upto)]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, header, extrasaction="ignore")
+    w.writeheader()
+    w.writerows(rows)
+    write_text_atomic(path, buf.getvalue())
 
 
 # ---------------------------------------------------------------------------------------------------- evaluation
@@ -131,7 +164,8 @@ def _ckpt_dir(out: Path, step: int) -> Path:
 
 def _write_dir_atomically(learner: GraphCBFLearner, final: Path, state: dict, extra=None) -> Path:
     """Write ``config.json``, ``model.safetensors``, ``state.json`` (and whatever ``extra(tmp_dir)`` adds) into
-    ``final.tmp``, then rename it to ``final``: an interrupted write never leaves a half directory."""
+    ``final.tmp``, then swap it into place (:func:`egcbf.atomic.replace_dir`): a kill at any moment leaves a
+    complete ``final`` (new or previous) or a previous one that :func:`egcbf.atomic.recover_dir` restores."""
     tmp = final.with_name(final.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -139,10 +173,9 @@ def _write_dir_atomically(learner: GraphCBFLearner, final: Path, state: dict, ex
     save_file({k: v.cpu() for k, v in learner.weights().items()}, str(tmp / "model.safetensors"))
     if extra is not None:
         extra(tmp)
+    state = {**state, **identity(learner.config), "weights_sha256": sha256(tmp / "model.safetensors")}
     (tmp / "state.json").write_text(json.dumps(state, indent=2) + "\n")
-    shutil.rmtree(final, ignore_errors=True)
-    os.replace(tmp, final)
-    return final
+    return replace_dir(tmp, final)
 
 
 def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: int = 0, buffers: bool = True) -> Path:
@@ -182,8 +215,11 @@ def save_best(learner: GraphCBFLearner, out: Path, wall_s: float, row: dict) -> 
 
 
 def _best_key(out: Path) -> tuple[float, float] | None:
-    f = out / "best" / "state.json"
-    return _selection_key(json.loads(f.read_text())["metrics"]) if f.exists() else None
+    f = recover_dir(out / "best") / "state.json"
+    try:
+        return _selection_key(json.loads(f.read_text())["metrics"]) if f.exists() else None
+    except (ValueError, KeyError, TypeError):  # an unreadable best/ is replaced by the next evaluation
+        return None
 
 
 def _to_cpu(obj):
@@ -197,21 +233,26 @@ def _to_cpu(obj):
 
 
 def _checkpoints(out: Path) -> list[Path]:
-    """Complete checkpoints of a run, oldest first."""
+    """Complete checkpoints of a run, oldest first (``step_XXXXXX`` directories with a ``state.json``; a
+    checkpoint swap killed between its renames is recovered first)."""
     root = out / _CKPT
     if not root.is_dir():
         return []
+    for old in root.glob("step_*.old"):
+        recover_dir(old.with_name(old.name[: -len(".old")]))
     done = [
-        p for p in root.glob("step_*") if p.is_dir() and not p.name.endswith(".tmp") and (p / "state.json").exists()
+        p for p in root.glob("step_*") if _STEP_DIR.fullmatch(p.name) and p.is_dir() and (p / "state.json").exists()
     ]
     return sorted(done, key=lambda p: int(p.name.split("_")[1]))
 
 
 def find_checkpoint(path: str | Path) -> Path:
     """A checkpoint directory: ``path`` itself if it holds one, else the newest checkpoint of the run ``path``."""
-    p = Path(path)
+    p = recover_dir(Path(path))
     if (p / "model.safetensors").exists() and (p / "config.json").exists():
         return p
+    if p.exists() and not p.is_dir():
+        raise FileNotFoundError(f"{p} is a file; pass a checkpoint directory (config.json + model.safetensors)")
     found = _checkpoints(p)
     if not found:
         raise FileNotFoundError(f"no checkpoint in {p} (expected {p}/{_CKPT}/step_*/model.safetensors)")
@@ -221,15 +262,20 @@ def find_checkpoint(path: str | Path) -> Path:
 def load_learner(path: str | Path, device=None, dtype=None, config: TrainConfig | None = None) -> GraphCBFLearner:
     """The learner of checkpoint ``path`` (a checkpoint or run directory): weights, optimizers, RNG, buffers."""
     ckpt = find_checkpoint(path)
-    cfg = config or TrainConfig.from_json(ckpt / "config.json")
+    cfg = config or read_config(ckpt)
+    weights = read_tensors(ckpt / "model.safetensors")
+    check_identity(ckpt, cfg)
     learner = GraphCBFLearner(cfg, device=device, dtype=dtype)
-    weights = load_file(str(ckpt / "model.safetensors"))
-    learner.load_weights({k: v.to(learner.device, learner.dtype) for k, v in weights.items()})
+    _load_state_dict(
+        ckpt, lambda: learner.load_weights({k: v.to(learner.device, learner.dtype) for k, v in weights.items()})
+    )
     if (ckpt / "training_state.pt").exists():
-        learner.load_training_state(torch.load(ckpt / "training_state.pt", weights_only=True, map_location="cpu"))
+        state = read_training_state(ckpt / "training_state.pt")
+        _load_state_dict(ckpt, lambda: learner.load_training_state(state), "training_state.pt")
         _optim_to(learner, learner.device)
     if (ckpt / "buffers.safetensors").exists():
-        learner.load_buffers(load_file(str(ckpt / "buffers.safetensors")))
+        buffers = read_tensors(ckpt / "buffers.safetensors")
+        _load_state_dict(ckpt, lambda: learner.load_buffers(buffers), "buffers.safetensors")
     elif learner.step > 0:
         warnings.warn(
             f"{ckpt} holds no replay buffers (only the newest checkpoint of a run keeps them, and only with "
@@ -237,6 +283,18 @@ def load_learner(path: str | Path, device=None, dtype=None, config: TrainConfig 
             stacklevel=2,
         )
     return learner
+
+
+def _load_state_dict(ckpt: Path, load, name: str = "model.safetensors") -> None:
+    """Run ``load()`` (a ``load_state_dict``); a key or shape mismatch becomes a :class:`CheckpointError`."""
+    try:
+        load()
+    except (RuntimeError, KeyError, ValueError, TypeError) as err:
+        first = str(err).strip().splitlines()[0][:300]
+        raise CheckpointError(
+            f"{ckpt / name} does not match {ckpt / 'config.json'} ({first}); were the files written by another "
+            "method or config?"
+        ) from None
 
 
 def _optim_to(learner: GraphCBFLearner, device) -> None:
@@ -256,11 +314,14 @@ def load_network(
     if part not in nets:
         raise ValueError(f"part must be one of {sorted(nets)}, got {part!r}")
     ckpt = find_checkpoint(path)
-    cfg = TrainConfig.from_json(ckpt / "config.json")
+    cfg = read_config(ckpt)
+    weights = read_tensors(ckpt / "model.safetensors")
+    check_identity(ckpt, cfg)
     net = nets[part](cfg.model)
-    weights = load_file(str(ckpt / "model.safetensors"))
     prefix = part + "."
-    net.load_state_dict({k[len(prefix) :]: v for k, v in weights.items() if k.startswith(prefix)})
+    _load_state_dict(
+        ckpt, lambda: net.load_state_dict({k[len(prefix) :]: v for k, v in weights.items() if k.startswith(prefix)})
+    )
     return net.to(device=device, dtype=dtype).eval(), cfg
 
 
@@ -274,6 +335,55 @@ def load_controller(
 
 
 # ---------------------------------------------------------------------------------------------------- loop
+def checkpoint_step(out: str | Path) -> int | None:
+    """The update count of the newest checkpoint of run ``out`` (``None`` without a readable one)."""
+    found = _checkpoints(Path(out))
+    if not found:
+        return None
+    try:
+        return int(read_state(found[-1])["step"])
+    except (CheckpointError, KeyError, TypeError, ValueError):
+        return None
+
+
+def _resume(out: Path, steps: int | None, log) -> tuple[GraphCBFLearner, TrainConfig, Path, tuple]:
+    """The learner of the newest checkpoint of ``out`` that loads; newer ones that do not are renamed
+    ``*.corrupt`` (kept for inspection, out of the way of new checkpoints) and said so on ``log``."""
+    found = _checkpoints(out)
+    if not found:
+        raise FileNotFoundError(f"no checkpoint in {out} (expected {out}/{_CKPT}/step_*/model.safetensors)")
+    errors = []
+    for ckpt in reversed(found):
+        try:
+            config = read_config(ckpt)
+            if steps is not None:
+                if steps < int(read_state(ckpt).get("step", 0)):
+                    raise ValueError(
+                        f"steps={steps} is below the update count {read_state(ckpt)['step']} of {ckpt}; "
+                        "pass a larger --steps (the total number of updates)"
+                    )
+                config = config.replace(steps=steps)
+            saved = _setup_torch(config)
+            try:
+                learner = load_learner(ckpt, config=config)
+            except BaseException:
+                _restore_torch(saved)
+                raise
+        except CheckpointError as err:
+            errors.append(str(err))
+            log(f"checkpoint {ckpt} cannot be loaded ({err}); trying the previous one")
+            continue
+        for bad in found[found.index(ckpt) + 1 :]:
+            aside = bad.with_name(bad.name + ".corrupt")
+            k = 1
+            while aside.exists():  # an earlier fallback set aside the same step
+                aside, k = bad.with_name(f"{bad.name}.corrupt{k}"), k + 1
+            os.replace(bad, aside)
+            log(f"set aside {bad} as {aside.name}; resuming from {ckpt}")
+        return learner, config, ckpt, saved
+    raise CheckpointError(f"no checkpoint of {out} can be loaded: " + "; ".join(errors))
+
+
 def _setup_torch(config: TrainConfig) -> tuple:
     """Apply the config's threads and determinism; returns what to restore afterwards."""
     saved = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled(),
@@ -314,13 +424,8 @@ def train(
     out = Path(out)
     log = log or tqdm.write
     if resume:
-        ckpt = find_checkpoint(out)
-        config = TrainConfig.from_json(ckpt / "config.json")
-        if steps is not None:
-            config = config.replace(steps=steps)
-        saved = _setup_torch(config)
-        learner = load_learner(ckpt, config=config)
-        wall0 = float(json.loads((ckpt / "state.json").read_text())["wall_s"])
+        learner, config, ckpt, saved = _resume(out, steps, log)
+        wall0 = float(read_state(ckpt).get("wall_s", 0.0))
         log(f"resumed {config.algo} from {ckpt} at update {learner.step}")
     else:
         if _checkpoints(out):
@@ -331,7 +436,7 @@ def train(
         out.mkdir(parents=True, exist_ok=True)
         learner = GraphCBFLearner(config)
         wall0 = 0.0
-    config.to_json(out / "config.json")
+    write_json_atomic(out / "config.json", config.to_dict())  # a kill never leaves a half-written config
     logger = _Logger(out, learner.step)
     best = [_best_key(out) if resume else None]
     t_start = time.perf_counter()

@@ -87,6 +87,14 @@ class Canonicalize:
             ``edge_attr`` is the mean of the receiver's incoming attributes, as PyG's ``fill_value="mean"``.
         check_finite: raise if ``x``, ``frames`` or ``pos`` hold NaN or inf. Off by default because the check
             synchronizes with the device; without it non-finite inputs propagate (never silently replaced).
+        check_frames: raise a ``ValueError`` if a frame is not a group element up to ``frame_atol``
+            (:meth:`Group.check_member`: a non-unit planar rotation, a non-orthogonal or reflected rotation
+            matrix, NaN or inf), and if ``edge_index`` points outside the node range. Off by default (it
+            synchronizes with the device); without it such frames give wrong, non-equivariant outputs.
+        frame_atol: the tolerance of ``check_frames``.
+
+    Always checked (free: shapes and dtypes only): the element shape of ``frames``, one frame per receiving node,
+    ``edge_index`` ``(2, E)`` long, and that ``frames`` and ``x`` have the same floating dtype.
     """
 
     def __init__(
@@ -100,6 +108,8 @@ class Canonicalize:
         mode: str = "auto",
         self_loops: bool = False,
         check_finite: bool = False,
+        check_frames: bool = False,
+        frame_atol: float = 1e-4,
     ):
         if not isinstance(group, Group):
             raise TypeError(f"Canonicalize needs a groupcanon Group, got {type(group).__name__}")
@@ -125,6 +135,10 @@ class Canonicalize:
         self.mode = mode
         self.self_loops = bool(self_loops)
         self.check_finite = bool(check_finite)
+        if not (isinstance(frame_atol, (int, float)) and frame_atol >= 0):
+            raise ValueError(f"frame_atol must be a number >= 0, got {frame_atol!r}")
+        self.check_frames = bool(check_frames)
+        self.frame_atol = float(frame_atol)
 
     def __call__(self, layer: nn.Module) -> CanonicalizedLayer:
         if not isinstance(layer, nn.Module):
@@ -177,7 +191,7 @@ class CanonicalizedLayer(nn.Module):
         return f"group={s.group}, mode={self.mode}, in={s.dst_type.dim}, out={s.out_type.dim}"
 
     # ------------------------------------------------------------------ validation
-    def _check_frames(self, frames: Tensor, n_dst: int) -> None:
+    def _check_frames(self, frames: Tensor, n_dst: int, x: Tensor) -> None:
         check_element_shape(self.group, frames, "frames")
         batch = self.group.batch_shape(frames)
         if len(batch) != 1 or batch[0] != n_dst:
@@ -186,6 +200,29 @@ class CanonicalizedLayer(nn.Module):
                 f"pass one frame per node of x (per x_dst row for bipartite input), "
                 f"shape ({n_dst}, {', '.join(map(str, self.group.element_shape))})"
             )
+        if (
+            self.group.element_numel
+            and frames.dtype != x.dtype
+            and frames.is_floating_point()
+            and x.is_floating_point()
+        ):
+            raise TypeError(f"frames have dtype {frames.dtype} but x has {x.dtype}: cast with frames.to(x.dtype)")
+        if self.spec.check_frames:
+            self.group.check_member(frames, self.spec.frame_atol, "frames")
+
+    @staticmethod
+    def _check_index_range(edge_index: Tensor, n_src: int, n_dst: int) -> None:
+        """Raise a ``ValueError`` naming ``edge_index`` if a source is outside ``[0, n_src)`` or a target outside
+        ``[0, n_dst)`` (a device synchronization: run only on request or after an indexing error)."""
+        if edge_index.numel() == 0:
+            return
+        for row, n, what in ((0, n_src, "source"), (1, n_dst, "target")):
+            lo, hi = int(edge_index[row].min()), int(edge_index[row].max())
+            if lo < 0 or hi >= n:
+                raise ValueError(
+                    f"edge_index row {row} ({what}s) holds node indices in [{lo}, {hi}], outside [0, {n}) "
+                    f"(the {what} node count)"
+                )
 
     @staticmethod
     def _check_edge_index(edge_index: Tensor) -> None:
@@ -221,7 +258,7 @@ class CanonicalizedLayer(nn.Module):
             if edge_index is not None:
                 raise TypeError("mode='node' layers take no edge_index: call eq(x, frames=frames)")
             spec.dst_type.check(x, "x")
-            self._check_frames(frames, x.shape[0])
+            self._check_frames(frames, x.shape[0], x)
             if spec.check_finite:
                 self._check_finite(x=x, frames=frames)
             if self._identity:
@@ -235,7 +272,9 @@ class CanonicalizedLayer(nn.Module):
         spec.src_type.check(x_src, "x (source)" if bipartite else "x")
         spec.dst_type.check(x_dst, "x (target)" if bipartite else "x")
         n_dst = x_dst.shape[0]
-        self._check_frames(frames, n_dst)
+        self._check_frames(frames, n_dst, x_dst)
+        if spec.check_frames:
+            self._check_index_range(edge_index, x_src.shape[0], n_dst)
         pos = kwargs.pop("pos", None)
         edge_attr = kwargs.pop("edge_attr", None)
         num_edges = edge_index.shape[1]
@@ -254,12 +293,16 @@ class CanonicalizedLayer(nn.Module):
                 kwargs["edge_attr"] = edge_attr
             return self.layer(x=x, edge_index=edge_index, **kwargs)
 
-        if self.mode == "pair":
-            out = self._forward_pair(x_src, x_dst, edge_index, frames, pos, edge_attr, kwargs)
-        else:
-            if bipartite:
-                raise ValueError("mode='ego' takes a single node tensor x, not a (source, target) pair")
-            out = self._forward_ego(x_dst, edge_index, frames, pos, edge_attr, kwargs)
+        if self.mode == "ego" and bipartite:
+            raise ValueError("mode='ego' takes a single node tensor x, not a (source, target) pair")
+        try:
+            if self.mode == "pair":
+                out = self._forward_pair(x_src, x_dst, edge_index, frames, pos, edge_attr, kwargs)
+            else:
+                out = self._forward_ego(x_dst, edge_index, frames, pos, edge_attr, kwargs)
+        except (IndexError, RuntimeError):
+            self._check_index_range(edge_index, x_src.shape[0], n_dst)  # a clear error if that was the cause
+            raise
         return self._finish(out, frames)
 
     def _edge_inputs(self, inv_e: Tensor, edge_attr: Tensor | None, kwargs: dict) -> None:

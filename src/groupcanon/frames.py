@@ -1,8 +1,10 @@
 """Frames from geometry: build group elements that transform with the scene.
 
 A frame ``g_v`` must satisfy ``frame(g . scene) = g . frame(scene)`` for the wrapped layers to be equivariant.
-Degenerate inputs (a zero heading vector) have no well-defined frame; these helpers then fall back to a fixed
-axis, which is finite and differentiable but not equivariant at that measure-zero configuration.
+Degenerate inputs (a zero heading vector, norm ``<= eps``) have no well-defined frame; these helpers then fall
+back to a fixed axis, which is finite and differentiable but not equivariant at that measure-zero configuration.
+Non-finite inputs (NaN or inf) are never replaced: the frame they give is NaN, so the error shows downstream (or
+at once with ``Canonicalize(..., check_frames=True)``) instead of silently turning into the identity.
 """
 
 from __future__ import annotations
@@ -14,9 +16,12 @@ __all__ = ["planar_frame", "rotation_from_vectors", "se2xr_frame", "se3_frame"]
 
 
 def _safe_normalize(v: Tensor, fallback: Tensor, eps: float) -> Tensor:
+    """``v / |v|``; ``fallback`` where ``|v| <= eps``; NaN where ``v`` is not finite (never the fallback)."""
     n = v.norm(dim=-1, keepdim=True)
-    ok = n > eps
-    return torch.where(ok, v / torch.where(ok, n, torch.ones_like(n)), fallback.expand_as(v))
+    small = n <= eps  # False for a NaN or inf norm: those rows propagate NaN
+    denom = torch.where(small, torch.ones_like(n), n)
+    unit = v / torch.where(torch.isfinite(n), denom, torch.full_like(n, float("nan")))
+    return torch.where(small, fallback.expand_as(v), unit)
 
 
 def planar_frame(heading: Tensor, eps: float = 1e-12) -> Tensor:

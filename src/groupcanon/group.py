@@ -6,8 +6,14 @@ for any tensor. Every operation broadcasts over batch dimensions, is differentia
 floating dtype without data-dependent Python branches.
 
 A subclass implements only :attr:`element_shape`, :meth:`identity`, :meth:`compose`, :meth:`inverse` and
-:meth:`sample`. Groups that act on a Euclidean space by rigid motions (rotations, translations) also implement the
-*affine interface* (:attr:`space_dim`, :meth:`rotate`, :meth:`translation`, ...), which is what the built-in
+:meth:`sample`. Every operation that takes group elements (``compose``, ``inverse``, ``log``, ``matrix`` and the
+affine interface) checks their trailing shape first and raises a ``ValueError`` naming the operation and the
+expected shape (a shape comparison, no device synchronization); subclasses get the check automatically.
+Whether the *values* are group elements (unit planar rotations, orthonormal matrices) is checked only on request,
+by :meth:`Group.check_member`.
+
+Groups that act on a Euclidean space by rigid motions (rotations, translations) also implement the *affine
+interface* (:attr:`space_dim`, :meth:`rotate`, :meth:`translation`, ...), which is what the built-in
 feature types :class:`~groupcanon.features.Vector`, :class:`~groupcanon.features.Point` and
 :class:`~groupcanon.features.Rotation` use.
 """
@@ -15,6 +21,7 @@ feature types :class:`~groupcanon.features.Vector`, :class:`~groupcanon.features
 from __future__ import annotations
 
 import abc
+import functools
 import math
 
 import torch
@@ -40,6 +47,38 @@ def check_element_shape(group: Group, g: Tensor, what: str = "group element") ->
         )
 
 
+# Operations whose leading positional arguments are group elements: name -> how many.
+_ELEMENT_ARGS = {
+    "compose": 2,
+    "inverse": 1,
+    "log": 1,
+    "matrix": 1,
+    "rotation": 1,
+    "translation": 1,
+    "rotate": 1,
+    "transform": 1,
+    "planar_rotation": 1,
+}
+
+
+def _with_shape_check(fn, name: str, count: int):
+    """``fn`` with its first ``count`` positional arguments checked to be elements of ``self``."""
+    if getattr(fn, "_checks_elements", False):
+        return fn
+
+    @functools.wraps(fn)
+    def checked(self, *args, **kwargs):
+        shape = self.element_shape
+        for i in range(min(count, len(args))):
+            g = args[i]
+            if not isinstance(g, Tensor) or g.shape[g.dim() - len(shape) :] != shape or g.dim() < len(shape):
+                check_element_shape(self, g, f"{name}() argument {i + 1}")  # raises, naming the expected shape
+        return fn(self, *args, **kwargs)
+
+    checked._checks_elements = True
+    return checked
+
+
 class Group(abc.ABC):
     """A Lie group (or finite group) whose elements are batched tensors.
 
@@ -57,6 +96,15 @@ class Group(abc.ABC):
     space_dim: int | None = None
     #: True if the affine action has a translation part (Point features are translated).
     has_translation: bool = False
+    #: True if every rotation part has determinant +1 (False for groups with reflections, e.g. O(2)).
+    orientation_preserving: bool = True
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        for name, count in _ELEMENT_ARGS.items():
+            fn = cls.__dict__.get(name)
+            if fn is not None and not getattr(fn, "__isabstractmethod__", False):
+                setattr(cls, name, _with_shape_check(fn, name, count))
 
     # ----------------------------------------------------------------------------------------- required
     @property
@@ -142,6 +190,43 @@ class Group(abc.ABC):
     def check(self, g: Tensor, what: str = "group element") -> None:
         """Raise a clear ``ValueError`` if ``g`` does not have this group's element shape."""
         check_element_shape(self, g, what)
+
+    def membership_residual(self, g: Tensor) -> Tensor:
+        """How far each element of ``g`` ``(*batch, *element_shape)`` is from the group, ``(*batch,)``: NaN for
+        non-finite elements, else the largest entry of ``|R^T R - I|`` of the rotation part, plus
+        ``|det R - 1|`` for orientation-preserving groups (0 for groups without a rotation part)."""
+        self.check(g, "g")
+        flat = g.reshape(*self.batch_shape(g), -1)
+        finite = torch.isfinite(flat).all(-1)  # all() of an empty row is True
+        res = torch.zeros(finite.shape, dtype=g.dtype if g.is_floating_point() else torch.float64, device=g.device)
+        if self.space_dim is not None:
+            try:
+                r = self.rotation(g)
+            except NotImplementedError:
+                r = None
+            if r is not None and r.shape[-1] > 0:
+                eye = torch.eye(r.shape[-1], dtype=r.dtype, device=r.device)
+                res = (r.transpose(-1, -2) @ r - eye).abs().amax(dim=(-2, -1))
+                if self.orientation_preserving:
+                    res = res + (torch.linalg.det(r) - 1).abs()
+        return torch.where(finite, res, torch.full_like(res, float("nan")))
+
+    def check_member(self, g: Tensor, atol: float = 1e-4, what: str = "group element") -> None:
+        """Raise a ``ValueError`` if any element of ``g`` is not in the group up to ``atol`` (see
+        :meth:`membership_residual`): a non-unit planar rotation, a non-orthogonal or reflected matrix, NaN or inf.
+
+        Opt-in (it synchronizes with the device): :class:`~groupcanon.Canonicalize` calls it on every frame when
+        constructed with ``check_frames=True``.
+        """
+        res = self.membership_residual(g)
+        bad = ~(res <= atol)  # NaN counts as bad
+        if bool(bad.any()):
+            idx = tuple(bad.nonzero()[0].tolist())
+            worst = float(res[bad].nan_to_num(nan=float("inf")).max())
+            raise ValueError(
+                f"{what}: {int(bad.sum())} of {bad.numel()} are not elements of {self} (first at batch index {idx}, "
+                f"residual {worst:.3g} > atol={atol:g}); build frames with groupcanon.frames or normalize them"
+            )
 
     def batch_shape(self, g: Tensor) -> torch.Size:
         return g.shape[: g.dim() - len(self.element_shape)]

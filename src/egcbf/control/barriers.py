@@ -9,6 +9,11 @@ guaranteed). Each barrier yields constraints that are *linear* in the accelerati
 with ``n_c`` the unit vector from the other agent (or obstacle centre) to agent ``i_c``. Rows are normalized (divided
 by ``2 ||dp||``) so that every constraint and every slack is in units of acceleration (m/s^2).
 
+Coincident points (``||dp|| <= 1e-9``: two agents at exactly the same point, or an agent at an obstacle's centre)
+have no direction from the geometry. Their row then pushes along the relative velocity ``dv`` if it is not zero,
+else along world ``+z`` (agent ``i_c`` up, ``j_c`` down; the pair order ``i < j`` makes it deterministic), so the
+constraint is never a zero row that constrains nothing.
+
 Two barriers are available (``BarrierConfig.kind``):
 
 * ``"wang"`` (default): the braking-distance barrier of Wang, Ames & Egerstedt (2017),
@@ -264,8 +269,13 @@ def _rows_from_geometry(dp, dv, D, cfg: BarrierConfig, brake_sum: float):
     d = np.sqrt((dp * dp).sum(-1))
     d_safe = np.maximum(d, 1e-9)
     n = dp / d_safe[:, None]
-    ddot = (n * dv).sum(-1)  # d' (m/s)
     dv2 = (dv * dv).sum(-1)
+    coincident = d <= 1e-9
+    if coincident.any():  # no direction from dp: push along dv, else +z (module doc)
+        speed = np.sqrt(dv2)[:, None]
+        push = np.where(speed > 1e-9, dv / np.maximum(speed, 1e-9), np.array([0.0, 0.0, 1.0]))
+        n = np.where(coincident[:, None], push, n)
+    ddot = (n * dv).sum(-1)  # d' (m/s)
     if cfg.kind == "hocbf":
         # h0 = d^2 - D^2, h0' = 2 dp.dv, h0'' = 2 |dv|^2 + 2 dp.(a_i - a_j); divide the row by 2 d.
         h0 = d * d - D * D

@@ -171,6 +171,8 @@ class _CBFQPBase:
         self.config = cfg
 
     def _prepare(self, state, env_config) -> _Prepared:
+        if state.t == 0:  # a state entering the QP (a reset or a hand-built one): finite, rotations, radii > 0
+            state.validate()
         cfg = self.config
         params = env_config.params
         barrier = replace(cfg.barrier, agent_radius=float(env_config.agent_radius))

@@ -34,6 +34,19 @@ class Obstacles:
         if r.shape != c.shape[:2]:
             raise ValueError(f"obstacle radii must be (B, K) = {tuple(c.shape[:2])}, got {tuple(r.shape)}")
 
+    def validate(self) -> None:
+        """Raise ``ValueError`` if a centre is not finite or a radius is not a finite number ``> 0`` (a value check:
+        one synchronization; :meth:`egcbf.env.SwarmState.validate` calls it where a state enters the simulator)."""
+        c, r = self.centers, self.radii
+        if c.numel() and not bool(torch.isfinite(c).all()):
+            b, k = (~torch.isfinite(c)).any(-1).nonzero()[0].tolist()
+            raise ValueError(f"obstacle centers hold NaN or inf (first: environment {b}, obstacle {k})")
+        if r.numel() and not bool(((r > 0) & torch.isfinite(r)).all()):
+            b, k = (~((r > 0) & torch.isfinite(r))).nonzero()[0].tolist()
+            raise ValueError(
+                f"obstacle radii must be finite and > 0, got {float(r[b, k])} (environment {b}, obstacle {k})"
+            )
+
     @property
     def num_envs(self) -> int:
         return self.centers.shape[0]

@@ -22,9 +22,17 @@ from torch import Tensor
 from ..neighbors import radius_neighbors
 from .obstacles import Obstacles
 
-__all__ = ["sample_separated_points"]
+__all__ = ["packing_feasible", "sample_separated_points"]
 
 _DENSEST_PACKING = math.pi / (3 * math.sqrt(2))  # 0.7405, Kepler
+
+
+def packing_feasible(num_points: int, area_size: float, min_separation: float) -> bool:
+    """Whether ``num_points`` points pairwise farther apart than ``min_separation`` can fit in ``[0, l]^3`` by the
+    densest-packing bound (a necessary condition, checked before any sampling: points separated by ``sep`` have
+    disjoint balls of radius ``sep / 2`` inside ``[-sep/2, l + sep/2]^3``)."""
+    sep, l = float(min_separation), float(area_size)
+    return num_points * (4 / 3) * math.pi * (sep / 2) ** 3 <= _DENSEST_PACKING * (l + sep) ** 3
 
 
 def sample_separated_points(
@@ -58,8 +66,7 @@ def sample_separated_points(
             "or obstacles, or a smaller agent_radius."
         )
 
-    # Points separated by `sep` have disjoint balls of radius sep/2 inside [-sep/2, l + sep/2]^3.
-    if n * (4 / 3) * math.pi * (sep / 2) ** 3 > _DENSEST_PACKING * (l + sep) ** 3:
+    if not packing_feasible(n, l, sep):
         raise fail("even the densest sphere packing cannot hold them")
     obstacles = obstacles.to(dtype=dtype, device="cpu")
     total = b * s * n

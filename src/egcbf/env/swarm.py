@@ -32,11 +32,25 @@ from .lidar import LidarScan, lidar_scan
 from .obstacles import Obstacles, sample_obstacles
 from .sampling import sample_separated_points
 
-__all__ = ["EnvConfig", "NonFiniteStateError", "StepInfo", "SwarmEnv", "SwarmState", "cast_lidar", "safety_masks"]
+__all__ = [
+    "EnvConfig",
+    "NonFiniteInputError",
+    "NonFiniteStateError",
+    "StepInfo",
+    "SwarmEnv",
+    "SwarmState",
+    "cast_lidar",
+    "safety_masks",
+]
 
 
 class NonFiniteStateError(FloatingPointError):
     """Raised when a step produces NaN or inf (the simulation never continues silently)."""
+
+
+class NonFiniteInputError(NonFiniteStateError, ValueError):
+    """A NaN or inf in what a user passes to the simulator (a state entering it, or a control): both a bad input
+    (``ValueError``) and a non-finite simulation (:class:`NonFiniteStateError`)."""
 
 
 def _is_int(v) -> bool:
@@ -183,6 +197,22 @@ class SwarmState:
             raise ValueError(f"goals must be (B, N, 3) = {(*self.x.shape[:2], 3)}, got {tuple(self.goals.shape)}")
         if self.obstacles.num_envs != self.x.shape[0]:
             raise ValueError(f"obstacles are for {self.obstacles.num_envs} environments, x for {self.x.shape[0]}")
+
+    def validate(self, atol: float = 1e-3) -> None:
+        """Raise ``ValueError`` naming the first bad entry if an agent state is non-finite or its attitude is not a
+        rotation (:func:`egcbf.dynamics.check_state`, tolerance ``atol``), a goal is not finite, an obstacle centre
+        is not finite or a radius is not ``> 0``. One synchronization: :meth:`SwarmEnv.step` calls it on states
+        that enter the simulator (``t == 0``: a reset or a hand-built state), not on every step."""
+        if not bool(torch.isfinite(self.x).all()):
+            try:
+                dyn.check_state(self.x, atol)
+            except ValueError as err:  # names the first non-finite agent and field
+                raise NonFiniteInputError(str(err)) from None
+        dyn.check_state(self.x, atol)
+        if not bool(torch.isfinite(self.goals).all()):
+            b, i = (~torch.isfinite(self.goals)).any(-1).nonzero()[0].tolist()
+            raise ValueError(f"goals hold NaN or inf (first: environment {b}, agent {i})")
+        self.obstacles.validate()
 
     @property
     def num_envs(self) -> int:
@@ -366,20 +396,33 @@ class SwarmEnv:
     def step(self, state: SwarmState, u: Tensor) -> tuple[SwarmState, StepInfo]:
         """Integrate every agent for one control period with ``u`` ``(B, N, 4)`` held constant.
 
+        A state that enters the simulator (``state.t == 0``: from :meth:`reset` or built by hand) is validated
+        first (:meth:`SwarmState.validate`: finite states, rotation attitudes, finite goals and obstacle centres,
+        positive radii); later states come from the simulator itself.
+
         Raises:
-            ValueError: ``u`` has the wrong shape.
-            NonFiniteStateError: the new state holds NaN or inf (one ``isfinite().all()`` per step).
+            ValueError: ``u`` has the wrong shape or holds NaN or inf; or the entering state is invalid.
+            NonFiniteStateError: the new state holds NaN or inf (one ``isfinite().all()`` per step, which also
+                covers ``u``).
         """
         c = self.config
         expected = (*state.x.shape[:2], dyn.CONTROL_DIM)
         if not isinstance(u, Tensor) or tuple(u.shape) != expected:
             shape = tuple(u.shape) if isinstance(u, Tensor) else type(u).__name__
             raise ValueError(f"control u must be {expected} (num_envs, num_agents, 4), got {shape}")
-        u = u.to(state.x.dtype)
+        if state.t == 0:
+            state.validate()
+        u_in = u = u.to(state.x.dtype)
         if c.clip_control:
             u = dyn.clip_control(u, c.params)
         x = dyn.step(state.x, u, c.dt, c.params, c.substeps, c.integrator)
-        if not bool(torch.isfinite(x).all()):
+        if not bool(torch.isfinite(x).all() & torch.isfinite(u_in).all()):
+            if not bool(torch.isfinite(u_in).all()):
+                bad = (~torch.isfinite(u_in)).any(-1).nonzero()[0].tolist()
+                raise NonFiniteInputError(
+                    f"control u holds NaN or inf at step {state.t + 1} (first (env, agent) = {tuple(bad)}: "
+                    f"{u_in[tuple(bad)].tolist()}); the controller produced a non-finite command"
+                )
             bad = (~torch.isfinite(x)).any(-1).nonzero()
             raise NonFiniteStateError(
                 f"non-finite state after step {state.t + 1}: {bad.shape[0]} agent(s), first (env, agent) = "

@@ -33,6 +33,7 @@ class O2(Group):
     """
 
     space_dim = 2
+    orientation_preserving = False
 
     @property
     def element_shape(self) -> tuple[int, ...]:

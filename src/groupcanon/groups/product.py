@@ -63,6 +63,12 @@ class Product(Group):
     def _map(self, fn, *elements: Tensor) -> Tensor:
         return self.pack([fn(G, *(self.factor(e, i) for e in elements)) for i, G in enumerate(self.groups)])
 
+    def membership_residual(self, g: Tensor) -> Tensor:
+        """The largest residual of the factors (:meth:`Group.membership_residual`)."""
+        self.check(g, "g")
+        parts = [G.membership_residual(self.factor(g, i)) for i, G in enumerate(self.groups)]
+        return torch.stack(parts).amax(0) if parts[0].numel() else parts[0]
+
     # ------------------------------------------------------------------ group
     def identity(self, *batch, dtype=None, device=None) -> Tensor:
         return self.pack([G.identity(*batch, dtype=dtype, device=device) for G in self.groups])

@@ -1,0 +1,208 @@
+"""Up-front validation of the command line's inputs, and the one way a user error leaves the CLI.
+
+Every user error (a bad flag value, an unusable file or directory) ends the command with one or two lines on stderr,
+``Error: <what was wrong, naming the flag or file, and the fix>``, and exit code 2, without a traceback. With the
+environment variable ``EGCBF_DEBUG=1`` the underlying exception is raised instead (its traceback shows).
+
+The checks run before any work starts (all swarm sizes, the output directory, the device, the checkpoint), so that
+a mistake in the last of several swarm sizes does not throw away the earlier ones.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NoReturn
+
+import torch
+import typer
+
+__all__ = [
+    "UsageError",
+    "available_memory",
+    "check_env_flags",
+    "check_policy_memory",
+    "parse_device",
+    "parse_sizes",
+    "prepare_out",
+    "require",
+    "usage_error",
+]
+
+
+class UsageError(ValueError):
+    """A user error of the command line (raised only under ``EGCBF_DEBUG=1``; otherwise printed)."""
+
+
+def _debug() -> bool:
+    return os.environ.get("EGCBF_DEBUG", "") not in ("", "0")
+
+
+def usage_error(message: str, cause: BaseException | None = None) -> NoReturn:
+    """End the command: ``Error: message`` on stderr and exit code 2 (or raise, under ``EGCBF_DEBUG=1``)."""
+    if _debug():
+        raise UsageError(message) from cause
+    typer.echo(f"Error: {message}", err=True)
+    raise typer.Exit(2)
+
+
+def require(ok: bool, message: str) -> None:
+    """``usage_error(message)`` unless ``ok``."""
+    if not ok:
+        usage_error(message)
+
+
+def parse_sizes(text: str, flag: str = "--num-agents") -> list[int]:
+    """Comma-separated positive integers, e.g. ``"8,16,64"`` -> ``[8, 16, 64]``."""
+    try:
+        sizes = [int(s) for s in text.replace(" ", "").split(",") if s]
+    except ValueError:
+        usage_error(f"{flag} must be comma-separated integers, got {text!r} (e.g. {flag} 8,16,64)")
+    if not sizes or any(n < 1 for n in sizes):
+        usage_error(f"{flag} needs positive integers, got {text!r}")
+    return sizes
+
+
+def parse_device(name: str, flag: str = "--device") -> torch.device:
+    """A torch device that exists here: ``cpu``, or ``cuda[:k]`` when CUDA is available."""
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, ValueError, TypeError) as err:
+        usage_error(f"{flag} {name!r} is not a device; use cpu or cuda", err)
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            usage_error(f"{flag} {name} was given but CUDA is not available here (torch.cuda.is_available() is False)")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            usage_error(f"{flag} {name}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type != "cpu":
+        usage_error(f"{flag} {name!r} is not supported; use cpu or cuda")
+    return dev
+
+
+def max_agents(area: float, separation: float) -> int:
+    """The densest-packing bound on how many agents ``separation`` apart fit in ``[0, area]^3``."""
+    ball = (4 / 3) * math.pi * (separation / 2) ** 3
+    return int(math.pi / (3 * math.sqrt(2)) * (area + separation) ** 3 / ball) if ball > 0 else 2**62
+
+
+def check_env_flags(
+    sizes: Sequence[int],
+    area: float,
+    obstacles: int,
+    max_steps: int | None,
+    overrides: dict | None = None,
+) -> list:
+    """The :class:`~egcbf.env.EnvConfig` of every swarm size, or a usage error naming the flag (``--area``,
+    ``--obstacles``, ``--max-steps``, ``--num-agents``) if any of them is invalid or cannot be sampled."""
+    from .env import EnvConfig
+    from .env.sampling import packing_feasible
+
+    require(math.isfinite(area) and area > 0, f"--area must be a finite number > 0 (metres), got {area:g}")
+    require(obstacles >= 0, f"--obstacles must be >= 0, got {obstacles}")
+    require(max_steps is None or max_steps >= 1, f"--max-steps must be >= 1, got {max_steps}")
+    kw = dict(overrides or {})
+    if max_steps is not None:
+        kw["max_steps"] = max_steps
+    configs = []
+    for n in sizes:
+        try:
+            cfg = EnvConfig(num_agents=n, area_size=area, num_obstacles=obstacles, **kw)
+        except (TypeError, ValueError) as err:
+            usage_error(f"--num-agents {n}, --area {area:g}, --obstacles {obstacles}: {err}", err)
+        sep = cfg.start_separation * cfg.agent_radius
+        if not packing_feasible(n, area, sep):
+            usage_error(
+                f"--num-agents {n} cannot be placed in --area {area:g} (agents {sep:g} m apart: at most "
+                f"{max_agents(area, sep)} fit); use a larger --area or fewer agents"
+            )
+        configs.append(cfg)
+    return configs
+
+
+#: Peak memory per graph edge of a learned policy's step with hidden width 64 (measured on CPU for the shipped
+#: EGCBF+ policy: 1.8 KB per edge, graph building included), rounded up; scaled linearly with the hidden width.
+_BYTES_PER_EDGE_64 = 2048
+
+
+def available_memory(device: torch.device) -> int | None:
+    """Bytes the run may still allocate: free GPU memory for CUDA, ``MemAvailable`` of ``/proc/meminfo`` on the
+    CPU; ``None`` where it cannot be told (then nothing is refused)."""
+    if device.type == "cuda":
+        try:
+            return int(torch.cuda.mem_get_info(device)[0])
+        except (RuntimeError, AssertionError):
+            return None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+def policy_memory(num_agents: int, area: float, comm_radius: float, num_envs: int, hidden: int) -> tuple[int, int]:
+    """``(bytes, edges)``: an estimate of a learned policy's peak memory for one step of ``num_envs`` environments.
+
+    Edges: each agent's neighbours within ``comm_radius`` at the mean density ``N / l^3`` (an overestimate near the
+    walls), at most ``N - 1``; bytes: :data:`_BYTES_PER_EDGE_64` per edge, scaled by ``hidden / 64``."""
+    ball = (4 / 3) * math.pi * comm_radius**3
+    neighbours = min(num_agents - 1, num_agents / area**3 * ball)
+    edges = int(num_envs * num_agents * neighbours)
+    return int(edges * _BYTES_PER_EDGE_64 * max(1.0, hidden / 64)), edges
+
+
+def _size(num_bytes: float) -> str:
+    return f"{num_bytes / 2**30:.1f} GiB" if num_bytes >= 2**30 else f"{num_bytes / 2**20:.1f} MiB"
+
+
+def check_policy_memory(configs: Sequence, episodes: int, batch: int | None, hidden: int, device: torch.device) -> None:
+    """Refuse (usage error, with the numbers) a learned-policy evaluation whose estimated step memory
+    (:func:`policy_memory`) exceeds :func:`available_memory`, before anything is allocated."""
+    free = available_memory(device)
+    if free is None:
+        return
+    for cfg in configs:
+        n = cfg.num_agents
+        envs = batch or max(1, min(episodes, 4096 // n))  # as egcbf.evaluate.evaluate batches episodes
+        need, edges = policy_memory(n, cfg.area_size, cfg.comm_radius, envs, hidden)
+        if need > free:
+            usage_error(
+                f"--num-agents {n} at --area {cfg.area_size:g}: the learned policy needs about {_size(need)} "
+                f"(~{edges:,} graph edges, {envs} episode(s) at once), more than the {_size(free)} available; "
+                "use fewer agents, a larger --area or a smaller --batch"
+            )
+
+
+def prepare_out(out: Path, overwrite: bool, results: Sequence[str], flag: str = "--out") -> Path:
+    """Make ``out`` an empty-of-results, writable directory before any work starts.
+
+    ``results`` are glob patterns of the files a run writes there (e.g. ``metrics.json``, ``*_N*.gif``). If any
+    exists, the run is refused unless ``overwrite``, in which case they are deleted first (so that a new run never
+    mixes with an old one's renders).
+    """
+    if out.exists() and not out.is_dir():
+        usage_error(f"{flag} {out} is a file, not a directory; choose another {flag}")
+    found = sorted({p for pattern in results for p in out.glob(pattern)}) if out.is_dir() else []
+    if found and not overwrite:
+        usage_error(
+            f"{flag} {out} already holds results ({found[0].name}); pass --overwrite to replace them "
+            f"or choose another {flag}"
+        )
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".write_test.{os.getpid()}"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as err:
+        usage_error(f"{flag} {out} is not writable ({err.strerror or err}); choose another {flag}", err)
+    for p in found:
+        if p.is_dir():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+    return out

@@ -1,0 +1,176 @@
+"""The body of ``egcbf eval`` (also run once per method by ``egcbf demo``): check every input, then evaluate,
+writing each finished swarm size at once (atomically), and print the table."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+import typer
+
+from .atomic import write_json_atomic
+from .cli_checks import (
+    check_env_flags,
+    check_policy_memory,
+    parse_device,
+    parse_sizes,
+    prepare_out,
+    require,
+    usage_error,
+)
+from .report import machine_info
+
+__all__ = ["DTYPES", "EVAL_RESULTS", "format_table", "load_policy", "render_records", "run_eval"]
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+#: the files an evaluation writes into --out (a new run refuses a folder holding any of them without --overwrite)
+EVAL_RESULTS = ("metrics.json", "run.json", "*_N*.gif", "*_N*_topdown.png")
+
+
+def format_table(rows: list[dict], title: str = "") -> str:
+    """A fixed-width table of metric rows (rates in %)."""
+    head = f"{'N':>5} {'Safe%':>7} {'Reach%':>7} {'Succ%':>7} {'Cost (min/max)':>20} {'Reward':>10} {'step ms':>8}"
+    has_qp = any("qp_ms_median" in r for r in rows)
+    if has_qp:
+        head += f" {'QP ms':>7} {'slack':>6}"
+    lines = [title, head, "-" * len(head)] if title else [head, "-" * len(head)]
+    for r in rows:
+        cost = f"{r['cost']:.3f} ({r['cost_min']:.2f}/{r['cost_max']:.2f})"
+        line = (
+            f"{r['num_agents']:>5} {100 * r['safe_rate']:>7.1f} {100 * r['reach_rate']:>7.1f} "
+            f"{100 * r['success_rate']:>7.1f} {cost:>20} {r['reward']:>10.2f} {r['step_ms_median']:>8.2f}"
+        )
+        if has_qp:
+            line += f" {r.get('qp_ms_median', float('nan')):>7.2f} {r.get('qp_slack_steps', 0):>6}"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path]:
+    """A GIF and a top-down PNG per recorded swarm size ``{N: EpisodeRecord}``; returns the paths written."""
+    from .render import render_gif, render_topdown
+
+    paths = []
+    for n, rec in records.items():
+        traj = torch.stack(rec.positions)
+        coll = torch.stack(rec.collided)
+        args = (traj, rec.goals, rec.centers, rec.radii, coll)
+        for render, name in ((render_gif, f"{tag}_N{n}.gif"), (render_topdown, f"{tag}_N{n}_topdown.png")):
+            final = out / name
+            tmp = final.with_name(f".{final.stem}.partial{final.suffix}")  # a kill never leaves a half image
+            render(tmp, *args, area_size=area, title=f"{tag} N={n}")
+            os.replace(tmp, final)
+            paths.append(final)
+    return paths
+
+
+def load_policy(checkpoint: Path, dev: torch.device, dtype: torch.dtype, flag: str = "--checkpoint"):
+    """``(checkpoint directory, controller, training config)`` of ``checkpoint``, or a usage error naming it."""
+    from .train import CheckpointError, find_checkpoint, load_controller
+
+    try:
+        ckpt = find_checkpoint(checkpoint)
+        learned, train_cfg = load_controller(ckpt, device=dev, dtype=dtype)
+    except (FileNotFoundError, CheckpointError) as err:
+        usage_error(f"{flag} {checkpoint}: {err}", err)
+    return ckpt, learned, train_cfg
+
+
+def run_eval(
+    controller: str | None,
+    num_agents: str,
+    area: float,
+    obstacles: int,
+    episodes: int,
+    seed: int,
+    out: Path,
+    render: bool,
+    max_steps: int | None,
+    batch: int | None,
+    device: str,
+    dtype: str,
+    progress: bool,
+    checkpoint: Path | None,
+    threads_reason: str,
+    overwrite: bool = False,
+    allocator: str = "default (the CLI's entry point did not run)",
+) -> None:
+    """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
+
+    Every input is checked first (flags, all swarm sizes, the checkpoint, ``out``); then each finished swarm size
+    is written at once (``metrics.json`` with the rows so far, its renders, ``run.json``), atomically."""
+    from .control.controllers import CONTROLLERS, make_controller
+    from .evaluate import evaluate
+
+    require(dtype in DTYPES, f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
+    require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
+    require(batch is None or batch >= 1, f"--batch must be >= 1 (episodes simulated together), got {batch}")
+    sizes = parse_sizes(num_agents)
+    dev = parse_device(device)
+    env_overrides, ckpt = None, None
+    if checkpoint is not None:  # a learned policy: everything it needs is in the checkpoint directory
+        if controller is not None:
+            usage_error("--controller and --checkpoint exclude each other (the checkpoint's policy is the controller)")
+        ckpt, learned, train_cfg = load_policy(checkpoint, dev, DTYPES[dtype])
+        controller = train_cfg.algo
+        env_overrides = dict(train_cfg.env_overrides)  # the sensing the policy was trained with (radii, LiDAR)
+    else:
+        controller = controller or "nominal"
+        require(controller in CONTROLLERS, f"--controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
+    configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides)
+    if checkpoint is not None:
+        check_policy_memory(configs, episodes, batch, train_cfg.model.hidden, dev)
+    prepare_out(out, overwrite, EVAL_RESULTS)
+    t0 = time.time()
+    meta = {
+        "command": " ".join(["egcbf", *sys.argv[1:]]),
+        "controller": controller,
+        "checkpoint": None if ckpt is None else str(ckpt),
+        "num_agents": sizes,
+        "finished": [],
+        "complete": False,
+        "area": area,
+        "obstacles": obstacles,
+        "episodes": episodes,
+        "seed": seed,
+        "wall_s": 0.0,
+        "threads": torch.get_num_threads(),
+        "threads_reason": threads_reason,
+        "allocator": allocator,
+        "machine": machine_info(),
+    }
+    write_json_atomic(out / "run.json", meta)
+    written: list[Path] = []
+
+    def save_size(rows: list[dict], record) -> None:  # a later failure never loses a finished size
+        write_json_atomic(out / "metrics.json", rows)
+        if record is not None:
+            written.extend(render_records({rows[-1]["num_agents"]: record}, out, area, controller))
+        meta.update(finished=[r["num_agents"] for r in rows], wall_s=round(time.time() - t0, 1))
+        write_json_atomic(out / "run.json", meta)
+
+    rows, _ = evaluate(
+        (lambda cfg: learned) if checkpoint is not None else (lambda cfg: make_controller(controller)),
+        sizes,
+        area_size=area,
+        num_obstacles=obstacles,
+        episodes=episodes,
+        seed=seed,
+        batch=batch,
+        max_steps=max_steps,
+        device=dev,
+        dtype=DTYPES[dtype],
+        record=render,
+        show_progress=progress,
+        env_overrides=env_overrides,
+        on_size=save_size,
+    )
+    meta.update(complete=True, wall_s=round(time.time() - t0, 1))
+    write_json_atomic(out / "run.json", meta)
+    typer.echo(format_table(rows, title=f"{controller}: l={area:g}, {obstacles} obstacles, {episodes} episodes"))
+    for p in written:
+        typer.echo(f"wrote {p}")
+    typer.echo(f"wrote {out / 'metrics.json'}")

@@ -1,0 +1,184 @@
+"""`egcbf train`, `demo` and `reproduce`: bad inputs and options that would be silently ignored are usage errors."""
+
+import json
+import shutil
+
+import pytest
+from rel_helpers import assert_usage_error
+
+
+def _train(cli, out, *args):
+    return cli("train", "--out", out, "--preset", "tiny", "--no-progress", *args)
+
+
+@pytest.mark.parametrize(
+    "args, phrases",
+    [
+        (["--algo", "ppo"], ["--algo", "ppo"]),
+        (["--steps", "0"], ["--steps", ">= 1"]),
+        (["--steps", "-4"], ["--steps", ">= 1"]),
+        (["--threads", "-2"], ["--threads", ">= 1"]),
+        (["--device", "foo"], ["--device", "foo"]),
+        (["--preset", "huge"], ["--preset", "huge"]),
+    ],
+)
+def test_bad_train_flag(cli, tmp_path, args, phrases):
+    out = tmp_path / "run"
+    assert_usage_error(_train(cli, out, *args), *phrases)
+    assert not (out / "checkpoints").exists()
+
+
+def test_train_config_file_missing(cli, tmp_path):
+    assert_usage_error(_train(cli, tmp_path / "run", "--config", tmp_path / "nope.json"), "--config", "nope.json")
+
+
+@pytest.mark.parametrize(
+    "text, phrase",
+    [("{not json", "--config"), ("[1, 2]", "JSON object"), ('{"bogus": 1}', "bogus"), ('{"lr_cbf": -1}', "lr_cbf")],
+)
+def test_train_config_file_bad(cli, tmp_path, text, phrase):
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(text)
+    assert_usage_error(_train(cli, tmp_path / "run", "--config", cfg), phrase)
+
+
+def test_train_config_algo_conflict(cli, tmp_path):
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"algo": "gcbf"}))
+    assert_usage_error(_train(cli, tmp_path / "run", "--config", cfg, "--algo", "egcbf+"), "--config", "--algo")
+
+
+def test_train_out_is_a_file(cli, tmp_path):
+    f = tmp_path / "run"
+    f.write_text("x")
+    assert_usage_error(_train(cli, f), "--out", "is a file")
+
+
+def test_fresh_train_into_a_run_is_refused(cli, tiny_run):
+    assert_usage_error(_train(cli, tiny_run), "--out", "--resume")
+
+
+@pytest.fixture
+def run_copy(tiny_run, tmp_path):
+    dst = tmp_path / "run"
+    shutil.copytree(tiny_run, dst)
+    return dst
+
+
+@pytest.mark.parametrize(
+    "args, phrases",
+    [
+        (["--algo", "gcbf+"], ["--algo", "resume"]),
+        (["--algo", "egcbf+"], ["--algo", "resume"]),  # even the run's own method: it would be ignored
+        (["--seed", "3"], ["--resume", "--steps"]),
+        (["--preset", "cpu"], ["--resume"]),
+        (["--device", "cpu"], ["--resume"]),
+        (["--steps", "3"], ["--steps 3", "current update 4"]),
+        (["--steps", "0"], ["--steps", ">= 1"]),
+    ],
+)
+def test_resume_refuses_ignored_or_bad_options(cli, run_copy, args, phrases):
+    res = cli("train", "--out", run_copy, "--resume", "--no-progress", *args)
+    assert_usage_error(res, *phrases)
+
+
+def test_resume_without_a_run(cli, tmp_path):
+    assert_usage_error(cli("train", "--out", tmp_path / "none", "--resume", "--no-progress"), "no checkpoint")
+
+
+def test_resume_with_every_checkpoint_corrupted_names_them(cli, run_copy):
+    for f in (run_copy / "checkpoints").glob("step_*/model.safetensors"):
+        f.write_bytes(b"garbage")
+    res = cli("train", "--out", run_copy, "--resume", "--no-progress")
+    assert_usage_error(res, "model.safetensors", "corrupted")
+
+
+# ------------------------------------------------------------------------------------------------ demo
+@pytest.mark.parametrize(
+    "args, phrases",
+    [
+        (["--method", "nope"], ["unknown method", "nope"]),
+        (["--baseline", "nope"], ["unknown method", "nope"]),
+        (["--episodes", "0"], ["--episodes"]),
+        (["--num-agents", "0"], ["--num-agents"]),
+        (["--num-agents", "5000", "--area", "1"], ["--num-agents 5000", "--area"]),
+        (["--area", "-2"], ["--area"]),
+        (["--device", "gpu0"], ["--device"]),
+        (["--obstacles", "-1"], ["--obstacles"]),
+    ],
+)
+def test_bad_demo_flag(cli, tmp_path, args, phrases):
+    out = tmp_path / "demo"
+    res = cli("demo", "--method", "ccbf", "--out", out, "--no-progress", "--max-steps", "3", "--episodes", "1", *args)
+    assert_usage_error(res, *phrases)
+    assert not (out / "demo.json").exists()
+
+
+def test_demo_without_checkpoints_names_the_folder(cli, tmp_path):
+    res = cli("demo", "--checkpoints", tmp_path / "ck", "--out", tmp_path / "demo", "--no-progress")
+    assert_usage_error(res, "--checkpoints", "egcbf+")
+
+
+def test_demo_with_a_corrupted_checkpoint_names_the_file(cli, tmp_path, tiny_run):
+    root = tmp_path / "ck"
+    shutil.copytree(tiny_run / "best", root / "egcbf+")
+    (root / "egcbf+" / "model.safetensors").write_bytes(b"\x10\x00")
+    res = cli("demo", "--checkpoints", root, "--baseline", "none", "--out", tmp_path / "demo", "--no-progress")
+    assert_usage_error(res, "model.safetensors")
+
+
+def test_demo_refuses_a_folder_with_results(cli, tmp_path):
+    out = tmp_path / "demo"
+    args = ["demo", "--method", "ccbf", "--out", out, "--no-progress", "--max-steps", "2", "--episodes", "1"]
+    args += ["--num-agents", "4", "--obstacles", "0"]
+    assert cli(*args).exit_code == 0
+    assert_usage_error(cli(*args), "--out", "--overwrite")
+    assert cli(*args, "--overwrite").exit_code == 0
+
+
+# ------------------------------------------------------------------------------------------------ reproduce
+@pytest.mark.parametrize(
+    "args, phrases",
+    [
+        (["--methods", "gcbf,bogus"], ["--methods", "bogus"]),
+        (["--obstacle-methods", "x"], ["--obstacle-methods"]),
+        (["--num-agents", "0"], ["--num-agents"]),
+        (["--num-agents", "8,100000", "--area", "1"], ["--num-agents 100000"]),
+        (["--episodes", "0"], ["episodes"]),
+        (["--workers", "0"], ["workers"]),
+        (["--backend", "mpi"], ["backend"]),
+        (["--device", "foo"], ["--device"]),
+        (["--max-steps", "0"], ["max"]),
+    ],
+)
+def test_bad_reproduce_flag(cli, tmp_path, args, phrases):
+    out = tmp_path / "rep"
+    res = cli("reproduce", "--methods", "nominal", "--obstacle-methods", "nominal", "--out", out,
+              "--report", tmp_path / "r.md", "--no-progress", *args)  # fmt: skip
+    assert_usage_error(res, *phrases)
+    assert not (tmp_path / "r.md").exists()
+
+
+def test_reproduce_out_that_is_a_file_is_refused(cli, tmp_path):
+    f = tmp_path / "cells"
+    f.write_text("x")
+    res = cli("reproduce", "--methods", "nominal", "--obstacle-methods", "nominal", "--out", f,
+              "--report", tmp_path / "r.md", "--no-progress", "--episodes", "1", "--max-steps", "2")  # fmt: skip
+    assert_usage_error(res, "--out", "is a file")
+
+
+def test_reproduce_report_in_a_file_is_refused(cli, tmp_path):
+    f = tmp_path / "notadir"
+    f.write_text("x")
+    res = cli("reproduce", "--methods", "nominal", "--obstacle-methods", "nominal", "--out", tmp_path / "cells",
+              "--report", f / "r.md", "--no-progress", "--episodes", "1", "--max-steps", "2")  # fmt: skip
+    assert_usage_error(res, "--report", "is a file")
+
+
+def test_resume_falls_back_past_a_corrupted_checkpoint_and_says_so(cli, run_copy):
+    newest = sorted((run_copy / "checkpoints").glob("step_*"))[-1]
+    (newest / "training_state.pt").write_bytes(b"truncated")
+    res = cli("train", "--out", run_copy, "--resume", "--no-progress")
+    assert res.exit_code == 0, res.output
+    assert "cannot be loaded" in res.output and "training_state.pt" in res.output
+    assert "resuming from" in res.output and "step_000002" in res.output

@@ -44,7 +44,7 @@ test-escnn: $(ESCNN_STAMP)
 	$(ESCNN_PY) -m pytest -q -m escnn tests/groupcanon/test_escnn_adapter.py
 
 demo: $(STAMP)
-	$(VENV)/bin/egcbf demo --out out/demo
+	$(VENV)/bin/egcbf demo --out out/demo --overwrite
 
 lint: $(STAMP)
 	$(PY) -m ruff check src tests examples benchmarks docs/*.py

@@ -272,16 +272,17 @@ def _figure(density_rows: list[dict], device: str) -> None:
     fig.savefig(FIGURE, dpi=110)
 
 
-def _baseline(args) -> list[dict]:
-    """N = 512 at l = 4 with the source tree of ``args.baseline`` (a temporary ``git worktree``)."""
+def _baseline(args, commit: str) -> list[dict]:
+    """N = 512 at l = 4 with the source tree of ``commit`` (a temporary ``git worktree``)."""
     with tempfile.TemporaryDirectory() as tmp:
         old = Path(tmp) / "baseline"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(old), args.baseline],
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(old), commit],
                        check=True, capture_output=True)  # fmt: skip
         try:
-            return [measure_step(c, 512, DENSITY_AREA, 1, args, src=old / "src") for c in CONTROLLERS]
+            rows = [measure_step(c, 512, DENSITY_AREA, 1, args, src=old / "src") for c in CONTROLLERS]
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)], check=False)
+    return [dict(r, commit=commit) for r in rows]
 
 
 def main() -> None:
@@ -294,14 +295,15 @@ def main() -> None:
     ap.add_argument("--load", action=argparse.BooleanOptionalAction, default=True, help="the under-load case")
     ap.add_argument("--update", action=argparse.BooleanOptionalAction, default=True, help="one training update")
     ap.add_argument("--profile", action=argparse.BooleanOptionalAction, default=True, help="stage times (CPU)")
-    ap.add_argument("--baseline", default=None, help="also measure N = 512 with the code of this git commit")
+    ap.add_argument("--baseline", default=None, help="also measure N = 512 with the code of these git commits (a,b)")
     ap.add_argument("--no-write", action="store_true", help="print only; do not touch docs/")
     args = ap.parse_args()
     sizes = [512, 1024] if args.quick else [int(s) for s in args.sizes.split(",")]
     quick = args.quick or args.device != "cpu"
 
     t_start = time.time()
-    baseline = _baseline(args) if args.baseline else []
+    commits = args.baseline.split(",") if args.baseline else []
+    baseline = [r for commit in commits for r in _baseline(args, commit)]
     density = [measure_step(c, n, _area(n), 1, args) for n in sizes for c in CONTROLLERS]
     fixed = [] if quick else [measure_step(c, 1024, DENSITY_AREA, 1, args) for c in CONTROLLERS]
     batched = [] if quick else [measure_step(c, 512, DENSITY_AREA, 4, args) for c in CONTROLLERS]
@@ -353,11 +355,12 @@ def main() -> None:
             + ", ".join(f"{c} x{cell(loaded, c, 512)['ms'] / base[c]['ms']:.2f}" for c in CONTROLLERS)
             + f" (threads chosen under load: {cell(loaded, 'egcbf+', 512)['threads']})."
         )
-    if baseline:
-        pairs = [(c, cell(baseline, c, 512)["ms"], base[c]["ms"]) for c in CONTROLLERS]
-        change = ", ".join(f"{c} {old:.1f} -> {new:.1f} ms (x{old / new:.2f} faster)" for c, old, new in pairs)
-        lines += ["", f"**Before / after** (N = 512, l = 4, the code of commit `{args.baseline}` against this tree, "
-                  f"same checkpoints, same run): {change}."]  # fmt: skip
+    for commit in commits:
+        rows = [r for r in baseline if r["commit"] == commit]
+        pairs = [(c, cell(rows, c, 512)["ms"], base[c]["ms"]) for c in CONTROLLERS]
+        change = ", ".join(f"{c} {old:.1f} -> {new:.1f} ms (x{old / new:.2f})" for c, old, new in pairs)
+        lines += ["", f"**Before / after** (N = 512, l = 4, the code of commit `{commit}` -> this tree, same "
+                  f"checkpoints, same run; x = speed-up): {change}."]  # fmt: skip
     if no_keep:
         pairs = [(c, cell(no_keep, c, 512)["ms"], base[c]["ms"]) for c in CONTROLLERS]
         change = ", ".join(f"{c} {off:.1f} -> {on:.1f} ms" for c, off, on in pairs)

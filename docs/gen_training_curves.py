@@ -92,8 +92,7 @@ def main() -> None:
         title = "cpu-torque recipe, seed 0: evaluation rollouts (8 episodes x 8 agents, l = 2, 5 obstacles)"
         training_curves({k: v if len(v) > 1 else v[0] for k, v in runs.items()}, FIG_TORQUE, title=title)
         body += (
-            "**Torque interface (`cpu-torque` recipe, previous release): `checkpoints/torque/`, and "
-            "`checkpoints/gcbf/`, `checkpoints/egcbf/` until they are retrained:**\n\n"
+            "**Torque interface (`cpu-torque` recipe, previous release): `checkpoints/torque/`:**\n\n"
             f"![training curves, torque interface](figures/{FIG_TORQUE.name})\n\n" + "\n".join(_table(runs)) + "\n"
         )
     replace_section(ROOT / "learning.md", "shipped", body, heading="## Shipped checkpoints and training curves")

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import datetime
-import hashlib
 import json
 import multiprocessing
 import os
@@ -44,6 +43,8 @@ from typing import NamedTuple
 import torch
 from tqdm.auto import tqdm
 
+from .atomic import write_json_atomic
+from .ckpt_files import sha256
 from .dynamics.quadrotor import DEFAULT_DT
 from .report import machine_info
 
@@ -252,14 +253,6 @@ class CheckpointInfo:
         return {name: (self.path / name).read_bytes() for name in ("config.json", "model.safetensors")}
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def find_method_checkpoint(root: str | Path, method: str) -> CheckpointInfo:
     """The checkpoint of ``method`` under ``root``: ``root/<method>`` itself, or its ``best`` subdirectory.
 
@@ -281,7 +274,7 @@ def find_method_checkpoint(root: str | Path, method: str) -> CheckpointInfo:
     read_tensors(path / "model.safetensors")  # a truncated or corrupted file fails here, before any cell runs
     check_identity(path, train_cfg, state)
     step = state.get("step")
-    return CheckpointInfo(method, path, _sha256(path / "model.safetensors"), step, train_cfg.seed)
+    return CheckpointInfo(method, path, sha256(path / "model.safetensors"), step, train_cfg.seed)
 
 
 # ---------------------------------------------------------------------------------------------------- one cell
@@ -359,9 +352,7 @@ def cell_key(cfg: SweepConfig, cell: Cell, checkpoint: CheckpointInfo | None) ->
 
 def _write_json_atomic(path: Path, obj) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2) + "\n")
-    os.replace(tmp, path)
+    write_json_atomic(path, obj)
 
 
 def _read_json(path: Path):

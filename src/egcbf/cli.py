@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -24,7 +23,6 @@ import torch
 import typer
 
 from .allocator import keep_freed_memory
-from .atomic import write_json_atomic
 from .cli_checks import (
     check_env_flags,
     check_policy_memory,
@@ -35,7 +33,6 @@ from .cli_checks import (
     usage_error,
 )
 from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval
-from .report import machine_info
 from .threads import choose_threads
 
 __all__ = ["app", "format_table", "main"]
@@ -152,6 +149,9 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
         )
 
 
+_DEMO_COMPARE = ("gcbf+", "nominal", "dcbf")
+
+
 @app.command()
 def demo(
     checkpoints: Annotated[
@@ -160,11 +160,16 @@ def demo(
     method: Annotated[
         str, typer.Option(help="a learned method (gcbf, gcbf+, egcbf, egcbf+) or a controller (nominal, ccbf, dcbf)")
     ] = "egcbf+",
-    baseline: Annotated[
+    compare: Annotated[
         str | None,
-        typer.Option(help="compared on the same seeds; 'none' to skip (default: gcbf+ for a learned --method)"),
+        typer.Option(
+            "--compare",
+            "--baseline",
+            help="controllers run on the same episodes, comma list; 'none' to skip (default: gcbf+,nominal,dcbf; "
+            "nominal for a hand-crafted --method)",
+        ),
     ] = None,
-    num_agents: Annotated[int, typer.Option("--num-agents")] = 64,
+    num_agents: Annotated[int, typer.Option("--num-agents")] = 128,
     area: Annotated[float, typer.Option(help="side l of the arena [0, l]^3 (m)")] = 4.0,
     obstacles: Annotated[int, typer.Option(help="number of sphere obstacles")] = 8,
     episodes: Annotated[int, typer.Option()] = 4,
@@ -173,18 +178,24 @@ def demo(
     max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's)")] = None,
     device: Annotated[str, typer.Option()] = "cpu",
     threads: Annotated[int | None, typer.Option(help=_THREADS_HELP.replace("run.json", "demo.json"))] = None,
+    render: Annotated[bool, typer.Option("--render/--no-render", help="the comparison GIF and a still")] = True,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="replace the results already in OUT (default: refuse to mix runs)")
     ] = False,
 ) -> None:
-    """The main job: the learned EGCBF+ policy and GCBF+ on the same episodes (64 agents, l = 4, 8 obstacles by
-    default): both metrics tables, a one-line comparison, OUT/<method>/metrics.json, a GIF and a top-down PNG of
-    the first EGCBF+ episode, and OUT/demo.json. ``--method ccbf`` runs the hand-crafted centralized CBF-QP."""
-    t0 = time.time()
-    if baseline is None:
-        baseline = "none" if _demo_source(method, checkpoints) is None else "gcbf+"
-    names = [method] + ([] if baseline.lower() in ("none", "") or baseline == method else [baseline])
+    """The main job: the learned EGCBF+ policy beside GCBF+, the nominal controller and the hand-crafted dCBF-QP on
+    the same episodes (128 agents, l = 4, 8 obstacles by default): one table, OUT/summary.md, a GIF of the first
+    episode of every controller side by side (OUT/compare_N<n>.gif), OUT/<controller>/metrics.json and
+    OUT/demo.json."""
+    from .cli_demo import run_demo
+
+    if compare is None:  # a hand-crafted --method alone is compared with the nominal controller only
+        learned = _demo_source(method, checkpoints) is not None
+        names = [method, *(c for c in (_DEMO_COMPARE if learned else ("nominal",)) if c != method)]
+    else:
+        extra = [c for c in compare.replace(" ", "").split(",") if c and c.lower() != "none"]
+        names = list(dict.fromkeys([method, *extra]))
     sources = {name: _demo_source(name, checkpoints) for name in names}  # fail before any work
     n_threads, reason = _threads(threads)
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
@@ -196,59 +207,25 @@ def demo(
             _, _, train_cfg = load_policy(ckpt, dev, torch.float32, "--checkpoints")
             configs = check_env_flags([num_agents], area, obstacles, max_steps, train_cfg.env_overrides)
             check_policy_memory(configs, episodes, None, train_cfg.model.hidden, dev)
-    prepare_out(out, overwrite, ("demo.json",))
+    prepare_out(out, overwrite, ("demo.json", "summary.md", f"compare_N{num_agents}.gif"))
     for name in names:
         prepare_out(out / name, overwrite, EVAL_RESULTS)
     with _torch_threads(n_threads, reason):
-        rows = {}
-        for name, ckpt in sources.items():
-            run_eval(
-                controller=name if ckpt is None else None,
-                num_agents=str(num_agents),
-                area=area,
-                obstacles=obstacles,
-                episodes=episodes,
-                seed=seed,
-                out=out / name,
-                render=name == method,
-                max_steps=max_steps,
-                batch=None,
-                device=device,
-                dtype="float32",
-                progress=progress,
-                checkpoint=ckpt,
-                threads_reason=reason,
-                overwrite=True,  # checked above for every method
-                allocator=_ALLOCATOR,
-            )
-            rows[name] = json.loads((out / name / "metrics.json").read_text())[0]
-        if len(rows) == 2:
-            (a, ra), (b, rb) = rows.items()
-            parts = ", ".join(
-                f"{k} {100 * ra[f'{k}_rate']:.1f}% vs {100 * rb[f'{k}_rate']:.1f}%"
-                for k in ("safe", "reach", "success")
-            )
-            typer.echo(f"{a} vs {b} on the same {episodes} episodes (N={num_agents}, l={area:g}, seed {seed}): {parts}")
-        summary = {
-            "command": " ".join(["egcbf", *sys.argv[1:]]),
-            "method": method,
-            "baseline": None if len(rows) == 1 else names[1],
-            "checkpoints": {k: None if v is None else str(v) for k, v in sources.items()},
-            "num_agents": num_agents,
-            "area": area,
-            "obstacles": obstacles,
-            "episodes": episodes,
-            "seed": seed,
-            "max_steps": max_steps,
-            "metrics": rows,
-            "wall_s": round(time.time() - t0, 1),
-            "threads": torch.get_num_threads(),
-            "threads_reason": reason,
-            "allocator": _ALLOCATOR,
-            "machine": machine_info(),
-        }
-        write_json_atomic(out / "demo.json", summary)
-        typer.echo(f"wrote {out / 'demo.json'}")
+        run_demo(
+            sources,
+            num_agents=num_agents,
+            area=area,
+            obstacles=obstacles,
+            episodes=episodes,
+            seed=seed,
+            out=out,
+            max_steps=max_steps,
+            device=device,
+            progress=progress,
+            threads_reason=reason,
+            allocator=_ALLOCATOR,
+            render=render,
+        )
 
 
 @app.command()
@@ -337,6 +314,16 @@ def _parse_methods(text: str, option: str) -> tuple[str, ...]:
     return names
 
 
+def _parse_seeds(text: str) -> list[int]:
+    try:
+        seeds = [int(s) for s in text.replace(" ", "").split(",") if s]
+    except ValueError:
+        usage_error(f"--train-seeds must be comma-separated integers >= 0, got {text!r} (e.g. --train-seeds 0,1,2)")
+    if not seeds or any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
+        usage_error(f"--train-seeds needs distinct integers >= 0, got {text!r}")
+    return seeds
+
+
 @app.command()
 def reproduce(
     methods: Annotated[str, typer.Option(help="comma list of gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal")] = (
@@ -354,10 +341,29 @@ def reproduce(
     baseline_episodes: Annotated[
         int | None, typer.Option(help="episodes per cell of the CBF-QP baselines (default: --episodes)")
     ] = None,
+    train_seeds: Annotated[
+        str, typer.Option("--train-seeds", help="training seeds of the SEED-METHODS (comma list)")
+    ] = "0,1,2",
+    seed_methods: Annotated[
+        str, typer.Option("--seed-methods", help="learned methods evaluated once per training seed")
+    ] = "gcbf+,egcbf+",
+    scale_sizes: Annotated[
+        str,
+        typer.Option("--scale-sizes", help="swarm sizes past Table I at the density of N=512, l scaled ('none': skip)"),
+    ] = "1024,2048,4096",
+    scale_methods: Annotated[
+        str, typer.Option("--scale-methods", help="methods of the scalability study (comma list)")
+    ] = "gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal",
+    scale_agent_episodes: Annotated[
+        int, typer.Option("--scale-agent-episodes", help="agent-episodes per scalability cell (episodes = this / N)")
+    ] = 25_600,
     seed: Annotated[int, typer.Option(help="evaluation seed")] = 0,
     max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's 256 steps)")] = None,
     checkpoints: Annotated[
-        Path, typer.Option(help="one checkpoint directory per learned method: CHECKPOINTS/<method>/")
+        Path,
+        typer.Option(
+            help="learned checkpoints: CHECKPOINTS/<method>/ (training seed 0), CHECKPOINTS/seeds/<method>-s<k>/"
+        ),
     ] = Path("checkpoints"),
     out: Annotated[Path, typer.Option(help="results directory (one JSON file per cell)")] = Path(
         "docs/results/reproduction"
@@ -376,8 +382,10 @@ def reproduce(
     ] = False,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
 ) -> None:
-    """Reproduce the paper's Table I and scalability study: evaluate every method at every N (without obstacles,
-    and OBSTACLE-METHODS with OBSTACLES obstacles), resumably (finished cells are kept), and write REPORT."""
+    """Reproduce the paper's Table I and a scalability study past it: evaluate every method at every N (without
+    obstacles, and OBSTACLE-METHODS with OBSTACLES obstacles; SEED-METHODS once per training seed) and at the
+    SCALE-SIZES at fixed density, resumably (finished cells are kept; stop and rerun the same command), and write
+    REPORT."""
     from .reproduce import SweepConfig, load_cells, sweep, validate, write_report
 
     try:
@@ -389,6 +397,13 @@ def reproduce(
             obstacle_methods=_parse_methods(obstacle_methods, "--obstacle-methods"),
             episodes=episodes,
             baseline_episodes=baseline_episodes,
+            train_seeds=tuple(_parse_seeds(train_seeds)),
+            seed_methods=_parse_methods(seed_methods, "--seed-methods"),
+            scale_sizes=()
+            if scale_sizes.strip().lower() in ("", "none")
+            else tuple(parse_sizes(scale_sizes, "--scale-sizes")),
+            scale_methods=_parse_methods(scale_methods, "--scale-methods"),
+            scale_agent_episodes=scale_agent_episodes,
             seed=seed,
             max_steps=max_steps,
             checkpoints=checkpoints,
@@ -401,6 +416,8 @@ def reproduce(
         if not report_only:
             parse_device(device)
             check_env_flags(cfg.num_agents, area, obstacles, max_steps)
+            for n in cfg.scale_sizes:
+                check_env_flags([n], cfg.scale_area(n), 0, max_steps)
             validate(cfg)
     except (ValueError, FileNotFoundError, ImportError) as err:
         usage_error(str(err), err)

@@ -97,11 +97,13 @@ def run_eval(
     threads_reason: str,
     overwrite: bool = False,
     allocator: str = "default (the CLI's entry point did not run)",
-) -> None:
+    record: bool = False,
+) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
     Every input is checked first (flags, all swarm sizes, the checkpoint, ``out``); then each finished swarm size
-    is written at once (``metrics.json`` with the rows so far, its renders, ``run.json``), atomically."""
+    is written at once (``metrics.json`` with the rows so far, its renders, ``run.json``), atomically. Returns the
+    first episode of each swarm size ``{N: EpisodeRecord}`` if ``render`` or ``record``, else ``{}``."""
     from .control.controllers import CONTROLLERS, make_controller
     from .evaluate import evaluate
 
@@ -144,11 +146,14 @@ def run_eval(
     }
     write_json_atomic(out / "run.json", meta)
     written: list[Path] = []
+    recorded: dict = {}
 
-    def save_size(rows: list[dict], record) -> None:  # a later failure never loses a finished size
+    def save_size(rows: list[dict], episode) -> None:  # a later failure never loses a finished size
         write_json_atomic(out / "metrics.json", rows)
-        if record is not None:
-            written.extend(render_records({rows[-1]["num_agents"]: record}, out, area, controller))
+        if episode is not None:
+            recorded[rows[-1]["num_agents"]] = episode
+            if render:
+                written.extend(render_records({rows[-1]["num_agents"]: episode}, out, area, controller))
         meta.update(finished=[r["num_agents"] for r in rows], wall_s=round(time.time() - t0, 1))
         write_json_atomic(out / "run.json", meta)
 
@@ -163,7 +168,7 @@ def run_eval(
         max_steps=max_steps,
         device=dev,
         dtype=DTYPES[dtype],
-        record=render,
+        record=render or record,
         show_progress=progress,
         env_overrides=env_overrides,
         on_size=save_size,
@@ -174,3 +179,4 @@ def run_eval(
     for p in written:
         typer.echo(f"wrote {p}")
     typer.echo(f"wrote {out / 'metrics.json'}")
+    return recorded

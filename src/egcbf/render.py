@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["render_gif", "render_topdown"]
+__all__ = ["render_comparison_gif", "render_gif", "render_topdown"]
 
 
 def _np(a) -> np.ndarray | None:
@@ -154,4 +154,91 @@ def render_topdown(
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
+    return path
+
+
+def render_comparison_gif(
+    path: str | Path,
+    panels: dict,
+    goals=None,
+    centers=None,
+    radii=None,
+    *,
+    area_size: float | None = None,
+    fps: int = 12,
+    max_frames: int = 80,
+    trail: int = 16,
+    title: str = "",
+) -> Path:
+    """Write a top-down (x-y) animation of several controllers on the same episode, one panel each, to ``path``.
+
+    ``panels`` maps a label to ``(trajectory (T, N, 3), collided (T, N))`` of one controller (the same starts,
+    goals and obstacles for all, e.g. the same evaluation seed). Each agent leaves a short trail; an agent is drawn
+    red while it collides and keeps a red ring once it has collided; each panel's title counts the agents that have
+    collided so far, so a controller that avoids stays blue while one that does not turns red. At most
+    ``max_frames`` frames (time steps sub-sampled evenly, the last step always shown). Returns ``path``.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle
+    from PIL import Image
+
+    if not panels:
+        raise ValueError("render_comparison_gif needs at least one panel")
+    data = {}
+    for label, (trajectory, collided) in panels.items():
+        traj, g, c, r, coll = _validate(trajectory, goals, centers, radii, collided)
+        if coll is None:
+            raise ValueError(f"panel {label!r}: collided is required")
+        data[label] = (traj, coll)
+    shapes = {traj.shape for traj, _ in data.values()}
+    if len(shapes) != 1:
+        raise ValueError(f"every panel needs the same (T, N, 3) trajectory shape, got {sorted(shapes)}")
+    T, N, _ = shapes.pop()
+    frames = np.unique(np.linspace(0, T - 1, min(T, max_frames)).round().astype(int))
+    lo = 0.0 if area_size is not None else min(float(t[..., :2].min()) for t, _ in data.values())
+    hi = float(area_size) if area_size is not None else max(float(t[..., :2].max()) for t, _ in data.values())
+    cols = min(len(data), 2 if len(data) == 4 else 3)
+    rows = -(-len(data) // cols)
+    fig = Figure(figsize=(3.6 * cols, 3.8 * rows + (0.3 if title else 0)), dpi=90)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    artists = []
+    for ax, (label, (traj, coll)) in zip(axes, data.items()):
+        for center, radius in zip(c, r):
+            ax.add_patch(Circle(center[:2], radius, color="0.6", alpha=0.6))
+        if g is not None:
+            ax.scatter(g[:, 0], g[:, 1], marker="x", color="tab:green", s=10, lw=0.8)
+        lines = LineCollection([], colors="tab:blue", alpha=0.35, linewidths=0.7)
+        ax.add_collection(lines)
+        dots = ax.scatter(traj[0, :, 0], traj[0, :, 1], s=9, color="tab:blue", zorder=3)
+        rings = ax.scatter([], [], s=45, facecolors="none", edgecolors="red", linewidths=1.2, zorder=4)
+        ax.set_xlim(lo, hi)
+        ax.set_ylim(lo, hi)
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        artists.append((ax, label, traj, np.logical_or.accumulate(coll, axis=0), coll, lines, dots, rings))
+    for ax in axes[len(data) :]:
+        ax.set_visible(False)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    images = []
+    for t in frames:
+        for ax, label, traj, ever, coll, lines, dots, rings in artists:
+            t0 = max(0, t - trail)
+            lines.set_segments([traj[t0 : t + 1, i, :2] for i in range(N)])
+            dots.set_offsets(traj[t, :, :2])
+            dots.set_color(np.where(coll[t], "red", "tab:blue"))
+            rings.set_offsets(traj[t, ever[t], :2] if ever[t].any() else np.zeros((0, 2)))
+            ax.set_title(f"{label}: {int(ever[t].sum())} of {N} collided", fontsize=9)
+        fig.canvas.draw()
+        frame = Image.fromarray(np.asarray(fig.canvas.buffer_rgba())).convert("RGB")
+        images.append(frame.quantize(colors=255, method=Image.Quantize.FASTOCTREE))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    durations = [round(1000 / fps)] * (len(images) - 1) + [1500]  # hold the last frame
+    images[0].save(path, format="GIF", save_all=True, append_images=images[1:], duration=durations, loop=0)
     return path

@@ -3,6 +3,7 @@
 import json
 
 import pytest
+from PIL import Image
 from typer.testing import CliRunner
 
 from egcbf.cli import app
@@ -24,20 +25,49 @@ def checkpoints(tmp_path_factory):
     return root
 
 
-def test_demo_compares_the_learned_policy_with_its_baseline(checkpoints, tmp_path):
+def test_demo_compares_four_controllers_on_the_same_episodes(checkpoints, tmp_path):
     out = tmp_path / "demo"
     res = _invoke(["--checkpoints", str(checkpoints), "--out", str(out), *SMALL])
     assert res.exit_code == 0, res.output
-    for name in ("egcbf+", "gcbf+"):
+    names = ("egcbf+", "gcbf+", "nominal", "dcbf")
+    for name in names:
         rows = json.loads((out / name / "metrics.json").read_text())
         assert [r["num_agents"] for r in rows] == [3] and rows[0]["num_episodes"] == 1
-    assert (out / "egcbf+" / "egcbf+_N3.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
-    assert (out / "egcbf+" / "egcbf+_N3_topdown.png").stat().st_size > 0
-    assert not list((out / "gcbf+").glob("*.gif"))  # the baseline is not rendered
+        assert not list((out / name).glob("*.gif"))  # one comparison GIF instead of one per controller
+    gif = Image.open(out / "compare_N3.gif")
+    assert gif.format == "GIF" and gif.n_frames == 9  # the start and every step of the 8-step episode
+    assert (out / "egcbf+_N3_topdown.png").stat().st_size > 0
     summary = json.loads((out / "demo.json").read_text())
-    assert summary["method"] == "egcbf+" and summary["baseline"] == "gcbf+"
-    assert set(summary["metrics"]) == {"egcbf+", "gcbf+"} and summary["num_agents"] == 3
-    assert res.output.count("Safe%") == 2 and "egcbf+ vs gcbf+ on the same 1 episodes" in res.output
+    assert summary["method"] == "egcbf+" and summary["compared"] == ["gcbf+", "nominal", "dcbf"]
+    assert list(summary["metrics"]) == list(names) and summary["num_agents"] == 3
+    table = (out / "summary.md").read_text()
+    for label in ("EGCBF+ (learned, equivariant)", "GCBF+ (learned)", "nominal (no safety filter)", "dCBF-QP"):
+        assert label in table and label in res.output
+    line = next(ln for ln in table.splitlines() if ln.startswith("nominal"))
+    nominal = summary["metrics"]["nominal"]
+    assert line.split()[-5:] == [f"{100 * nominal[k]:.1f}" for k in ("safe_rate", "reach_rate", "success_rate")] + [
+        f"{nominal['cost']:.3f}", f"{nominal['step_ms_median']:.2f}"]  # fmt: skip
+
+
+def test_comparison_gif_marks_agents_that_collided(tmp_path):
+    import numpy as np
+
+    from egcbf.render import render_comparison_gif
+
+    traj = np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 1.0]]) + 0.2 * np.arange(5)[:, None, None] * np.array([1, 0, 0])
+    hit = np.zeros((5, 2), dtype=bool)
+    hit[2, 0] = True
+    path = render_comparison_gif(tmp_path / "c.gif", {"a": (traj, hit), "b": (traj, np.zeros_like(hit))},
+                                 area_size=4.0, max_frames=5)  # fmt: skip
+    frames = Image.open(path)
+    assert frames.n_frames == 5
+    frames.seek(4)
+    rgb = np.asarray(frames.convert("RGB")).astype(int)
+    red = (rgb[..., 0] > 200) & (rgb[..., 1] < 80) & (rgb[..., 2] < 80)
+    half = rgb.shape[1] // 2
+    assert red[:, :half].any() and not red[:, half:].any()  # the ring stays on the agent of panel a after the hit
+    with pytest.raises(ValueError, match="same"):
+        render_comparison_gif(tmp_path / "d.gif", {"a": (traj, hit), "b": (traj[:3], hit[:3])})
 
 
 def test_demo_names_a_missing_checkpoint_and_how_to_train_it(tmp_path):
@@ -49,7 +79,7 @@ def test_demo_names_a_missing_checkpoint_and_how_to_train_it(tmp_path):
 
 
 def test_demo_with_a_missing_baseline_fails_before_evaluating(checkpoints, tmp_path):
-    res = _invoke(["--checkpoints", str(checkpoints), "--baseline", "gcbf", "--out", str(tmp_path / "o"), *SMALL])
+    res = _invoke(["--checkpoints", str(checkpoints), "--compare", "gcbf", "--out", str(tmp_path / "o"), *SMALL])
     assert res.exit_code != 0 and "egcbf train --algo gcbf " in res.output
     assert not (tmp_path / "o").exists()
 
@@ -58,8 +88,8 @@ def test_demo_runs_a_hand_crafted_controller_without_checkpoints(tmp_path):
     out = tmp_path / "demo"
     res = _invoke(["--method", "ccbf", "--checkpoints", str(tmp_path / "none"), "--out", str(out), *SMALL])
     assert res.exit_code == 0, res.output
-    assert (out / "ccbf" / "metrics.json").exists() and (out / "ccbf" / "ccbf_N3.gif").exists()
-    assert json.loads((out / "demo.json").read_text())["baseline"] is None
+    assert (out / "ccbf" / "metrics.json").exists() and (out / "compare_N3.gif").exists()
+    assert json.loads((out / "demo.json").read_text())["compared"] == ["nominal"]
 
 
 def test_demo_rejects_an_unknown_method(tmp_path):

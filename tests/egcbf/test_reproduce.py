@@ -26,13 +26,15 @@ def _metrics(row: dict) -> dict:
 
 @pytest.fixture(scope="module")
 def checkpoints(tmp_path_factory):
-    """``CHECKPOINTS/egcbf+``: the best policy of a one-update tiny run, with its metrics.csv."""
+    """``CHECKPOINTS/egcbf+`` and ``CHECKPOINTS/seeds/egcbf+-s1``: the best policies of one-update tiny runs with
+    training seeds 0 and 1, with their metrics.csv."""
     root = tmp_path_factory.mktemp("repro")
-    run = root / "run"
-    train(TrainConfig.preset("egcbf+", "tiny", steps=1), run, progress=False, log=lambda s: None)
     ckpts = root / "checkpoints"
-    shutil.copytree(run / "best", ckpts / "egcbf+")
-    shutil.copy(run / "metrics.csv", ckpts / "egcbf+" / "metrics.csv")
+    for seed, dest in ((0, ckpts / "egcbf+"), (1, ckpts / "seeds" / "egcbf+-s1")):
+        run = root / f"run{seed}"
+        train(TrainConfig.preset("egcbf+", "tiny", steps=1, seed=seed), run, progress=False, log=lambda s: None)
+        shutil.copytree(run / "best", dest)
+        shutil.copy(run / "metrics.csv", dest / "metrics.csv")
     return ckpts
 
 
@@ -44,6 +46,8 @@ def _cfg(checkpoints, out, **kw) -> SweepConfig:
         obstacles=1,
         obstacle_methods=("egcbf+",),
         episodes=2,
+        train_seeds=(0,),
+        scale_sizes=(),
         seed=3,
         max_steps=5,
         checkpoints=checkpoints,
@@ -64,7 +68,12 @@ def first(checkpoints, tmp_path_factory):
 
 def test_cells_are_written_and_equal_evaluate(first, checkpoints):
     cfg, records = first
-    expected = [Cell(m, k, n) for k, ms in ((0, ("dcbf", "egcbf+")), (1, ("egcbf+",))) for m in ms for n in (2, 3)]
+    expected = [
+        Cell(m, k, n, None if m == "dcbf" else 0)
+        for k, ms in ((0, ("dcbf", "egcbf+")), (1, ("egcbf+",)))
+        for m in ms
+        for n in (2, 3)
+    ]
     assert set(records) == set(expected) and set(cfg.cells()) == set(expected)
     for cell in expected:
         stored = json.loads(cell.path(cfg.out).read_text())
@@ -93,7 +102,7 @@ def test_resume_recomputes_nothing_then_only_changed_cells(first, monkeypatch):
     def boom(task):
         raise AssertionError(f"recomputed {task.cell}")
 
-    monkeypatch.setattr(rp, "run_cell", boom)
+    monkeypatch.setattr(rp.runner, "run_cell", boom)
     again = rp.sweep(cfg, progress=False, log=lambda s: None)
     assert again == records
     log = json.loads((cfg.out / "sweep.json").read_text())
@@ -105,7 +114,7 @@ def test_resume_recomputes_nothing_then_only_changed_cells(first, monkeypatch):
         calls.append(task.cell)
         return {"row": records[task.cell]["row"], "wall_s": 0.0, "machine": {}}
 
-    monkeypatch.setattr(rp, "run_cell", fake)
+    monkeypatch.setattr(rp.runner, "run_cell", fake)
     other = SweepConfig(**{**cfg.__dict__, "episodes": 3, "out": cfg.out.parent / "other"})
     shutil.copytree(cfg.out, other.out)
     rp.sweep(other, progress=False, log=lambda s: None)
@@ -151,7 +160,7 @@ def test_report_sections_paper_numbers_and_figures(first, tmp_path, monkeypatch)
     rp.write_report(wide, records, report)  # cells not computed yet show as pending beside the paper's numbers
     text = report.read_text()
     assert "pending" in text
-    for name in ("table", "scalability", "convergence", "contour", "provenance"):
+    for name in ("summary", "table", "scalability", "convergence", "contour", "provenance"):
         assert f"<!-- {name}:begin -->" in text and f"<!-- {name}:end -->" in text
     for paper in ("-505.8", "89.5", "0.51 (0.23/0.73)", "98.125"):  # Table I: GCBF, EGCBF+ at 512, dCBF at 16
         assert paper in text
@@ -208,7 +217,7 @@ def test_missing_ray_and_checkpoint_errors(checkpoints, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
     with pytest.raises(ImportError, match=r"pip install -e '\.\[ray\]'"):
         rp.validate(_cfg(checkpoints, tmp_path, backend="ray"))
-    with pytest.raises(FileNotFoundError, match=r"egcbf train --algo gcbf\+ --out runs/gcbf\+"):
+    with pytest.raises(FileNotFoundError, match=r"egcbf train --algo gcbf\+ --seed 0 --out runs/gcbf\+-s0"):
         rp.validate(_cfg(checkpoints, tmp_path, methods=("gcbf+",)))
     with pytest.raises(ValueError, match="unknown method"):
         _cfg(checkpoints, tmp_path, methods=("nope",))
@@ -224,8 +233,66 @@ def test_reproduce_command(first, tmp_path):
     args = ["reproduce", "--methods", "egcbf+,dcbf", "--num-agents", "2,3", "--area", "1.5", "--obstacles", "1"]
     args += ["--obstacle-methods", "egcbf+", "--episodes", "2", "--seed", "3", "--max-steps", "5", "--no-progress"]
     args += ["--checkpoints", str(cfg.checkpoints), "--out", str(cfg.out), "--report", str(report)]
+    args += ["--train-seeds", "0", "--scale-sizes", "none"]
     res = CliRunner().invoke(app, args)  # every cell exists: nothing is recomputed
     assert res.exit_code == 0, res.output
     assert f"{len(records)} of {len(records)} cells" in res.output and "EGCBF+" in report.read_text()
     res = CliRunner().invoke(app, [*args, "--report-only"])
     assert res.exit_code == 0, res.output
+
+
+def test_training_seeds_and_scalability_cells(checkpoints, tmp_path):
+    cfg = _cfg(checkpoints, tmp_path / "out", methods=("egcbf+", "nominal"), obstacles=0, train_seeds=(0, 1))
+    cfg = SweepConfig(**{**cfg.__dict__, "seed_methods": ("egcbf+",), "scale_sizes": (4,), "scale_reference": 2,
+                         "scale_agent_episodes": 6})  # fmt: skip
+    l4 = cfg.scale_area(4)
+    assert l4 == pytest.approx(1.5 * 2 ** (1 / 3), abs=1e-4)
+    expected = {Cell("egcbf+", 0, n, s) for s in (0, 1) for n in (2, 3)} | {Cell("nominal", 0, n) for n in (2, 3)}
+    expected |= {Cell("egcbf+", 0, 4, s, l4) for s in (0, 1)} | {Cell("nominal", 0, 4, None, l4)}
+    assert set(cfg.cells()) == expected
+    paths = {c.path(cfg.out).relative_to(cfg.out).as_posix() for c in cfg.cells()}
+    assert {"egcbf+_obs0/N2.json", "egcbf+-s1_obs0/N2.json", "scale/egcbf+-s1_obs0/N4.json"} <= paths
+    assert len(paths) == len(expected)
+    records = rp.sweep(cfg, progress=False, log=lambda s: None)
+    assert set(records) == expected
+    scale = records[Cell("egcbf+", 0, 4, 1, l4)]
+    assert scale["key"]["episodes"] == 2 and scale["key"]["area"] == l4 and scale["meta"]["train_seed"] == 1
+    assert scale["row"]["num_episodes"] == 2
+    # a seed-1 cell is what `egcbf eval --checkpoint CHECKPOINTS/seeds/egcbf+-s1` computes
+    ctrl, tcfg = load_controller(checkpoints / "seeds" / "egcbf+-s1")
+    assert tcfg.seed == 1
+    rows, _ = evaluate(lambda c: ctrl, [4], area_size=l4, episodes=2, seed=3, max_steps=5, show_progress=False,
+                       env_overrides=dict(tcfg.env_overrides))  # fmt: skip
+    assert _metrics(scale["row"]) == _metrics(rows[0])
+    s0, s1 = (records[Cell("egcbf+", 0, 2, s)]["key"]["checkpoint_sha256"] for s in (0, 1))
+    assert s0 != s1
+    # the report: mean and min-max over the seeds, the scalability rows, a summary written from the cells
+    report = tmp_path / "reproduction.md"
+    rp.write_report(cfg, records, report)
+    text = report.read_text()
+    assert "EGCBF+ (2 seeds)" in text and "Scalability past Table I" in text and f"l = {l4:g}" in text
+    safe = [records[Cell("egcbf+", 0, 3, s)]["row"]["safe_rate"] for s in (0, 1)]
+    cell_text = rp.report.Stat(safe).text()
+    assert cell_text in text
+    if safe[0] != safe[1]:
+        assert f"({100 * min(safe):.1f}-{100 * max(safe):.1f})" in cell_text
+
+
+def test_stat_text():
+    assert rp.report.Stat([0.5]).text() == "50.0"
+    assert rp.report.Stat([0.9, 0.95, 1.0]).text() == "95.0 (90.0-100.0)"
+    with pytest.raises(ValueError):
+        rp.report.Stat([])
+
+
+def test_checkpoint_of_the_wrong_seed_is_refused(checkpoints, tmp_path):
+    root = tmp_path / "ck"
+    shutil.copytree(checkpoints, root)
+    shutil.copytree(root / "egcbf+", root / "seeds" / "egcbf+-s2")  # a seed-0 run filed as seed 2
+    with pytest.raises(ValueError, match="trained with seed 0, expected seed 2"):
+        rp.find_method_checkpoint(root, "egcbf+", 2)
+    assert rp.find_method_checkpoint(root, "egcbf+", 1).train_seed == 1
+    res = CliRunner().invoke(app, ["reproduce", "--methods", "egcbf+", "--train-seeds", "0,x"])
+    assert res.exit_code == 2 and "--train-seeds" in res.output
+    res = CliRunner().invoke(app, ["reproduce", "--methods", "egcbf+", "--seed-methods", "dcbf"])
+    assert res.exit_code == 2 and "seed_methods" in res.output

@@ -15,7 +15,7 @@ import egcbf
 from egcbf.train import find_checkpoint, load_controller, load_learner
 
 SRC = str(Path(egcbf.__file__).resolve().parents[1])
-TIMEOUT = 25.0
+TIMEOUT = 60.0
 
 
 def _start(*args) -> subprocess.Popen:
@@ -88,4 +88,7 @@ def test_kill_during_eval_keeps_the_finished_sizes(tmp_path):
     rows = json.loads((out / "metrics.json").read_text())
     run = json.loads((out / "run.json").read_text())
     assert rows and [r["num_agents"] for r in rows] == [4, 5, 6, 7, 8, 9, 10, 11][: len(rows)]
-    assert run["finished"][: len(rows)] == [r["num_agents"] for r in rows]
+    # metrics.json is written first, run.json's list of finished sizes right after it: a kill in between leaves
+    # run.json one size behind, never ahead
+    sizes = [r["num_agents"] for r in rows]
+    assert run["finished"] == sizes[: len(run["finished"])] and len(run["finished"]) >= len(sizes) - 1

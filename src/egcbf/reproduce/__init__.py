@@ -1,0 +1,61 @@
+"""Reproduce the paper's Table I and a scalability study past it: ``egcbf reproduce``.
+
+    from egcbf.reproduce import SweepConfig, sweep, write_report
+    cfg = SweepConfig(episodes=50, workers=2)
+    records = sweep(cfg, command="egcbf reproduce")
+    write_report(cfg, records, "docs/reproduction.md")
+
+The sweep evaluates every method (GCBF, GCBF+, dCBF-QP, cCBF-QP, EGCBF, EGCBF+, and the nominal controller alone)
+at every swarm size of Table I in an arena ``[0, l]^3`` without obstacles and (the methods of ``obstacle_methods``)
+with sphere obstacles; EGCBF+ and GCBF+ once per training seed; and, past the paper, at N = 1024 ... 4096 at the
+density of N = 512. Four modules, one job each:
+
+* :mod:`~egcbf.reproduce.paper`: the paper's Table I and the method names;
+* :mod:`~egcbf.reproduce.plan`: :class:`SweepConfig`, its cells and what a cell's result depends on;
+* :mod:`~egcbf.reproduce.runner`: checkpoints, evaluating cells on processes or Ray, resuming;
+* :mod:`~egcbf.reproduce.report`: the markdown report and its figures.
+"""
+
+from .paper import BASELINES, DEFAULT_SIZES, LABELS, LEARNED, METHODS, PAPER_TABLE_I, SCALE_SIZES
+from .plan import Cell, SweepConfig, cell_key
+from .report import provenance_markdown, scalability_figure, summary_markdown, table_markdown, write_report
+from .runner import (
+    CellTask,
+    CheckpointInfo,
+    checkpoint_dir,
+    find_method_checkpoint,
+    import_baseline,
+    load_cells,
+    require_ray,
+    run_cell,
+    sweep,
+    validate,
+)
+
+__all__ = [
+    "BASELINES",
+    "DEFAULT_SIZES",
+    "LABELS",
+    "LEARNED",
+    "METHODS",
+    "PAPER_TABLE_I",
+    "SCALE_SIZES",
+    "Cell",
+    "CellTask",
+    "CheckpointInfo",
+    "SweepConfig",
+    "cell_key",
+    "checkpoint_dir",
+    "find_method_checkpoint",
+    "import_baseline",
+    "load_cells",
+    "provenance_markdown",
+    "require_ray",
+    "run_cell",
+    "scalability_figure",
+    "summary_markdown",
+    "sweep",
+    "table_markdown",
+    "validate",
+    "write_report",
+]

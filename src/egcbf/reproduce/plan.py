@@ -1,0 +1,211 @@
+"""What ``egcbf reproduce`` evaluates: its cells, where their results live and what each result depends on."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+from .paper import BASELINES, DEFAULT_SIZES, LEARNED, METHODS, SCALE_SIZES
+
+__all__ = ["BACKENDS", "Cell", "SweepConfig", "cell_key"]
+
+BACKENDS = ("process", "ray")
+
+
+class Cell(NamedTuple):
+    """One evaluation of the sweep: ``method`` with ``obstacles`` obstacles at ``num_agents`` agents.
+
+    ``train_seed`` is the training seed of a learned method's checkpoint (``None`` for the hand-crafted
+    controllers). ``area`` is ``None`` for Table I's cells (the sweep's ``l``) and the side ``l`` of the arena for
+    the cells of the scalability study past Table I (``N`` at the density of ``scale_reference`` agents)."""
+
+    method: str
+    obstacles: int
+    num_agents: int
+    train_seed: int | None = None
+    area: float | None = None
+
+    @property
+    def run(self) -> str:
+        """``egcbf+`` (training seed 0 or a baseline) or ``egcbf+-s2`` (training seed 2)."""
+        return self.method if not self.train_seed else f"{self.method}-s{self.train_seed}"
+
+    @property
+    def scale(self) -> bool:
+        """Whether the cell belongs to the scalability study (fixed density) rather than Table I."""
+        return self.area is not None
+
+    def path(self, out: str | Path) -> Path:
+        """Its result file: ``OUT/<run>_obs<k>/N<n>.json``, or ``OUT/scale/<run>_obs<k>/N<n>.json``."""
+        base = Path(out) / "scale" if self.scale else Path(out)
+        return base / f"{self.run}_obs{self.obstacles}" / f"N{self.num_agents}.json"
+
+
+def _positive_ints(name: str, values) -> None:
+    if any(int(v) < 1 for v in values):
+        raise ValueError(f"{name} needs positive integers, got {tuple(values)}")
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """What to evaluate and how.
+
+    **Table I.** ``methods`` run at every ``num_agents`` in ``[0, area]^3`` without obstacles; those also in
+    ``obstacle_methods`` run again with ``obstacles`` obstacles (``obstacles=0``: no obstacle setting).
+    ``episodes`` per cell (``baseline_episodes``, if set, replaces it for the hand-crafted controllers, e.g. to
+    reuse their 50-episode runs while the learned methods run fewer).
+
+    **Training seeds.** The learned methods of ``seed_methods`` run once per seed of ``train_seeds`` (the
+    checkpoint ``CHECKPOINTS/<method>`` for seed 0, ``CHECKPOINTS/seeds/<method>-s<k>`` for seed ``k``); the other
+    learned methods run their seed-0 checkpoint.
+
+    **Scalability past Table I.** The methods of ``scale_methods`` (among ``methods``) also run without obstacles
+    at every ``scale_sizes`` N, in the arena of side ``l_N = area (N / scale_reference)^(1/3)`` (the density of
+    ``scale_reference`` agents at ``l = area``), for ``ceil(scale_agent_episodes / N)`` episodes (as many
+    agent-episodes as ``scale_agent_episodes``: 50 episodes at N = 512 are 25 600).
+
+    ``seed`` is the evaluation seed (episode ``e`` at size ``N`` resets from
+    ``egcbf.evaluate.episode_seed(seed, N, e)``), ``max_steps`` the episode length (``None``: the environment's 256
+    steps of 25 ms). ``checkpoints`` holds the learned methods' checkpoints, ``out`` the cell files, ``baselines``
+    earlier ``egcbf eval`` outputs to import baseline cells from (``None``: never import). ``workers`` parallel
+    cells, ``threads`` torch threads per cell, ``backend`` ``"process"`` or ``"ray"``.
+    """
+
+    methods: tuple[str, ...] = METHODS
+    num_agents: tuple[int, ...] = DEFAULT_SIZES
+    area: float = 4.0
+    obstacles: int = 8
+    obstacle_methods: tuple[str, ...] = (*LEARNED, "nominal")
+    episodes: int = 50
+    baseline_episodes: int | None = None
+    train_seeds: tuple[int, ...] = (0, 1, 2)
+    seed_methods: tuple[str, ...] = ("gcbf+", "egcbf+")
+    scale_sizes: tuple[int, ...] = SCALE_SIZES
+    scale_methods: tuple[str, ...] = METHODS
+    scale_reference: int = 512
+    scale_agent_episodes: int = 25_600
+    seed: int = 0
+    max_steps: int | None = None
+    checkpoints: Path = Path("checkpoints")
+    out: Path = Path("docs/results/reproduction")
+    baselines: Path | None = Path("docs/results/baselines")
+    device: str = "cpu"
+    workers: int = 2
+    threads: int = 1
+    backend: str = "process"
+
+    def __post_init__(self) -> None:
+        for name in ("methods", "obstacle_methods", "scale_methods"):
+            bad = [m for m in getattr(self, name) if m not in METHODS]
+            if bad:
+                raise ValueError(f"unknown method(s) {bad} in {name}; choose from {list(METHODS)}")
+        bad = [m for m in self.seed_methods if m not in LEARNED]
+        if bad:
+            raise ValueError(f"seed_methods must be learned methods {list(LEARNED)}, got {bad}")
+        if not self.methods:
+            raise ValueError("methods is empty")
+        if not self.num_agents:
+            raise ValueError("num_agents is empty")
+        _positive_ints("num_agents", self.num_agents)
+        _positive_ints("scale_sizes", self.scale_sizes)
+        if not self.train_seeds or any(int(s) < 0 for s in self.train_seeds):
+            raise ValueError(f"train_seeds needs one or more seeds >= 0, got {self.train_seeds}")
+        if len(set(self.train_seeds)) != len(self.train_seeds):
+            raise ValueError(f"train_seeds has repeats: {self.train_seeds}")
+        if self.baseline_episodes is not None and int(self.baseline_episodes) < 1:
+            raise ValueError(f"baseline_episodes must be >= 1 or None, got {self.baseline_episodes}")
+        for name in ("episodes", "workers", "threads", "scale_reference", "scale_agent_episodes"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.obstacles < 0 or self.area <= 0:
+            raise ValueError(f"need obstacles >= 0 and area > 0, got {self.obstacles}, {self.area}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+
+    # ------------------------------------------------------------------------------------------------ cells
+    def seeds_for(self, method: str) -> tuple[int | None, ...]:
+        """The training seeds evaluated for ``method``: ``(None,)`` for a hand-crafted controller."""
+        if method in BASELINES:
+            return (None,)
+        return tuple(int(s) for s in self.train_seeds) if method in self.seed_methods else (0,)
+
+    def scale_area(self, num_agents: int) -> float:
+        """``l`` of the scalability cell at ``num_agents``: the density of ``scale_reference`` agents at ``area``
+        (rounded to 0.1 mm so that the value, and the cell's key, is the same on every machine)."""
+        return round(self.area * (num_agents / self.scale_reference) ** (1.0 / 3.0), 4)
+
+    def table_cells(self) -> list[Cell]:
+        """Table I's cells: the no-obstacle setting, then the obstacle setting; methods in paper order."""
+        settings = [(0, [m for m in METHODS if m in self.methods])]
+        if self.obstacles > 0:
+            settings.append((self.obstacles, [m for m in METHODS if m in self.methods and m in self.obstacle_methods]))
+        return [
+            Cell(m, k, int(n), s) for k, ms in settings for m in ms for s in self.seeds_for(m) for n in self.num_agents
+        ]
+
+    def scale_cells(self) -> list[Cell]:
+        """The scalability study's cells (no obstacles, fixed density)."""
+        ms = [m for m in METHODS if m in self.methods and m in self.scale_methods]
+        return [
+            Cell(m, 0, int(n), s, self.scale_area(int(n)))
+            for m in ms
+            for s in self.seeds_for(m)
+            for n in self.scale_sizes
+        ]
+
+    def cells(self) -> list[Cell]:
+        """Every cell of the sweep: Table I's, then the scalability study's."""
+        return self.table_cells() + self.scale_cells()
+
+    def checkpoint_runs(self) -> list[tuple[str, int]]:
+        """``(method, training seed)`` of every learned checkpoint some cell needs."""
+        return list(dict.fromkeys((c.method, c.train_seed) for c in self.cells() if c.train_seed is not None))
+
+    # ------------------------------------------------------------------------------------------------ episodes
+    def episodes_for(self, cell: Cell) -> int:
+        """Episodes of ``cell``: ``ceil(scale_agent_episodes / N)`` in the scalability study; in Table I
+        ``baseline_episodes`` for the hand-crafted controllers if set, else ``episodes``."""
+        if cell.scale:
+            return math.ceil(self.scale_agent_episodes / cell.num_agents)
+        if cell.method in BASELINES and self.baseline_episodes is not None:
+            return int(self.baseline_episodes)
+        return int(self.episodes)
+
+    def area_for(self, cell: Cell) -> float:
+        """The side ``l`` of ``cell``'s arena."""
+        return float(self.area if cell.area is None else cell.area)
+
+    def episodes_text(self) -> str:
+        """``"50 episodes per cell"`` or ``"10 episodes per cell (CBF-QP baselines: 50)"``."""
+        text = f"{self.episodes} episodes per cell"
+        if self.baseline_episodes is not None and self.baseline_episodes != self.episodes:
+            text += f" (CBF-QP baselines: {self.baseline_episodes})"
+        return text
+
+    def scale_text(self) -> str:
+        """How the scalability cells are set up, in words."""
+        sizes = ", ".join(f"N = {n}: l = {self.scale_area(n):g} m, {self.episodes_for(Cell('x', 0, n, area=1.0))} "
+                          "episodes" for n in self.scale_sizes)  # fmt: skip
+        return (
+            f"the density of N = {self.scale_reference} at l = {self.area:g} m "
+            f"({self.scale_reference / self.area**3:g} agents per m^3), at least {self.scale_agent_episodes} "
+            f"agent-episodes per cell ({sizes})"
+        )
+
+
+def cell_key(cfg: SweepConfig, cell: Cell, checkpoint_sha256: str | None) -> dict:
+    """What a cell's result depends on; a stored cell with an equal key is reused."""
+    return {
+        "method": cell.method,
+        "obstacles": cell.obstacles,
+        "num_agents": cell.num_agents,
+        "area": cfg.area_for(cell),
+        "episodes": cfg.episodes_for(cell),
+        "seed": int(cfg.seed),
+        "max_steps": cfg.max_steps,
+        "checkpoint_sha256": checkpoint_sha256,
+    }

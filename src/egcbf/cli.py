@@ -24,6 +24,7 @@ import typer
 
 from .allocator import keep_freed_memory
 from .cli_checks import (
+    _debug,
     check_env_flags,
     check_policy_memory,
     parse_device,
@@ -432,10 +433,28 @@ def reproduce(
     typer.echo(f"{len(records)} of {len(cfg.cells())} cells; wrote {path}")
 
 
-def main() -> None:  # pragma: no cover
+def main(argv: list[str] | None = None) -> None:
+    """The ``egcbf`` command: keeps freed memory for reuse (:mod:`egcbf.allocator`), runs :data:`app`, and prints a
+    bad flag value or a missing argument as one ``Error:`` line naming the flag (exit code 2) instead of typer's
+    boxed panel; ``EGCBF_DEBUG=1`` re-raises. ``argv``: the arguments (default: ``sys.argv[1:]``)."""
     global _ALLOCATOR
     _ALLOCATOR = keep_freed_memory()[1]
-    app()
+    try:
+        code = app(args=argv, prog_name="egcbf", standalone_mode=False)
+    except typer.Abort:
+        typer.echo("Aborted!", err=True)
+        sys.exit(1)
+    except Exception as err:  # click's ClickException and UsageError (typer vendors click: duck-typed)
+        if _debug() or not (hasattr(err, "format_message") and isinstance(getattr(err, "exit_code", None), int)):
+            raise
+        if type(err).__name__ == "NoArgsIsHelpError":
+            err.show()
+            sys.exit(0)
+        ctx = getattr(err, "ctx", None)
+        hint = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
+        typer.echo(f"Error: {err.format_message()}{hint}", err=True)
+        sys.exit(err.exit_code)
+    sys.exit(code if isinstance(code, int) else 0)
 
 
 if __name__ == "__main__":  # pragma: no cover

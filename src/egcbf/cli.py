@@ -27,6 +27,8 @@ from .cli_checks import (
     _debug,
     check_env_flags,
     check_policy_memory,
+    check_sweep_memory,
+    check_training_memory,
     parse_device,
     parse_sizes,
     prepare_out,
@@ -297,7 +299,7 @@ def train(
         cfg = TrainConfig.preset(algo, name, **fields)
     except (TypeError, ValueError) as err:
         usage_error(f"{'--config ' + str(config) + ': ' if config is not None else ''}{err}", err)
-    parse_device(cfg.device)
+    check_training_memory(cfg, parse_device(cfg.device))
     prepare_out(out, False, ())
     try:
         run_training(cfg, out, progress=progress)
@@ -387,6 +389,7 @@ def reproduce(
     obstacles, and OBSTACLE-METHODS with OBSTACLES obstacles; SEED-METHODS once per training seed) and at the
     SCALE-SIZES at fixed density, resumably (finished cells are kept; stop and rerun the same command), and write
     REPORT."""
+    from .ckpt_files import read_config
     from .reproduce import SweepConfig, load_cells, sweep, validate, write_report
 
     try:
@@ -419,7 +422,13 @@ def reproduce(
             check_env_flags(cfg.num_agents, area, obstacles, max_steps)
             for n in cfg.scale_sizes:
                 check_env_flags([n], cfg.scale_area(n), 0, max_steps)
-            validate(cfg)
+            ckpts = validate(cfg)
+            learned = [
+                (c.num_agents, cfg.area_for(c), cfg.episodes_for(c)) for c in cfg.cells() if c.train_seed is not None
+            ]
+            hidden = max((read_config(ck.path).model.hidden for ck in ckpts.values()), default=64)
+            comm = check_env_flags([8], area, 0, None)[0].comm_radius
+            check_sweep_memory(learned, cfg.workers, hidden, comm, parse_device(device))
     except (ValueError, FileNotFoundError, ImportError) as err:
         usage_error(str(err), err)
     if not report_only:

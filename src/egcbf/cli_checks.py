@@ -178,6 +178,59 @@ def check_policy_memory(configs: Sequence, episodes: int, batch: int | None, hid
             )
 
 
+#: autograd keeps about this many times a forward pass's activations for the backward pass (training)
+_BACKWARD_FACTOR = 4
+
+
+def check_sweep_memory(cells: Sequence[tuple[int, float, int]], workers: int, hidden: int, comm_radius: float,
+                       device: torch.device) -> None:  # fmt: skip
+    """Refuse (usage error, with the numbers) a sweep whose largest learned cells, ``workers`` of them at once,
+    would not fit: ``cells`` are ``(num_agents, area, episodes)`` of the learned cells (:func:`policy_memory` of
+    each, episodes batched as :func:`egcbf.evaluate.evaluate` batches them)."""
+    free = available_memory(device)
+    if free is None or not cells:
+        return
+    needs = sorted(
+        (
+            (policy_memory(n, area, comm_radius, max(1, min(eps, 4096 // n)), hidden)[0], n, area)
+            for n, area, eps in cells
+        ),
+        reverse=True,
+    )
+    parallel = needs[: max(1, min(workers, len(needs)))]
+    total = sum(need for need, _, _ in parallel)
+    if total > free:
+        need, n, area = parallel[0]
+        usage_error(
+            f"the sweep's largest learned cell (N = {n}, l = {area:g}) needs about {_size(need)}, and {len(parallel)} "
+            f"cell(s) at once about {_size(total)}, more than the {_size(free)} available; use fewer --workers or "
+            "smaller --num-agents / --scale-sizes"
+        )
+
+
+def check_training_memory(cfg, device: torch.device) -> None:
+    """Refuse (usage error, with the numbers) a training run whose estimated peak memory does not fit: a minibatch
+    of ``batch_size`` graphs of ``num_agents`` agents at the densest training area, with gradients
+    (:data:`_BACKWARD_FACTOR` times a forward pass), or the rollout of ``rollout_envs`` environments."""
+    from .env import EnvConfig
+
+    free = available_memory(device)
+    if free is None:
+        return
+    area = min(cfg.area_sizes or [cfg.area_size])
+    comm = EnvConfig(num_agents=cfg.num_agents, area_size=area, **dict(cfg.env_overrides)).comm_radius
+    fit, edges = policy_memory(cfg.num_agents, area, comm, cfg.batch_size, cfg.model.hidden)
+    fit *= _BACKWARD_FACTOR
+    rollout, _ = policy_memory(cfg.num_agents, area, comm, cfg.rollout_envs, cfg.model.hidden)
+    need = max(fit, rollout)
+    if need > free:
+        usage_error(
+            f"training needs about {_size(need)} (a minibatch of {cfg.batch_size} graphs of {cfg.num_agents} agents at "
+            f"l = {area:g}: ~{edges:,} edges, with gradients), more than the {_size(free)} available; lower "
+            "batch_size or num_agents in the --config, or use --device cuda"
+        )
+
+
 def prepare_out(out: Path, overwrite: bool, results: Sequence[str], flag: str = "--out") -> Path:
     """Make ``out`` an empty-of-results, writable directory before any work starts.
 

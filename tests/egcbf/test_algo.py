@@ -297,3 +297,19 @@ def test_training_decreases_the_loss_on_a_fixed_batch(algo):
     assert (cfg.reference == "qp") == bool(qp)
     losses = [learner.train_step(data, u_ref)["total"] for _ in range(25)]
     assert sum(losses[-3:]) / 3 < 0.7 * sum(losses[:3]) / 3, losses
+
+
+@pytest.mark.parametrize("interface", INTERFACES)
+@pytest.mark.parametrize("group", ["se2xr", "trivial"])
+def test_qp_target_with_two_agents_at_the_same_point_is_finite(interface, group):
+    """Coincident agents (``dp = 0``, where ``|dp|`` has no derivative): the learned CBF, its Jacobian and the QP's
+    commands stay finite and the QP converges (the edge encoder's ``|dp|`` has the zero subgradient there)."""
+    state = _scene(_CFG, 4)
+    x = state.x.clone()
+    x[:, 1] = x[:, 0]  # agent 1 exactly on agent 0, same attitude, velocity and body rates
+    state = SwarmState(x, state.goals, state.obstacles)
+    h, lf, lg, c_ref, lo, hi, res = _qp(group, state, interface)
+    for name, t in (("h", h), ("lf", lf), ("lg", lg), ("u", res.u), ("slack", res.slack)):
+        assert torch.isfinite(t).all(), name
+    assert bool(res.converged.all())
+    assert (res.residual >= -res.slack - 1e-6).all()

@@ -182,3 +182,34 @@ def test_resume_falls_back_past_a_corrupted_checkpoint_and_says_so(cli, run_copy
     assert res.exit_code == 0, res.output
     assert "cannot be loaded" in res.output and "training_state.pt" in res.output
     assert "resuming from" in res.output and "step_000002" in res.output
+
+
+# ------------------------------------------------------------------------------------------------ memory estimates
+def test_training_that_cannot_fit_is_refused_with_the_number(cli, tmp_path, monkeypatch):
+    from egcbf import cli_checks
+
+    monkeypatch.setattr(cli_checks, "available_memory", lambda device: 2**20)  # 1 MiB left
+    out = tmp_path / "run"
+    res = cli("train", "--algo", "egcbf+", "--steps", "1", "--out", out, "--no-progress")  # the cpu recipe
+    assert_usage_error(res, "training needs about", "MiB", "1.0 MiB available", "batch_size")
+    assert not (out / "config.json").exists()
+
+
+def test_training_that_fits_is_not_refused():
+    from egcbf import cli_checks
+    from egcbf.config import TrainConfig
+
+    cli_checks.check_training_memory(TrainConfig.preset("egcbf+", "cpu"), cli_checks.parse_device("cpu"))
+
+
+def test_sweep_that_cannot_fit_is_refused_with_the_number(cli, tmp_path, monkeypatch, tiny_run):
+    from egcbf import cli_checks
+
+    root = tmp_path / "ck"
+    shutil.copytree(tiny_run / "best", root / "egcbf+")
+    monkeypatch.setattr(cli_checks, "available_memory", lambda device: 2**20)
+    res = cli("reproduce", "--methods", "egcbf+", "--obstacle-methods", "egcbf+", "--num-agents", "64,128",
+              "--train-seeds", "0", "--scale-sizes", "none", "--checkpoints", root, "--out", tmp_path / "cells",
+              "--report", tmp_path / "r.md", "--no-progress")  # fmt: skip
+    assert_usage_error(res, "largest learned cell (N = 128", "--workers")
+    assert not (tmp_path / "cells").exists()

@@ -5,6 +5,8 @@ import math
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from torch import nn
 
 from groupcanon import Canonicalize, FieldType, frames
@@ -211,3 +213,17 @@ def test_se2xr_frame_of_a_nan_heading_is_not_the_identity():
     f = frames.se2xr_frame(torch.tensor([[float("nan"), 1.0, 0.0]], dtype=F64), torch.zeros(1, 3, dtype=F64))
     assert not torch.equal(f, gg.SE2xR().identity(1, dtype=F64))
     assert math.isnan(float(f[0, 0]))
+
+
+@given(n=st.integers(1, 12), k=st.integers(-30, 30), frac=st.floats(0.05, 0.95))
+@settings(max_examples=60, deadline=None)
+def test_cyclic_membership_is_a_multiple_of_its_angle(n, k, frac):
+    """C_n holds the rotations by multiples of 2 pi / n and no other unit vector (float64, atol 1e-9)."""
+    G = gg.Cyclic(n)
+    G.check_member(G.element(torch.tensor([k]), dtype=F64), atol=1e-9)
+    G.check_member(G.element(torch.tensor([k]), dtype=torch.float32), atol=1e-6)  # float32: stated tolerance
+    between = 2 * math.pi * (k + frac) / n  # strictly between two elements of C_n, at least 0.05 steps from both
+    g = torch.tensor([[math.cos(between), math.sin(between)]], dtype=F64)
+    gg.SO2().check_member(g, atol=1e-9)  # a unit vector: in SO(2) ...
+    with pytest.raises(ValueError, match=r"not elements of Cyclic"):
+        G.check_member(g, atol=1e-3)  # ... but not in C_n

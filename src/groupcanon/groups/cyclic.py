@@ -35,6 +35,13 @@ class Cyclic(SO2):
         theta = torch.atan2(g[..., 1], g[..., 0])
         return torch.round(theta * (self.n / (2 * math.pi))).long().remainder(self.n)
 
+    def membership_residual(self, g: Tensor) -> Tensor:
+        """SO(2)'s residual (unit length) plus the distance of ``g`` to the nearest rotation by a multiple of
+        ``2 pi / n`` (largest entry of the difference), ``(*batch,)``; NaN for non-finite elements."""
+        res = super().membership_residual(g)
+        nearest = self.element(self.index(g), dtype=g.dtype).to(g.device)
+        return res + (g - nearest).abs().amax(-1)
+
     def sample(self, *batch, generator=None, dtype=None, device=None) -> Tensor:
         k = torch.randint(0, self.n, batch, generator=generator, device=device)
         return self.element(k, dtype=dtype)

@@ -52,3 +52,15 @@ def test_shipped_policy_outputs_are_unchanged(method):
         got, expected = torch.tensor(now[key], dtype=torch.float64), torch.tensor(data[key], dtype=torch.float64)
         assert got.shape == expected.shape, key
         assert torch.allclose(got, expected, rtol=0.0, atol=1e-9), (key, (got - expected).abs().max().item())
+
+
+@pytest.mark.parametrize("state", sorted(ROOT.glob("**/state.json")), ids=lambda p: str(p.parent.relative_to(ROOT)))
+def test_shipped_checkpoints_carry_their_identity(state):
+    """Every shipped checkpoint says what it is (format, method, group, interface, weights hash) and matches it."""
+    from egcbf.ckpt_files import FORMAT_VERSION, check_identity, identity, read_config
+
+    meta = json.loads(state.read_text())
+    cfg = read_config(state.parent)
+    assert {k: meta[k] for k in identity(cfg)} == identity(cfg) and meta["format_version"] == FORMAT_VERSION
+    assert len(meta["weights_sha256"]) == 64
+    check_identity(state.parent, cfg)

@@ -1,3 +1,5 @@
 """egcbf: Deep Equivariant Multi-Agent Control Barrier Functions for quadrotor swarms (built on groupcanon)."""
 
-__version__ = "0.1.0"
+from ._version import __version__
+
+__all__ = ["__version__"]

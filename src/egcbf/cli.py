@@ -46,6 +46,24 @@ app = typer.Typer(
     help="Equivariant graph CBFs for quadrotor swarms. (EGCBF_DEBUG=1 shows the traceback of a usage error.)",
 )
 
+
+def _print_version(value: bool) -> None:
+    if value:
+        from . import __version__
+
+        typer.echo(f"egcbf {__version__} (torch {torch.__version__})")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_print_version, is_eager=True, help="print the version and exit")
+    ] = False,
+) -> None:
+    """Equivariant graph CBFs for quadrotor swarms. (EGCBF_DEBUG=1 shows the traceback of a usage error.)"""
+
+
 #: the process's allocator setting (:mod:`egcbf.allocator`), set by :func:`main`; recorded in run.json
 _ALLOCATOR = "default (the CLI's entry point did not run)"
 

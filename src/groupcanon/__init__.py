@@ -11,7 +11,13 @@ from .canonicalize import Canonicalize, CanonicalizedLayer, globalize, localize
 from .features import FeatureType, FieldType
 from .group import Group
 
-__version__ = "0.1.0"
+try:  # the distribution's one version source (egcbf/_version.py); groupcanon ships inside egcbf
+    from importlib.metadata import PackageNotFoundError, version
+
+    __version__ = version("egcbf")
+except PackageNotFoundError:  # pragma: no cover - run from a source tree without installing
+    __version__ = "unknown"
+
 
 __all__ = [
     "Canonicalize",

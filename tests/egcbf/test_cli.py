@@ -84,3 +84,18 @@ def test_render_rejects_bad_shapes(tmp_path):
         render_gif(tmp_path / "a.gif", torch.full((2, 3, 3), float("nan")))
     with pytest.raises(ValueError, match="radii"):
         render_topdown(tmp_path / "a.png", torch.zeros(2, 3, 3), centers=torch.zeros(2, 3), radii=torch.ones(1))
+
+
+def test_version_is_one_source_and_python_m_runs_the_command():
+    import subprocess
+    import sys
+
+    import egcbf
+    import groupcanon
+
+    assert egcbf.__version__ == groupcanon.__version__
+    res = subprocess.run([sys.executable, "-m", "egcbf", "--version"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout.startswith(f"egcbf {egcbf.__version__} ")
+    res = subprocess.run([sys.executable, "-m", "egcbf", "eval", "--episodes", "x"], capture_output=True, text=True,
+                         timeout=120)  # fmt: skip
+    assert res.returncode == 2 and res.stderr.startswith("Error: ") and "--episodes" in res.stderr

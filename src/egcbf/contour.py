@@ -192,22 +192,20 @@ def _to_np(t: Tensor) -> np.ndarray:
 def _draw_scene(ax, state: SwarmState, agent: int, config: EnvConfig, corners: np.ndarray) -> None:
     """Arena outline (``corners`` ``(4, 2)``), obstacles cut at the agent's height, other agents, the agent (star),
     its comm-radius circle and its goal."""
-    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle, Polygon
 
     p = _to_np(state.positions[0])
     z = p[agent, 2]
-    ax.add_patch(plt.Polygon(corners, closed=True, fill=False, edgecolor="0.3", linestyle=":", linewidth=0.8))
+    ax.add_patch(Polygon(corners, closed=True, fill=False, edgecolor="0.3", linestyle=":", linewidth=0.8))
     for c, r in zip(_to_np(state.obstacles.centers[0]), _to_np(state.obstacles.radii[0])):
         dz = abs(c[2] - z)
         if dz < r:  # horizontal section of the sphere at the agent's height
-            ax.add_patch(plt.Circle(c[:2], math.sqrt(r * r - dz * dz), facecolor="0.35", alpha=0.75, edgecolor="k"))
-        ax.add_patch(plt.Circle(c[:2], r, fill=False, edgecolor="0.35", linestyle="--", linewidth=0.6))
+            ax.add_patch(Circle(c[:2], math.sqrt(r * r - dz * dz), facecolor="0.35", alpha=0.75, edgecolor="k"))
+        ax.add_patch(Circle(c[:2], r, fill=False, edgecolor="0.35", linestyle="--", linewidth=0.6))
     others = np.arange(p.shape[0]) != agent
     ax.scatter(p[others, 0], p[others, 1], s=14, color="k", zorder=5, label="other agents")
     ax.scatter(*p[agent, :2], marker="*", s=90, color="gold", edgecolor="k", zorder=6, label=f"agent {agent}")
-    ax.add_patch(
-        plt.Circle(p[agent, :2], config.comm_radius, fill=False, edgecolor="gold", linewidth=1.2, linestyle="--")
-    )
+    ax.add_patch(Circle(p[agent, :2], config.comm_radius, fill=False, edgecolor="gold", linewidth=1.2, linestyle="--"))
     goal = _to_np(state.goals[0, agent])
     ax.scatter(*goal[:2], marker="x", s=40, color="tab:green", zorder=6, label="its goal")
 
@@ -262,16 +260,14 @@ def cbf_contour_figure(
     Returns:
         ``{label: max |difference|}`` (floats).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     if not checkpoints:
         raise ValueError("cbf_contour_figure needs at least one checkpoint")
     g = transform_element(theta, translation, dtype=dtype)
     rows = len(checkpoints)
-    fig, axes = plt.subplots(rows, 3, figsize=(14.0, 4.2 * rows), dpi=dpi, squeeze=False, layout="constrained")
+    fig = Figure(figsize=(14.0, 4.2 * rows), dpi=dpi, layout="constrained")
+    axes = fig.subplots(rows, 3, squeeze=False)
     corners0 = np.array([[0, 0], [area_size, 0], [area_size, area_size], [0, area_size]], dtype=float)
     corners1 = corners0 @ _to_np(torch.stack((g[:2], torch.stack((-g[1], g[0]))))) + _to_np(g[2:4])
     diffs: dict[str, float] = {}
@@ -317,5 +313,4 @@ def cbf_contour_figure(
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=dpi)
-    plt.close(fig)
     return diffs

@@ -57,17 +57,15 @@ def training_curves(
     seeds): then the line is the mean over the seeds and the band their min / max, at the updates all of them
     evaluated. A single run directory that holds a ``state.json`` (a shipped checkpoint) gets a marker at the
     update it was selected at. Returns ``out_png``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     if not runs:
         raise ValueError("training_curves needs at least one run")
     groups = {name: [paths] if isinstance(paths, (str, Path)) else list(paths) for name, paths in runs.items()}
     if any(not paths for paths in groups.values()):
         raise ValueError("training_curves: every method needs at least one run")
-    fig, axes = plt.subplots(2, 3, figsize=(13, 6.5), sharey=True)
+    fig = Figure(figsize=(13, 6.5))
+    axes = fig.subplots(2, 3, sharey=True)
     for i, (name, paths) in enumerate(groups.items()):
         color = f"C{i}"
         data = [load_metrics(p) for p in paths]
@@ -101,5 +99,4 @@ def training_curves(
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=100)
-    plt.close(fig)
     return out

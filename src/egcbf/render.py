@@ -68,18 +68,17 @@ def render_gif(
     At most ``max_frames`` frames are drawn (time steps are sub-sampled evenly); each agent leaves a short
     trail; colliding agents are red; goals are green crosses; obstacles grey spheres.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.animation import FuncAnimation, PillowWriter
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     traj, goals, centers, radii, coll = _validate(trajectory, goals, centers, radii, collided)
     T, N, _ = traj.shape
     frames = np.unique(np.linspace(0, T - 1, min(T, max_frames)).round().astype(int))
     lo = 0.0 if area_size is not None else float(traj.min())
     hi = float(area_size) if area_size is not None else float(traj.max())
-    fig = plt.figure(figsize=(5, 5), dpi=80)
+    fig = Figure(figsize=(5, 5), dpi=80)
+    FigureCanvasAgg(fig)  # frames are grabbed from an Agg canvas, whatever the user's pyplot backend
     ax = fig.add_subplot(projection="3d")
 
     def draw(k):
@@ -108,7 +107,6 @@ def render_gif(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     anim.save(path, writer=PillowWriter(fps=fps))
-    plt.close(fig)
     return path
 
 
@@ -125,15 +123,14 @@ def render_topdown(
 ) -> Path:
     """Write a top-down (x-y) still of the whole episode: paths, start (circle), end (dot), goals (cross),
     obstacles (grey discs of their radius), collision points (red)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle
 
     traj, goals, centers, radii, coll = _validate(trajectory, goals, centers, radii, collided)
-    fig, ax = plt.subplots(figsize=(5.5, 5.5), dpi=100)
+    fig = Figure(figsize=(5.5, 5.5), dpi=100)
+    ax = fig.subplots()
     for c, r in zip(centers, radii):
-        ax.add_patch(plt.Circle(c[:2], r, color="0.6", alpha=0.6))
+        ax.add_patch(Circle(c[:2], r, color="0.6", alpha=0.6))
     ax.plot(traj[:, :, 0], traj[:, :, 1], color="tab:blue", alpha=0.4, linewidth=0.8)
     ax.scatter(traj[0, :, 0], traj[0, :, 1], facecolors="none", edgecolors="tab:blue", s=14, label="start")
     ax.scatter(traj[-1, :, 0], traj[-1, :, 1], color="tab:blue", s=8, label="end")
@@ -153,7 +150,6 @@ def render_topdown(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, bbox_inches="tight")
-    plt.close(fig)
     return path
 
 

@@ -9,7 +9,7 @@ ESCNN_PY := $(ESCNN_VENV)/bin/python
 ESCNN_STAMP := $(ESCNN_VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-escnn test test-core test-escnn demo lint format bench clean
+.PHONY: setup setup-escnn test test-core test-escnn demo reproduce lint format bench clean
 
 setup: $(STAMP)
 
@@ -45,6 +45,10 @@ test-escnn: $(ESCNN_STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/egcbf demo --out out/demo --overwrite
+
+# the repository's own reproduction (hours on two cores; resumable: run it again to continue): docs/reproduction.md
+reproduce: $(STAMP)
+	$(VENV)/bin/egcbf reproduce --out docs/results/reproduction --report docs/reproduction.md --workers 2 --no-progress
 
 lint: $(STAMP)
 	$(PY) -m ruff check src tests examples benchmarks docs/*.py

@@ -253,7 +253,7 @@ def demo(
 def train(
     algo: Annotated[str | None, typer.Option(help="gcbf | gcbf+ | egcbf | egcbf+ (default; not with --resume)")] = None,
     out: Annotated[Path, typer.Option(help="run directory (config, logs, metrics.csv, checkpoints)")] = Path(
-        "runs/train"
+        "out/train"
     ),
     config: Annotated[
         Path | None, typer.Option(help="JSON file of TrainConfig fields overriding the preset (may set 'preset')")
@@ -387,10 +387,10 @@ def reproduce(
         ),
     ] = Path("checkpoints"),
     out: Annotated[Path, typer.Option(help="results directory (one JSON file per cell)")] = Path(
-        "docs/results/reproduction"
+        "out/reproduction/cells"
     ),
     report: Annotated[Path, typer.Option(help="markdown report (figures go to its directory's figures/)")] = Path(
-        "docs/reproduction.md"
+        "out/reproduction/reproduction.md"
     ),
     baselines: Annotated[
         Path | None, typer.Option(help="earlier `egcbf eval` outputs to import baseline cells from")

@@ -296,3 +296,14 @@ def test_checkpoint_of_the_wrong_seed_is_refused(checkpoints, tmp_path):
     assert res.exit_code == 2 and "--train-seeds" in res.output
     res = CliRunner().invoke(app, ["reproduce", "--methods", "egcbf+", "--seed-methods", "dcbf"])
     assert res.exit_code == 2 and "seed_methods" in res.output
+
+
+def test_default_outputs_stay_out_of_the_users_docs(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    args = ["reproduce", "--methods", "nominal", "--obstacle-methods", "nominal", "--num-agents", "2", "--area", "1.5"]
+    args += ["--obstacles", "0", "--episodes", "1", "--max-steps", "2", "--train-seeds", "0", "--scale-sizes", "none"]
+    res = CliRunner().invoke(app, [*args, "--no-progress"])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "out" / "reproduction" / "reproduction.md").exists()
+    assert (tmp_path / "out" / "reproduction" / "cells" / "nominal_obs0" / "N2.json").exists()
+    assert not (tmp_path / "docs").exists()

@@ -89,7 +89,7 @@ class SweepConfig:
     seed: int = 0
     max_steps: int | None = None
     checkpoints: Path = Path("checkpoints")
-    out: Path = Path("docs/results/reproduction")
+    out: Path = Path("out/reproduction/cells")
     baselines: Path | None = Path("docs/results/baselines")
     device: str = "cpu"
     workers: int = 2

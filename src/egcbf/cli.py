@@ -268,6 +268,12 @@ def train(
         bool, typer.Option("--resume", help="continue the run in OUT from its newest loadable checkpoint")
     ] = False,
     threads: Annotated[int | None, typer.Option(help="torch CPU threads (default: torch's)")] = None,
+    tensorboard: Annotated[
+        bool,
+        typer.Option(
+            "--tensorboard/--no-tensorboard", help="also log to TensorBoard in OUT/tb (the `tensorboard` extra)"
+        ),
+    ] = False,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
 ) -> None:
     """Train GCBF, GCBF+, EGCBF or EGCBF+ (one learner; the group and the reference controller differ)."""
@@ -279,20 +285,27 @@ def train(
     require(algo is None or algo in METHODS, f"--algo must be one of {sorted(METHODS)}, got {algo!r}")
     require(steps is None or steps >= 1, f"--steps must be >= 1, got {steps}")
     require(threads is None or threads >= 1, f"--threads must be >= 1, got {threads}")
+    if tensorboard:
+        from .train import require_tensorboard
+
+        try:
+            require_tensorboard()
+        except ImportError as err:
+            usage_error(f"--tensorboard: {err}", err)
     if out.exists() and not out.is_dir():
         usage_error(f"--out {out} is a file, not a run directory; choose another --out")
     if resume:
         if algo is not None:
             usage_error("--algo cannot change a resumed run (its method is in OUT/config.json); drop --algo")
         if config is not None or preset is not None or seed is not None or device is not None:
-            usage_error("--resume continues the saved config: only --steps and --threads may change")
+            usage_error("--resume continues the saved config: only --steps, --threads and --tensorboard may change")
         current = checkpoint_step(out)
         if steps is not None and current is not None and steps < current:
             usage_error(f"--steps {steps} is below the run's current update {current}; pass --steps >= {current}")
         if threads is not None:
             torch.set_num_threads(threads)
         try:
-            run_training(TrainConfig(), out, resume=True, steps=steps, progress=progress)
+            run_training(TrainConfig(), out, resume=True, steps=steps, progress=progress, tensorboard=tensorboard)
         except (FileNotFoundError, CheckpointError) as err:
             usage_error(f"--resume --out {out}: {err}", err)
         return
@@ -320,7 +333,7 @@ def train(
     check_training_memory(cfg, parse_device(cfg.device))
     prepare_out(out, False, ())
     try:
-        run_training(cfg, out, progress=progress)
+        run_training(cfg, out, progress=progress, tensorboard=tensorboard)
     except FileExistsError as err:
         usage_error(f"--out {out}: {err}", err)
 

@@ -9,7 +9,7 @@ Layout of a run directory ``OUT``::
     OUT/config.json                 the run's TrainConfig
     OUT/metrics.csv                 evaluation rollouts: step, wall_s, safe/reach/success rates, cost, reward
     OUT/scalars.csv                 every logged scalar, long format (step, wall_s, tag, value)
-    OUT/tb/                         TensorBoard events (only if the ``tensorboard`` package is importable)
+    OUT/tb/                         TensorBoard events (``tensorboard=True``: the optional ``tensorboard`` extra)
     OUT/checkpoints/step_000100/    config.json, model.safetensors (cbf., policy., cbf_target. weights),
                                     training_state.pt (optimizer states and RNG state; loads with weights_only),
                                     buffers.safetensors (replay buffers; newest checkpoint only),
@@ -74,6 +74,7 @@ __all__ = [
     "load_controller",
     "load_learner",
     "load_network",
+    "require_tensorboard",
     "save_best",
     "save_checkpoint",
     "train",
@@ -85,20 +86,32 @@ _STEP_DIR = re.compile(r"step_(\d+)")
 
 
 # ---------------------------------------------------------------------------------------------------- logging
-class _Logger:
-    """Scalars to ``scalars.csv`` (always) and TensorBoard (if importable); evaluations to ``metrics.csv``."""
+def require_tensorboard():
+    """torch's ``SummaryWriter``, or an ``ImportError`` saying how to install the optional ``tensorboard`` extra."""
+    try:
+        import tensorboard  # noqa: F401  (torch's wrapper imports it lazily; fail here, with the fix)
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        raise ImportError(
+            "TensorBoard logging needs the tensorboard package, an optional extra: pip install -e '.[tensorboard]' "
+            "(or pip install 'tensorboard>=2.14'); or train without --tensorboard"
+        ) from None
+    return SummaryWriter
 
-    def __init__(self, out: Path, start_step: int):
+
+class _Logger:
+    """Scalars to ``scalars.csv`` (always) and, if ``tensorboard``, to TensorBoard events in ``OUT/tb``;
+    evaluations to ``metrics.csv``."""
+
+    def __init__(self, out: Path, start_step: int, tensorboard: bool = False):
         self.out = out
+        self.tb = None
+        if tensorboard:  # before any file is touched: a missing package fails cleanly
+            writer = require_tensorboard()
         for name, header in (("scalars.csv", ("step", "wall_s", "tag", "value")), ("metrics.csv", METRICS_FIELDS)):
             _truncate_csv(out / name, header, start_step)
-        self.tb = None
-        try:  # optional dependency
-            from torch.utils.tensorboard import SummaryWriter
-
-            self.tb = SummaryWriter(str(out / "tb"), purge_step=start_step + 1 if start_step else None)
-        except Exception:  # ImportError, or tensorboard missing behind torch's wrapper
-            self.tb = None
+        if tensorboard:
+            self.tb = writer(str(out / "tb"), purge_step=start_step + 1 if start_step else None)
 
     def scalars(self, step: int, wall_s: float, values: dict[str, float]) -> None:
         with open(self.out / "scalars.csv", "a", newline="") as f:
@@ -410,6 +423,7 @@ def train(
     steps: int | None = None,
     progress: bool = True,
     log=None,
+    tensorboard: bool = False,
 ) -> GraphCBFLearner:
     """Train ``config`` into the run directory ``out`` (module doc); returns the learner.
 
@@ -420,7 +434,11 @@ def train(
         steps: train up to this many updates (default ``config.steps``; with ``resume`` it may extend the run).
         progress: show a tqdm bar.
         log: a callable receiving one line per evaluation (default: ``tqdm.write``).
+        tensorboard: also log to TensorBoard (``OUT/tb``); needs the ``tensorboard`` extra
+            (:func:`require_tensorboard` raises an ``ImportError`` saying how to install it).
     """
+    if tensorboard:
+        require_tensorboard()  # before any work
     out = Path(out)
     log = log or tqdm.write
     if resume:
@@ -437,7 +455,7 @@ def train(
         learner = GraphCBFLearner(config)
         wall0 = 0.0
     write_json_atomic(out / "config.json", config.to_dict())  # a kill never leaves a half-written config
-    logger = _Logger(out, learner.step)
+    logger = _Logger(out, learner.step, tensorboard)
     best = [_best_key(out) if resume else None]
     t_start = time.perf_counter()
 

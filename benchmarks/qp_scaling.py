@@ -158,6 +158,9 @@ def render(rows: list[dict], comp: dict[int, dict], args, solvers) -> str:
                 t, dv = c.get(s, (float("nan"), 0.0))
                 cells.append(f"{t:.1f}" + (f" ({dv:.0e})" if s in solvers and s != solvers[0] else ""))
             lines.append(f"| {n} | " + " | ".join(cells) + " |")
+        missing = [s for s in SOLVERS if s not in solvers]
+        if missing:
+            lines += ["", f"Not installed here, so not compared: {', '.join(missing)} (`pip install -e '.[solvers]'`)."]
     return "\n".join(lines)
 
 

@@ -308,7 +308,7 @@ def test_qp_target_with_two_agents_at_the_same_point_is_finite(interface, group)
     x = state.x.clone()
     x[:, 1] = x[:, 0]  # agent 1 exactly on agent 0, same attitude, velocity and body rates
     state = SwarmState(x, state.goals, state.obstacles)
-    h, lf, lg, c_ref, lo, hi, res = _qp(group, state, interface)
+    h, lf, lg, *_, res = _qp(group, state, interface)
     for name, t in (("h", h), ("lf", lf), ("lg", lg), ("u", res.u), ("slack", res.slack)):
         assert torch.isfinite(t).all(), name
     assert bool(res.converged.all())

@@ -29,6 +29,7 @@ from egcbf.control.controllers import NominalController, make_controller
 from egcbf.control.nominal import nominal_control
 from egcbf.control.qp import (
     INF,
+    SOLVERS,
     SlackPenalty,
     assemble_centralized,
     assemble_decentralized,
@@ -244,8 +245,10 @@ def test_sparse_assembly_equals_dense_reference():
 
 
 # -------------------------------------------------------------------------------------------------- solvers
-@pytest.mark.parametrize("solver", ["piqp", "proxsuite"])
+@pytest.mark.parametrize("solver", SOLVERS)
 def test_solution_satisfies_constraints_up_to_slack(solver):
+    if solver in ("osqp", "clarabel"):  # the `solvers` extra, installed with `dev`
+        pytest.importorskip(solver)
     prep, cons = numpy_rows(6, n=30)
     n = prep.p.shape[1]
     qp = assemble_centralized(prep.a_nom[0], cons, prep.bC[0], prep.blo[0], prep.bhi[0])
@@ -256,9 +259,26 @@ def test_solution_satisfies_constraints_up_to_slack(solver):
     assert (cons.residual(a) + s).min() >= -1e-7
     bv = np.einsum("nkd,nd->nk", prep.bC[0], a)
     assert (bv - prep.blo[0]).min() >= -1e-7 and (prep.bhi[0] - bv).min() >= -1e-7
-    # optimal: matches the other solver and cannot be improved along the feasible direction to a_nom
+    # optimal: matches another solver and cannot be improved along the feasible direction to a_nom
     other = solve_sparse(qp, "proxsuite" if solver == "piqp" else "piqp", eps_abs=1e-9)
     np.testing.assert_allclose(res.x, other.x, atol=1e-4)
+
+
+def test_a_missing_solver_is_named_with_its_install_command(monkeypatch):
+    import importlib.util
+
+    from egcbf.control.cbf_qp import CBFQPConfig
+    from egcbf.control.qp import require_solver
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "osqp" else real(name, *a))
+    with pytest.raises(ImportError, match=r"pip install -e '\.\[solvers\]'"):
+        require_solver("osqp")
+    with pytest.raises(ImportError, match="osqp"):
+        CBFQPConfig(solver="osqp")  # refused when configured, not at the first QP
+    with pytest.raises(ValueError, match="unknown QP solver"):
+        CBFQPConfig(fallback_solver="gurobi")
+    CBFQPConfig(solver="proxsuite", fallback_solver=None)
 
 
 def test_batched_ipm_matches_proxsuite_and_is_feasible():

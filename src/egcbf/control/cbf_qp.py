@@ -53,6 +53,7 @@ from .qp import (
     assemble_centralized,
     assemble_decentralized,
     polish_sparse,
+    require_solver,
     solve_dense_batch,
     solve_dense_batch_ipm,
     solve_sparse,
@@ -138,6 +139,12 @@ class CBFQPConfig:
     max_rounds: int = 6
     polish: bool = True
     warm_start: bool = True
+
+    def __post_init__(self) -> None:
+        # an unknown or missing solver fails here, with how to install it, not at the first QP of an episode
+        for name in (self.solver, self.fallback_solver):
+            if name is not None:
+                require_solver(name)
 
 
 @dataclass

@@ -35,6 +35,7 @@ __all__ = [
     "assemble_decentralized",
     "dense_reference",
     "polish_sparse",
+    "require_solver",
     "solve_batch_ipm",
     "solve_dense_batch",
     "solve_dense_batch_ipm",
@@ -161,6 +162,26 @@ def dense_reference(qp: SparseQP) -> tuple[np.ndarray, ...]:
     return qp.H.toarray(), qp.g.copy(), C.toarray(), lo, hi
 
 
+#: the optional solvers and how to get them (piqp and proxsuite are core dependencies)
+_EXTRA_SOLVERS = {"osqp": "osqp>=0.6", "clarabel": "clarabel>=0.7"}
+
+
+def require_solver(name: str) -> None:
+    """Raise ``ValueError`` for an unknown solver name and ``ImportError`` (saying how to install it) for a known
+    solver whose package is missing: ``osqp`` and ``clarabel`` come with the ``solvers`` extra."""
+    import importlib.util
+
+    if name not in SOLVERS:
+        raise ValueError(f"unknown QP solver {name!r}; choose one of {SOLVERS}")
+    if importlib.util.find_spec(name) is None:
+        hint = (
+            f"pip install -e '.[solvers]' (or pip install '{_EXTRA_SOLVERS[name]}')"
+            if name in _EXTRA_SOLVERS
+            else (f"pip install {name}")
+        )
+        raise ImportError(f"QP solver {name!r} is not installed: {hint}")
+
+
 def solve_sparse(
     qp: SparseQP,
     solver: str = "piqp",
@@ -169,8 +190,7 @@ def solve_sparse(
     x0: np.ndarray | None = None,
 ) -> SolveResult:
     """Solve a :class:`SparseQP`; never raises on a solver failure (``ok=False`` instead)."""
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown QP solver {solver!r}; choose one of {SOLVERS}")
+    require_solver(solver)
     t0 = time.perf_counter()
     try:
         x, ok, status, it = _SPARSE[solver](qp, eps_abs, max_iter, x0)

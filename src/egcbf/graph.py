@@ -62,6 +62,7 @@ __all__ = [
     "SwarmGraph",
     "build_graph",
     "refresh_graph",
+    "with_agent_states",
 ]
 
 GROUP = SE2xR()
@@ -292,15 +293,37 @@ def refresh_graph(graph: SwarmGraph, x: Tensor) -> SwarmGraph:
 
     This is GCBF+'s way of evaluating ``h`` at the next state for the ``h-dot`` loss: the topology and the world
     positions of goals and hits are kept, the agent features, agent positions, frames and edge vectors are
-    recomputed from ``x`` (differentiably).
+    recomputed from ``x`` (differentiably). Same as ``with_agent_states(graph, x.reshape(M, 18))``.
+    """
+    return with_agent_states(graph, x.reshape(graph.num_dst, -1))
+
+
+def with_agent_states(graph: SwarmGraph, x_recv: Tensor, x_edge: Tensor | None = None) -> SwarmGraph:
+    """``graph`` with new agent states (topology, goals and LiDAR hits held fixed; differentiable in the states).
+
+    Args:
+        x_recv: ``(M, 18)`` the receivers' (agents') states.
+        x_edge: ``None``: every agent sender reads ``x_recv`` (the same agents). Else ``(E_a, 18)``: each
+            agent-to-agent edge, in edge order, reads its own copy of its sender's state; the result then has one
+            source row per edge (``edge_index[0] = arange(E)``), so that the gradient of ``sum_i h_i`` with respect
+            to the copies holds every ``dh_i / dx_j`` at once (:func:`egcbf.algo.qp.cbf_jacobian`).
     """
     m = graph.num_dst
-    xf = x.reshape(m, -1)
-    p = xf[:, 0:3]
-    agent_feat = _agent_features(xf)
-    x_src = torch.cat((agent_feat, graph.x_src[m:].to(xf.dtype)))
-    pos_src = torch.cat((p, graph.pos_src[m:].to(p.dtype)))
-    edge_attr = _edge_attr(pos_src, p, graph.edge_index, graph.edge_kind, graph.comm_radius)
+    p_recv = x_recv[:, 0:3]
+    agent_feat = _agent_features(x_recv)
+    if x_edge is None:
+        x_src = torch.cat((agent_feat, graph.x_src[m:].to(x_recv.dtype)))
+        pos_src = torch.cat((p_recv, graph.pos_src[m:].to(p_recv.dtype)))
+        edge_index, extra = graph.edge_index, {}
+    else:
+        src, dst = graph.edge_index
+        rows = (src < m).nonzero()[:, 0]
+        x_src = graph.x_src[src].to(x_recv.dtype).index_put((rows,), _agent_features(x_edge))
+        pos_src = graph.pos_src[src].to(x_recv.dtype).index_put((rows,), x_edge[:, 0:3])
+        edge_index = torch.stack((torch.arange(src.shape[0], device=src.device), dst))
+        extra = {"src_kind": graph.src_kind[src], "src_batch": graph.src_batch[src]}
+    edge_attr = _edge_attr(pos_src, p_recv, edge_index, graph.edge_kind, graph.comm_radius)
     return replace(
-        graph, x_src=x_src, x_dst=agent_feat, pos_src=pos_src, pos_dst=p, edge_attr=edge_attr, frames=_frames(xf)
-    )
+        graph, x_src=x_src, x_dst=agent_feat, pos_src=pos_src, pos_dst=p_recv, edge_index=edge_index,
+        edge_attr=edge_attr, frames=_frames(x_recv), **extra,
+    )  # fmt: skip

@@ -23,13 +23,13 @@ the data (CPU or GPU), with no host round trip; checked against proxsuite in the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
-from ..graph import SwarmGraph, _agent_features, _edge_attr, _frames
+from ..graph import SwarmGraph, with_agent_states
 
 __all__ = ["CBFQPResult", "cbf_jacobian", "solve_cbf_qp"]
 
@@ -41,39 +41,6 @@ def _max_step(v: Tensor, dv: Tensor) -> Tensor:
 
 
 # ------------------------------------------------------------------------------------------ the CBF Jacobian
-def _edge_expanded_graph(graph: SwarmGraph, x_edge: Tensor, x_recv: Tensor) -> SwarmGraph:
-    """``graph`` rebuilt so that each edge reads its own copy of its sender's state and each receiver its own
-    copy of its state: ``x_edge`` ``(E_a, 18)`` for the agent-to-agent edges (in edge order), ``x_recv`` ``(M, 18)``.
-
-    The result feeds the networks exactly the numbers of :func:`refresh_graph` (one source row per edge, which
-    is what canonicalization builds anyway), but since every copy influences a single receiver, the gradient of
-    ``sum_i h_i`` with respect to the copies holds every ``dh_i/dx_j`` at once: one backward pass instead of ``N``.
-    """
-    m = graph.num_dst
-    src, dst = graph.edge_index
-    agent = src < m
-    x_src = graph.x_src[src].to(x_recv.dtype)
-    pos_src = graph.pos_src[src].to(x_recv.dtype)
-    x_src = x_src.index_put((agent.nonzero()[:, 0],), _agent_features(x_edge))
-    pos_src = pos_src.index_put((agent.nonzero()[:, 0],), x_edge[:, 0:3])
-    pos_dst = x_recv[:, 0:3]
-    e = torch.arange(src.shape[0], device=src.device)
-    edge_index = torch.stack((e, dst))
-    edge_attr = _edge_attr(pos_src, pos_dst, edge_index, graph.edge_kind, graph.comm_radius)
-    return replace(
-        graph,
-        x_src=x_src,
-        x_dst=_agent_features(x_recv),
-        edge_index=edge_index,
-        edge_attr=edge_attr,
-        frames=_frames(x_recv),
-        pos_src=pos_src,
-        pos_dst=pos_dst,
-        src_kind=graph.src_kind[src],
-        src_batch=graph.src_batch[src],
-    )
-
-
 def cbf_jacobian(cbf: nn.Module, graph: SwarmGraph, x: Tensor) -> tuple[Tensor, Tensor]:
     """``h`` ``(B, N)`` and its Jacobian ``dh_i/dx_j`` ``(B, N, N, 18)`` at the states ``x`` ``(B, N, 18)`` of
     ``graph``'s agents (topology, goals and LiDAR hits held fixed), with one forward and one backward pass.
@@ -89,7 +56,7 @@ def cbf_jacobian(cbf: nn.Module, graph: SwarmGraph, x: Tensor) -> tuple[Tensor, 
     with torch.enable_grad():
         x_edge = xf[src[agent]].clone().requires_grad_(True)
         x_recv = xf.clone().requires_grad_(True)
-        h = cbf(_edge_expanded_graph(graph, x_edge, x_recv))
+        h = cbf(with_agent_states(graph, x_recv, x_edge))
         g_edge, g_recv = torch.autograd.grad(h.sum(), (x_edge, x_recv))
     jac = torch.zeros(m, n, xf.shape[-1], dtype=xf.dtype, device=xf.device)
     jac.index_put_((dst[agent], src[agent] % n), g_edge, accumulate=True)

@@ -451,9 +451,3 @@ class SwarmEnv:
     def lidar(self, state: SwarmState) -> LidarScan:
         """LiDAR scan of every agent (rays in the agent's yaw frame; see ``egcbf.env.lidar``)."""
         return cast_lidar(self.config, state.positions, state.attitudes[..., :, 0], state.obstacles)
-
-    def graph(self, state: SwarmState, lidar: LidarScan | None = None):
-        """:func:`egcbf.graph.build_graph` of ``state``."""
-        from ..graph import build_graph
-
-        return build_graph(state, self.config, lidar=lidar)

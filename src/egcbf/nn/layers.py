@@ -10,7 +10,8 @@ agents) and returns one feature vector per receiver:
   ``[dp, dv, |dp|]`` with the relative velocity (so that one edge's message can read how fast it closes in);
 * local multi-head attention over each receiver's incoming edges: ``torch_geometric.nn.TransformerConv`` with the
   encoded edge as ``edge_dim`` input (keys and values see the edge), no root weight (the residual is explicit),
-  computed by :class:`egcbf.nn.attention.EdgeAttention` (the same parameters and results, fewer passes over edges);
+  computed by :class:`egcbf.nn.attention.EdgeAttention` (the same parameters and results, with the projections
+  moved to the receivers: no matrix product per edge);
 * residual ``z = f_v + A(F)_v`` and a feed-forward block with its own residual, ``out = z + FF(LayerNorm(z))``.
 
 The layer has no notion of a group: equivariance is added from outside by :class:`groupcanon.Canonicalize`,

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -212,6 +213,23 @@ def measure_step(
     return res
 
 
+def measure_rounds(specs: list[tuple], args, repeats: int, **kw) -> list[dict]:
+    """``measure_step(*spec)`` for every spec, ``repeats`` rounds interleaved (spec 1, 2, ..., then again), so that
+    a slow spell of a noisy machine hits every controller alike; each row holds the median ms over the rounds (and
+    every round's ms in ``ms_rounds``) and the largest memory."""
+    rounds = [[measure_step(*spec, args, **kw) for spec in specs] for _ in range(max(1, repeats))]
+    out = []
+    for i in range(len(specs)):
+        runs = [r[i] for r in rounds]
+        ms = [r["ms"] for r in runs]
+        out.append(dict(runs[-1], ms=statistics.median(ms), ms_rounds=ms, mem_mb=max(r["mem_mb"] for r in runs)))
+    if repeats > 1:
+        for row in out:
+            print(f"  median of {len(row['ms_rounds'])}: {row['controller']:>7} N={row['n']}: {row['ms']:.2f} ms "
+                  f"(rounds {', '.join(f'{m:.1f}' for m in row['ms_rounds'])})", flush=True)  # fmt: skip
+    return out
+
+
 class BusyProcess:
     """One CPU-bound process (a Python busy loop) for the duration of a ``with`` block."""
 
@@ -279,7 +297,7 @@ def _baseline(args, commit: str) -> list[dict]:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(old), commit],
                        check=True, capture_output=True)  # fmt: skip
         try:
-            rows = [measure_step(c, 512, DENSITY_AREA, 1, args, src=old / "src") for c in CONTROLLERS]
+            rows = measure_rounds([(c, 512, DENSITY_AREA, 1) for c in CONTROLLERS], args, args.repeats, src=old / "src")
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)], check=False)
     return [dict(r, commit=commit) for r in rows]
@@ -296,6 +314,7 @@ def main() -> None:
     ap.add_argument("--update", action=argparse.BooleanOptionalAction, default=True, help="one training update")
     ap.add_argument("--profile", action=argparse.BooleanOptionalAction, default=True, help="stage times (CPU)")
     ap.add_argument("--baseline", default=None, help="also measure N = 512 with the code of these git commits (a,b)")
+    ap.add_argument("--repeats", type=int, default=3, help="rounds of the N = 512, one-environment cases (median)")
     ap.add_argument("--no-write", action="store_true", help="print only; do not touch docs/")
     args = ap.parse_args()
     sizes = [512, 1024] if args.quick else [int(s) for s in args.sizes.split(",")]
@@ -304,17 +323,21 @@ def main() -> None:
     t_start = time.time()
     commits = args.baseline.split(",") if args.baseline else []
     baseline = [r for commit in commits for r in _baseline(args, commit)]
-    density = [measure_step(c, n, _area(n), 1, args) for n in sizes for c in CONTROLLERS]
+    density = [
+        r
+        for n in sizes
+        for r in measure_rounds([(c, n, _area(n), 1) for c in CONTROLLERS], args, args.repeats if n == 512 else 1)
+    ]
     fixed = [] if quick else [measure_step(c, 1024, DENSITY_AREA, 1, args) for c in CONTROLLERS]
     batched = [] if quick else [measure_step(c, 512, DENSITY_AREA, 4, args) for c in CONTROLLERS]
     no_keep = []
     if not quick:  # the allocator setting's share: the same step with glibc's defaults
-        no_keep = [measure_step(c, 512, DENSITY_AREA, 1, args, env_vars={"EGCBF_KEEP_FREED_MEMORY": "0"})
-                   for c in CONTROLLERS]  # fmt: skip
+        no_keep = measure_rounds([(c, 512, DENSITY_AREA, 1) for c in CONTROLLERS], args, args.repeats,
+                                 env_vars={"EGCBF_KEEP_FREED_MEMORY": "0"})  # fmt: skip
     loaded = []
     if args.load and not quick:
         with BusyProcess():
-            loaded = [measure_step(c, 512, DENSITY_AREA, 1, args) for c in CONTROLLERS]
+            loaded = measure_rounds([(c, 512, DENSITY_AREA, 1) for c in CONTROLLERS], args, args.repeats)
     profile = profile_table([sizes[0], sizes[-1]]) if args.profile and not quick else []
     updates = {}
     if args.update and not quick:
@@ -331,8 +354,9 @@ def main() -> None:
         f"`python benchmarks/policy_scaling.py` ({cpu_name() if args.device == 'cpu' else args.device}, "
         f"{os.cpu_count()} cores; threads: {args.threads} (the CLI's default policy unless a number); the CLI's "
         f"allocator setting; median ms per environment step over {args.steps} steps of one episode, shipped "
-        f"checkpoints, no obstacles; memory: peak resident memory above the process's before the first step; "
-        f"{wall / 60:.0f} min).",
+        f"checkpoints, no obstacles; the one-environment N = 512 rows (quiet, under load, allocator, before/after): "
+        f"median over {args.repeats} interleaved rounds of fresh processes; memory: peak resident memory above the "
+        f"process's before the first step; {wall / 60:.0f} min).",
         "",
         *_table(density, "**Fixed density** (8 agents per m^3):"),
     ]

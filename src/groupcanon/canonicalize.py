@@ -62,11 +62,20 @@ def _as_pair(value, what: str):
 
 
 def _detect_mode(layer: nn.Module) -> str:
+    """``"node"`` without an ``edge_index`` argument; else ``"pair"`` or ``"ego"`` from the annotation of ``x``
+    (PyG annotates bipartite-capable layers with ``Union[Tensor, PairTensor]``). An unannotated ``x`` is an error,
+    not a guess: the two modes feed the layer different graphs."""
     params = inspect.signature(layer.forward).parameters
     if "edge_index" not in params:
         return "node"
     x = params.get("x")
-    annotation = "" if x is None else str(x.annotation)
+    if x is None or x.annotation is inspect.Parameter.empty:
+        raise ValueError(
+            f"cannot tell from {type(layer).__name__}.forward's signature whether it takes a (source, target) "
+            "pair of node tensors: its x is not annotated. Pass Canonicalize(..., mode='pair') for a bipartite-"
+            "capable layer (e.g. TransformerConv, GATConv) or mode='ego' for a layer of one node tensor (GCNConv)"
+        )
+    annotation = str(x.annotation)
     return "pair" if any(k in annotation for k in ("Pair", "Tuple", "tuple")) else "ego"
 
 
@@ -149,7 +158,8 @@ class Canonicalize:
 class CanonicalizedLayer(nn.Module):
     """An equivariant wrapper around an unmodified layer (built by :class:`Canonicalize`).
 
-    Call as ``eq(x, edge_index, frames=frames, pos=None, edge_attr=None, **kwargs)``:
+    Call as ``eq(x, edge_index, *, frames, pos=None, edge_attr=None, **kwargs)`` (``frames`` keyword-only: PyG
+    layers take ``edge_attr`` third):
 
     * ``x``: ``(N, in_dim)`` or a bipartite pair ``(x_src (N_src, in_dim), x_dst (N_dst, in_dim))``.
     * ``edge_index``: ``(2, E)`` long, rows (source, target), targets index ``x_dst``.
@@ -159,7 +169,9 @@ class CanonicalizedLayer(nn.Module):
     * other keyword arguments are passed to the layer unchanged: they must be invariant (e.g. ``edge_weight``).
 
     Returns ``(N_dst, out_type.dim)`` in the world frame; if the layer returns a tuple, the first item is mapped
-    and the rest (e.g. attention weights, which are invariant) is returned beside it.
+    and the rest (e.g. attention weights, which are invariant) is returned beside it. With
+    ``return_attention_weights=True`` the returned ``edge_index`` is the caller's (plus ``(i, i)`` per node when
+    ``self_loops``), row for row with the weights, not the internal canonicalized graph's.
     In ``mode="node"`` call as ``eq(x, frames=frames)``.
     """
 
@@ -185,6 +197,12 @@ class CanonicalizedLayer(nn.Module):
     @property
     def group(self) -> Group:
         return self.spec.group
+
+    def reset_parameters(self) -> None:
+        """The wrapped layer's ``reset_parameters()`` (a wrapper has no parameters of its own)."""
+        if not hasattr(self.layer, "reset_parameters"):
+            raise AttributeError(f"{type(self.layer).__name__} has no reset_parameters()")
+        self.layer.reset_parameters()
 
     def extra_repr(self) -> str:
         s = self.spec
@@ -250,7 +268,7 @@ class CanonicalizedLayer(nn.Module):
         return (y, *rest) if rest else y
 
     # ------------------------------------------------------------------ forward
-    def forward(self, x, edge_index: Tensor | None = None, frames: Tensor | None = None, **kwargs):
+    def forward(self, x, edge_index: Tensor | None = None, *, frames: Tensor | None = None, **kwargs):
         if frames is None:
             raise TypeError("frames are required: eq(x, edge_index, frames=frames)")
         spec = self.spec
@@ -303,7 +321,24 @@ class CanonicalizedLayer(nn.Module):
         except (IndexError, RuntimeError):
             self._check_index_range(edge_index, x_src.shape[0], n_dst)  # a clear error if that was the cause
             raise
+        if kwargs.get("return_attention_weights") and isinstance(out, tuple) and len(out) == 2:
+            out = (out[0], self._callers_attention(out[1], edge_index, n_dst))
         return self._finish(out, frames)
+
+    def _callers_attention(self, weights, edge_index: Tensor, n_dst: int):
+        """``(edge_index, alpha)`` of the internal graph -> the same weights on the caller's ``edge_index`` (with
+        the self loops appended when ``self_loops``): the internal graph lists the caller's edges in order, then
+        (pair mode, ``self_loops``) one loop per receiver."""
+        if not (isinstance(weights, tuple) and len(weights) == 2 and isinstance(weights[0], Tensor)):
+            return weights  # a sparse adjacency or another format: left as the layer returned it
+        internal, alpha = weights
+        ei = edge_index
+        if self.mode == "pair" and self.spec.self_loops:
+            nodes = torch.arange(n_dst, device=ei.device)
+            ei = torch.cat((ei, torch.stack((nodes, nodes))), dim=1)
+        if internal.shape[1] != ei.shape[1] or not torch.equal(internal[1], ei[1]):
+            return weights  # the layer changed the graph (e.g. its own self loops): report what it returned
+        return ei, alpha
 
     def _edge_inputs(self, inv_e: Tensor, edge_attr: Tensor | None, kwargs: dict) -> None:
         if edge_attr is not None:

@@ -381,8 +381,8 @@ def test_attention_weights_are_invariant(G):
         y, (ei_out, alpha) = eq(inp.x, inp.edge_index, frames=inp.frames, return_attention_weights=True)
         e = inp.edge_index.shape[1]
         assert alpha.shape == (e, 2)
-        # attention is reported on the expanded graph: row e is original edge e (source row = edge id)
-        assert torch.equal(ei_out[0], torch.arange(e)) and torch.equal(ei_out[1], inp.edge_index[1])
+        # attention is reported on the caller's graph, row for row (not the internal canonicalized one)
+        assert torch.equal(ei_out, inp.edge_index)
         # softmax over each receiver's incoming edges
         sums = torch.zeros(inp.num_nodes, 2, dtype=F64).index_add_(0, inp.edge_index[1], alpha)
         has_in = torch.bincount(inp.edge_index[1], minlength=inp.num_nodes) > 0
@@ -569,3 +569,65 @@ def test_mode_detection():
         assert c(layer).mode == spec.mode, name
     assert c(_mlp(t_in.dim, t_out.dim)).mode == "node"
     assert Canonicalize(G, t_in, t_out, mode="ego")(SAGEConv(t_in.dim, t_out.dim)).mode == "ego"
+
+
+# ------------------------------------------------------------------------------------------ PyG conventions
+def test_frames_are_keyword_only():
+    G = gg.SO2()
+    t = FieldType(G, [Vector(2)])
+    eq = Canonicalize(G, t, t)(TransformerConv(2, 2).double())
+    x, ei = torch.randn(3, 2, dtype=F64), torch.tensor([[0, 1], [1, 2]])
+    with pytest.raises(TypeError):
+        eq(x, ei, G.identity(3, dtype=F64))  # third positional is edge_attr in PyG; frames must be named
+    assert eq(x, ei, frames=G.identity(3, dtype=F64)).shape == (3, 2)
+
+
+def test_reset_parameters_reaches_the_wrapped_layer():
+    G = gg.SO2()
+    t = FieldType(G, [Vector(2)])
+    raw = TransformerConv(2, 2).double()
+    eq = Canonicalize(G, t, t)(raw)
+    torch.manual_seed(3)
+    eq.reset_parameters()
+    after = [p.detach().clone() for p in raw.parameters()]
+    torch.manual_seed(3)
+    raw.reset_parameters()
+    assert all(torch.equal(a, p) for a, p in zip(after, raw.parameters()))
+    with pytest.raises(AttributeError, match="reset_parameters"):
+        Canonicalize(G, t, t)(nn.Identity()).reset_parameters()
+
+
+def test_an_unannotated_graph_layer_needs_an_explicit_mode():
+    class Plain(torch.nn.Module):
+        def forward(self, x, edge_index):
+            return x
+
+    G = gg.SO2()
+    t = FieldType(G, [Vector(2)])
+    with pytest.raises(ValueError, match="mode='pair'"):
+        Canonicalize(G, t, t)(Plain())
+    assert Canonicalize(G, t, t, mode="ego")(Plain()).mode == "ego"
+
+
+def test_attention_weights_with_self_loops_list_the_loops_after_the_callers_edges():
+    G = gg.SO2()
+    t = FieldType(G, [Vector(2)])
+    raw = TransformerConv(2, 2, heads=1).double()
+    eq = Canonicalize(G, t, t, self_loops=True)(raw)
+    ei = torch.tensor([[0, 1, 2], [1, 2, 0]])
+    _, (ei_out, alpha) = eq(torch.randn(3, 2, dtype=F64), ei, frames=G.sample(3, dtype=F64),
+                            return_attention_weights=True)  # fmt: skip
+    loops = torch.arange(3).repeat(2, 1)
+    assert torch.equal(ei_out, torch.cat((ei, loops), 1)) and alpha.shape == (6, 1)
+
+
+def test_a_wrapped_layer_compiles():
+    G = gg.SE2xR()
+    t = FieldType(G, [Vector(3), Scalar(1)])
+    torch.manual_seed(0)
+    eq = Canonicalize(G, t, t)(TransformerConv(t.dim, t.dim, heads=2, concat=False).double())
+    x = torch.randn(5, t.dim, dtype=F64)
+    ei = torch.tensor([[0, 1, 2, 3, 4, 0], [1, 2, 3, 4, 0, 2]])
+    f = G.sample(5, dtype=F64, generator=torch.Generator().manual_seed(1))
+    compiled = torch.compile(eq, backend="aot_eager", fullgraph=False)  # traced through dynamo and AOTAutograd
+    assert torch.allclose(compiled(x, ei, frames=f), eq(x, ei, frames=f), atol=1e-12, rtol=0)

@@ -307,3 +307,23 @@ def test_default_outputs_stay_out_of_the_users_docs(tmp_path, monkeypatch):
     assert (tmp_path / "out" / "reproduction" / "reproduction.md").exists()
     assert (tmp_path / "out" / "reproduction" / "cells" / "nominal_obs0" / "N2.json").exists()
     assert not (tmp_path / "docs").exists()
+
+
+def test_real_ray_backend_matches_the_process_backend(first):
+    """The `ray` extra (installed with `dev`): a local Ray with two CPUs runs the cells as tasks (the checkpoint's
+    bytes travel with each task) and gives the serial sweep's numbers."""
+    ray = pytest.importorskip("ray")
+    cfg, records = first
+    sub = dict(methods=("egcbf+", "nominal"), obstacles=0, num_agents=(3,))
+    serial = {c: _metrics(r["row"]) for c, r in records.items() if c.method == "egcbf+" and c in set(
+        SweepConfig(**{**cfg.__dict__, **sub}).cells())}  # fmt: skip
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        ray_cfg = SweepConfig(**{**cfg.__dict__, **sub, "backend": "ray", "out": cfg.out.parent / "real-ray"})
+        remote = rp.sweep(ray_cfg, progress=False, log=lambda s: None)
+    finally:
+        ray.shutdown()
+    assert {c: _metrics(r["row"]) for c, r in remote.items() if c.method == "egcbf+"} == serial
+    assert {c.method for c in remote} == {"egcbf+", "nominal"}
+    log = json.loads((ray_cfg.out / "sweep.json").read_text())
+    assert log[-1]["backend"] == "ray" and log[-1]["computed"] == len(remote)

@@ -191,8 +191,17 @@ def table_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
 
 # ---------------------------------------------------------------------------------------------------- summary
 def _pct(rate: float) -> str:
-    """A rate in % with one decimal, or two where one would round a rate below 1 up to 100.0."""
-    return f"{100 * rate:.2f}" if rate < 1 and round(100 * rate, 1) == 100 else f"{100 * rate:.1f}"
+    """A rate in % with one decimal, or as many more (up to four) as keep a rate below 1 from reading 100."""
+    digits = 1
+    while rate < 1 and round(100 * rate, digits) == 100 and digits < 4:
+        digits += 1
+    return f"{100 * rate:.{digits}f}"
+
+
+def _so_far(st: Stat, cfg: SweepConfig, method: str) -> str:
+    """`` (1 of 3 seeds of EGCBF+ so far)`` while some of ``method``'s training seeds are pending, else ``""``."""
+    planned = len(cfg.seeds_for(method))
+    return f" ({st.n} of {planned} seeds of {LABELS[method]} so far)" if st.n < planned else ""
 
 
 def _at(records, cfg, m, n, k=0, scale=False, metric="safe_rate") -> Stat | None:
@@ -220,6 +229,7 @@ def summary_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
             continue
         word = "above" if ours.lo * 100 > paper[0] else ("below" if ours.hi * 100 < paper[0] else "around")
         spread = "" if ours.n == 1 else f" (every seed {word})" if word != "around" else " (the seeds straddle it)"
+        spread += _so_far(ours, cfg, m)
         verdicts.append(f"{LABELS[m]} {ours.text()} % against the paper's {paper[0]:g} %: {word}{spread}")
     if verdicts:
         lines.append(f"- **Against the paper** (safe rate at N = {big}, no obstacles): " + "; ".join(verdicts) + ".")
@@ -248,7 +258,10 @@ def summary_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
                 continue
             overlap = a.lo <= b.hi and b.lo <= a.hi
             diffs.append(
-                f"N = {n}: {100 * (a.mean - b.mean):+.1f}" + (" (seed ranges overlap)" if overlap and a.n > 1 else "")
+                f"N = {n}: {100 * (a.mean - b.mean):+.1f}"
+                + (" (seed ranges overlap)" if overlap and a.n > 1 else "")
+                + _so_far(a, cfg, equi)
+                + _so_far(b, cfg, plain)
             )
         if diffs:
             lines.append(
@@ -310,11 +323,12 @@ def scalability_figure(cfg: SweepConfig, records: dict[Cell, dict], out_png: str
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("%")
     axes[0].set_ylim(-3, 103)
-    axes[-1].legend(fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5))
-    note = f"solid: l = {cfg.area:g} m ({cfg.episodes_text()})"
+    handles, labels = axes[0].get_legend_handles_labels()  # the no-obstacle panel has every method
+    axes[-1].legend(handles, labels, fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    note = f"solid: l = {cfg.area:g} m ({cfg.episodes_text()}); bands: min-max over training seeds"
     if cfg.scale_sizes:
-        note += f"; dotted, right of the dashed line: {cfg.scale_text()}"
-    fig.suptitle(note + "; bands: min-max over training seeds", fontsize=8)
+        note += f"\ndotted, right of the dashed line: {cfg.scale_text()}"
+    fig.suptitle(note, fontsize=8)
     fig.tight_layout()
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from groupcanon.groups.so3 import skew
+
 __all__ = [
     "dexpinv",
     "exp_apply",
@@ -22,18 +24,9 @@ __all__ = [
 ]
 
 
-def hat(w: Tensor) -> Tensor:
-    """Skew-symmetric matrix ``[w]x`` ``(*batch, 3, 3)`` of ``w`` ``(*batch, 3)``: ``hat(a) @ b == a x b``."""
-    x, y, z = w.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack(
-        (
-            torch.stack((o, -z, y), dim=-1),
-            torch.stack((z, o, -x), dim=-1),
-            torch.stack((-y, x, o), dim=-1),
-        ),
-        dim=-2,
-    )
+#: skew-symmetric matrix ``[w]x`` ``(*batch, 3, 3)`` of ``w`` ``(*batch, 3)``: ``hat(a) @ b == a x b`` (groupcanon's
+#: :func:`~groupcanon.groups.so3.skew`, the one implementation)
+hat = skew
 
 
 def vee(m: Tensor) -> Tensor:

@@ -38,6 +38,8 @@ def _quat_to_rotmat(q: Tensor) -> Tensor:
 
 
 def _haar_rotations(batch, generator, dtype, device) -> Tensor:
+    # uniform unit quaternions -> Haar-distributed rotations; roma.random_rotmat does the same but takes no
+    # torch.Generator, which reproducible sampling (and the property tests) need
     q = torch.randn(*batch, 4, generator=generator, dtype=default_dtype(dtype), device=device)
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny)
     return _quat_to_rotmat(q)

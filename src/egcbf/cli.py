@@ -148,14 +148,14 @@ def eval_cmd(
 def _demo_source(name: str, checkpoints: Path) -> Path | None:
     """The checkpoint directory of a learned method (``checkpoints/<name>``), or ``None`` for a hand-crafted
     controller name; a clear error naming the path and the training command if a learned method has none."""
-    from .config import METHODS
+    from .config import LEARNED_METHODS
     from .control.controllers import CONTROLLERS
 
     if name in CONTROLLERS:
         return None
-    if name not in METHODS:
+    if name not in LEARNED_METHODS:
         usage_error(
-            f"unknown method {name!r}: a learned method {sorted(METHODS)} or a controller {sorted(CONTROLLERS)}"
+            f"unknown method {name!r}: a learned method {sorted(LEARNED_METHODS)} or a controller {sorted(CONTROLLERS)}"
         )
     from .train import find_checkpoint
 
@@ -278,11 +278,11 @@ def train(
 ) -> None:
     """Train GCBF, GCBF+, EGCBF or EGCBF+ (one learner; the group and the reference controller differ)."""
     from .ckpt_files import CheckpointError
-    from .config import METHODS, PRESETS, TrainConfig
+    from .config import LEARNED_METHODS, PRESETS, TrainConfig
     from .train import checkpoint_step
     from .train import train as run_training
 
-    require(algo is None or algo in METHODS, f"--algo must be one of {sorted(METHODS)}, got {algo!r}")
+    require(algo is None or algo in LEARNED_METHODS, f"--algo must be one of {sorted(LEARNED_METHODS)}, got {algo!r}")
     require(steps is None or steps >= 1, f"--steps must be >= 1, got {steps}")
     require(threads is None or threads >= 1, f"--threads must be >= 1, got {threads}")
     if tensorboard:

@@ -3,7 +3,7 @@
     cfg = TrainConfig.preset("egcbf+", "cpu")          # or "paper"
     cfg = TrainConfig.from_json(path)                   # what every checkpoint stores beside its weights
 
-The four methods are points of one grid (``METHODS``): the symmetry group of the networks times the reference
+The four methods are points of one grid (``LEARNED_METHODS``): the symmetry group of the networks times the reference
 controller of the control loss::
 
     gcbf   = (trivial, nominal)    gcbf+  = (trivial, qp)
@@ -25,10 +25,10 @@ from typing import Any
 from .env import EnvConfig
 from .nn.models import ModelConfig
 
-__all__ = ["METHODS", "PRESETS", "TrainConfig"]
+__all__ = ["LEARNED_METHODS", "PRESETS", "TrainConfig"]
 
 #: method name -> (group of the networks, reference controller of the control loss)
-METHODS: dict[str, tuple[str, str]] = {
+LEARNED_METHODS: dict[str, tuple[str, str]] = {
     "gcbf": ("trivial", "nominal"),
     "gcbf+": ("trivial", "qp"),
     "egcbf": ("se2xr", "nominal"),
@@ -41,7 +41,7 @@ PRESETS = ("cpu", "cpu-torque", "paper", "tiny")
 class TrainConfig:
     """Everything a training run needs; saved as JSON beside every checkpoint.
 
-    Method: ``algo`` (one of :data:`METHODS`), ``reference`` (``"nominal"`` or ``"qp"``, set from ``algo``),
+    Method: ``algo`` (one of :data:`LEARNED_METHODS`), ``reference`` (``"nominal"`` or ``"qp"``, set from ``algo``),
     ``model`` (:class:`egcbf.nn.ModelConfig`, its ``group`` set from ``algo``).
 
     Training environment: ``num_agents``, ``area_size``, ``num_obstacles`` and ``env_overrides`` (any other
@@ -148,9 +148,9 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):
             self.model = ModelConfig(**self.model)
-        if self.algo not in METHODS:
-            raise ValueError(f"TrainConfig.algo must be one of {sorted(METHODS)}, got {self.algo!r}")
-        group, reference = METHODS[self.algo]
+        if self.algo not in LEARNED_METHODS:
+            raise ValueError(f"TrainConfig.algo must be one of {sorted(LEARNED_METHODS)}, got {self.algo!r}")
+        group, reference = LEARNED_METHODS[self.algo]
         if self.reference != reference or self.model.group != group:
             raise ValueError(
                 f"TrainConfig: algo {self.algo!r} means group={group!r}, reference={reference!r}, but the config "
@@ -246,11 +246,11 @@ class TrainConfig:
 
         ``changes`` override fields (``model`` may be a dict of :class:`ModelConfig` overrides).
         """
-        if algo not in METHODS:
-            raise ValueError(f"unknown algo {algo!r}; choose one of {sorted(METHODS)}")
+        if algo not in LEARNED_METHODS:
+            raise ValueError(f"unknown algo {algo!r}; choose one of {sorted(LEARNED_METHODS)}")
         if name not in PRESETS:
             raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
-        group, reference = METHODS[algo]
+        group, reference = LEARNED_METHODS[algo]
         model = {"group": group}
         base: dict[str, Any] = {"num_threads": 1}  # small matrices: one thread is as fast, and never oversubscribes
         if name == "cpu":

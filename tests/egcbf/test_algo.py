@@ -19,7 +19,7 @@ from egcbf.algo import (
     make_interface,
     solve_cbf_qp,
 )
-from egcbf.config import METHODS, TrainConfig
+from egcbf.config import LEARNED_METHODS, TrainConfig
 from egcbf.dynamics import quadrotor as dyn
 from egcbf.dynamics.so3 import so3_exp
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
@@ -286,7 +286,7 @@ def test_derivative_term_can_train_the_policy_only():
         assert any(p.grad is not None and p.grad.any() for p in learner.policy.parameters())
 
 
-@pytest.mark.parametrize("algo", sorted(METHODS))
+@pytest.mark.parametrize("algo", sorted(LEARNED_METHODS))
 def test_training_decreases_the_loss_on_a_fixed_batch(algo):
     cfg = TrainConfig.preset(algo, "tiny", lr_cbf=3e-3, lr_policy=3e-3)
     learner = GraphCBFLearner(cfg)

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from egcbf.algo import GraphCBFLearner
 from egcbf.cli import app
-from egcbf.config import METHODS, TrainConfig
+from egcbf.config import LEARNED_METHODS, TrainConfig
 from egcbf.env import SwarmEnv
 from egcbf.train import find_checkpoint, load_controller, load_learner, train
 
@@ -29,7 +29,7 @@ def test_config_presets_and_json_roundtrip(tmp_path):
     graphs = paper.rollout_envs * paper.rollout_steps * 2 + paper.unsafe_samples
     assert (paper.rollout_envs, paper.rollout_steps, paper.epochs, graphs // paper.batch_size) == (16, 256, 8, 48)
     assert (paper.lr_cbf, paper.lr_policy, paper.gamma, paper.eta_d, paper.alpha) == (1e-4, 1e-5, 0.02, 0.2, 1.0)
-    for algo, (group, reference) in METHODS.items():
+    for algo, (group, reference) in LEARNED_METHODS.items():
         cfg = TrainConfig.preset(algo, "cpu", seed=3, model={"hidden": 32})
         assert (cfg.group, cfg.reference, cfg.seed, cfg.model.hidden) == (group, reference, 3, 32)
         cfg.to_json(tmp_path / "c.json")
@@ -56,7 +56,8 @@ def test_config_presets_and_json_roundtrip(tmp_path):
 
 @pytest.mark.parametrize(
     "algo, interface, model",
-    [(a, "accel", "ideal") for a in sorted(METHODS)] + [("egcbf+", "accel", "closed_loop"), ("gcbf+", "torque", "")],
+    [(a, "accel", "ideal") for a in sorted(LEARNED_METHODS)]
+    + [("egcbf+", "accel", "closed_loop"), ("gcbf+", "torque", "")],
 )
 def test_each_method_trains_end_to_end(tmp_path, algo, interface, model):
     changes = {"command_model": model} if model else {}

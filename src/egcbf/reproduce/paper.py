@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from ..config import LEARNED_METHODS
+
 __all__ = ["BASELINES", "DEFAULT_SIZES", "LABELS", "LEARNED", "METHODS", "PAPER_TABLE_I", "SCALE_SIZES", "PaperRow"]
 
-LEARNED = ("gcbf", "gcbf+", "egcbf", "egcbf+")
+#: the learned methods (``egcbf.config.LEARNED_METHODS``: each one's group and reference controller)
+LEARNED = tuple(LEARNED_METHODS)
 BASELINES = ("dcbf", "ccbf", "nominal")
-# the paper's row order, then the nominal controller alone (not in the paper: what the learned residual starts from)
+#: every controller the sweep evaluates (not only learned ones, unlike ``LEARNED_METHODS``), in the paper's row
+#: order, then the nominal controller alone (not in the paper: what the learned residual starts from)
 METHODS = ("gcbf", "gcbf+", "dcbf", "ccbf", "egcbf", "egcbf+", "nominal")
 LABELS = {
     "nominal": "nominal (no CBF)",

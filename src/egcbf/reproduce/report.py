@@ -366,7 +366,7 @@ def _convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
             if (path / "metrics.csv").exists():
                 dirs.append(path)
         if dirs:
-            runs[_label(cfg, m)] = dirs
+            runs[LABELS[m]] = dirs  # training_curves says "mean of k seeds" itself
     if not runs:
         return f"Training curves: no `{cfg.checkpoints}/<method>/metrics.csv` (copy each run's metrics.csv there)."
     try:

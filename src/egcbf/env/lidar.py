@@ -1,11 +1,19 @@
-"""3-D LiDAR against sphere obstacles, analytic and vectorized over environments, agents, rays and obstacles.
+"""LiDAR against round obstacles (3-D: spheres, 2-D: discs), analytic and vectorized over environments, agents,
+rays and obstacles. The dimension ``d`` is read from the positions ``(B, N, d)``; the obstacles must match.
 
-Ray pattern (GCBF+'s 3-D LiDAR): ``n_rays`` azimuths ``phi in linspace(-pi, pi - 2 pi / n_rays, n_rays)`` times
+3-D ray pattern (GCBF+'s 3-D LiDAR): ``n_rays`` azimuths ``phi in linspace(-pi, pi - 2 pi / n_rays, n_rays)`` times
 ``n_rays // 2`` elevations ``theta in linspace(-pi/2 + 2 pi / n_rays, pi/2 - 2 pi / n_rays, n_rays // 2)``, plus
 one ray straight up and one straight down; every ray has length ``max_range``. Only the ``max_hits`` closest hits
 are kept per agent (GCBF+ keeps 16).
 
-Equivariance. The pattern is defined in each agent's *yaw frame*: the directions are rotated about the world z
+2-D ray pattern: the same ``n_rays`` azimuths ``phi in linspace(-pi, pi - 2 pi / n_rays, n_rays)`` and nothing
+else (no elevations, no up/down rays), each of length ``max_range``, in the agent's heading frame: azimuth 0 is
+the agent's heading, positive azimuths turn counter-clockwise. The same ``max_hits`` selection and conventions
+apply. A world transform ``g = (R(a), t)`` of SE(2) (``groupcanon.groups.SE2``, element ``(cos a, sin a, tx,
+ty)``) moves agents, headings and discs together, so ``hits(g . scene) = g . hits(scene)`` (the argument below,
+with ``R_z`` replaced by the planar rotation ``R`` and the heading frame ``groupcanon.frames.planar_frame``).
+
+Equivariance (3-D). The pattern is defined in each agent's *yaw frame*: the directions are rotated about the world z
 axis by the agent's yaw (the heading of its body x axis projected on the horizontal plane, exactly the rotation
 part of its SE2xR frame ``groupcanon.frames.se2xr_frame(R[:, 0], p)``). A world transform ``g = (R_z(a), t)``
 moves agents, obstacles and the yaw frames together, so every ray meets the same obstacle at the same distance
@@ -39,22 +47,30 @@ __all__ = ["LidarScan", "lidar_scan", "ray_directions"]
 
 @dataclass
 class LidarScan:
-    """The kept hits of every agent, sorted by distance: ``points`` ``(B, N, H, 3)`` (world frame),
-    ``valid`` ``(B, N, H)`` bool, ``distance`` ``(B, N, H)`` (``inf`` where invalid)."""
+    """The kept hits of every agent, sorted by distance: ``points`` ``(B, N, H, d)`` (world frame; the agent's
+    position in invalid slots), ``valid`` ``(B, N, H)`` bool, ``distance`` ``(B, N, H)`` (``inf`` where invalid)."""
 
     points: Tensor
     valid: Tensor
     distance: Tensor
 
 
-def ray_directions(n_rays: int, *, dtype: torch.dtype | None = None, device=None) -> Tensor:
-    """Unit ray directions in the yaw frame, ``(n_rays * (n_rays // 2) + 2, 3)``: the elevation x azimuth grid
-    (elevation-major), then up, then down."""
+def ray_directions(n_rays: int, *, dim: int = 3, dtype: torch.dtype | None = None, device=None) -> Tensor:
+    """Unit ray directions in the agent's frame (yaw frame in 3-D, heading frame in 2-D).
+
+    ``dim = 3``: ``(n_rays * (n_rays // 2) + 2, 3)``, the elevation x azimuth grid (elevation-major), then up,
+    then down. ``dim = 2``: ``(n_rays, 2)``, ``(cos phi, sin phi)`` for the azimuths ``phi`` (see module doc).
+    """
     if int(n_rays) != n_rays or n_rays < 2:
         raise ValueError(f"n_rays must be an integer >= 2, got {n_rays!r}")
+    if dim not in (2, 3):
+        raise ValueError(f"dim must be 2 or 3, got {dim!r}")
     n = int(n_rays)
     dtype = dtype or torch.get_default_dtype()
     step = 2 * math.pi / n
+    if dim == 2:
+        phi = torch.linspace(-math.pi, math.pi - step, n, dtype=torch.float64)
+        return torch.stack((torch.cos(phi), torch.sin(phi)), dim=-1).to(dtype=dtype, device=device)
     theta = torch.linspace(-math.pi / 2 + step, math.pi / 2 - step, n // 2, dtype=torch.float64)
     phi = torch.linspace(-math.pi, math.pi - step, n, dtype=torch.float64)
     ct, st = torch.cos(theta)[:, None], torch.sin(theta)[:, None]
@@ -64,10 +80,12 @@ def ray_directions(n_rays: int, *, dtype: torch.dtype | None = None, device=None
 
 
 def _yaw_rotate(cs: Tensor, d: Tensor) -> Tensor:
-    """Rotate ``d`` ``(..., 3)`` about z by the yaw ``cs = (cos, sin)`` ``(..., 2)``."""
+    """Rotate ``d`` ``(..., 3)`` about z (or ``(..., 2)`` in the plane) by the yaw ``cs = (cos, sin)`` ``(..., 2)``."""
     c, s = cs[..., 0:1], cs[..., 1:2]
     x, y = d[..., 0:1], d[..., 1:2]
     xy = torch.cat((c * x - s * y, s * x + c * y), dim=-1)
+    if d.shape[-1] == 2:
+        return xy
     return torch.cat((xy, d[..., 2:3].expand(*xy.shape[:-1], 1)), dim=-1)
 
 
@@ -89,29 +107,37 @@ def lidar_scan(
     """Cast the LiDAR of every agent.
 
     Args:
-        positions: ``(B, N, 3)`` agent positions (world frame).
-        headings: ``(B, N, >=2)`` heading vectors whose horizontal part sets the yaw of the ray pattern, e.g. the
-            body x axis ``R[..., :, 0]``, or ``(cos yaw, sin yaw)``.
-        obstacles: ``K`` spheres per environment.
+        positions: ``(B, N, d)`` agent positions (world frame), ``d = 3`` (spheres, 3-D pattern) or ``d = 2``
+            (discs, 2-D pattern).
+        headings: ``(B, N, >=2)`` heading vectors (world frame) whose first two components set the yaw of the
+            ray pattern (they are normalized; only their direction matters). 3-D: e.g. the body x axis
+            ``R[..., :, 0]`` (its horizontal part), or ``(cos yaw, sin yaw)``. 2-D: the heading ``(B, N, 2)``, a
+            unit vector ``(cos theta, sin theta)`` or any nonzero vector along it.
+        obstacles: ``K`` obstacles per environment of the same dimension (centres ``(B, K, d)``).
         n_rays, max_range, max_hits: the pattern (see module doc), the ray length, the hits kept per agent.
 
     Returns:
-        :class:`LidarScan` with ``H = max_hits`` slots per agent, closest first. Differentiable with respect
-        to positions and obstacles (where the hit set does not change).
+        :class:`LidarScan` with ``H = max_hits`` slots per agent, closest first, points ``(B, N, H, d)``.
+        Differentiable with respect to positions and obstacles (where the hit set does not change).
     """
-    if positions.dim() != 3 or positions.shape[-1] != 3:
-        raise ValueError(f"positions must be (B, N, 3), got {tuple(positions.shape)}")
+    if positions.dim() != 3 or positions.shape[-1] not in (2, 3):
+        raise ValueError(f"positions must be (B, N, d) with d = 3 or d = 2, got {tuple(positions.shape)}")
     if headings.shape[:2] != positions.shape[:2] or headings.shape[-1] < 2:
         raise ValueError(f"headings must be (B, N, >=2) matching positions, got {tuple(headings.shape)}")
+    if obstacles.dim != positions.shape[-1]:
+        raise ValueError(
+            f"obstacles must have the positions' dimension: centers (B, K, {positions.shape[-1]}), got "
+            f"{tuple(obstacles.centers.shape)}"
+        )
     if obstacles.num_envs != positions.shape[0]:
         raise ValueError(f"obstacles are for {obstacles.num_envs} environments, positions for {positions.shape[0]}")
     if not (max_range > 0):
         raise ValueError(f"max_range must be > 0, got {max_range!r}")
     if int(max_hits) != max_hits or max_hits < 1:
         raise ValueError(f"max_hits must be a positive integer, got {max_hits!r}")
-    b, n, _ = positions.shape
+    b, n, dim = positions.shape
     dtype, device = positions.dtype, positions.device
-    dirs = ray_directions(n_rays, dtype=dtype, device=device)  # (Rr, 3)
+    dirs = ray_directions(n_rays, dim=dim, dtype=dtype, device=device)  # (Rr, d)
     n_dirs = dirs.shape[0]
     h = int(max_hits)
     m = b * n
@@ -124,9 +150,9 @@ def lidar_scan(
         # agent-obstacle pairs whose ray segments can reach the sphere (sparse: linear in N and K)
         bi, ni, ki = obstacles.near_pairs(positions.detach(), max_range)
         if bi.numel() > 0:
-            # ray x sphere in the agent's yaw frame: one (P, 3) x (3, Rr) product gives every d . (p - c)
+            # ray x sphere (disc) in the agent's yaw frame: one (P, d) x (d, Rr) product gives every d . (p - c)
             cs = planar_frame(headings[bi, ni])  # (P, 2)
-            oc = _yaw_rotate(cs * cs.new_tensor([1.0, -1.0]), positions[bi, ni] - centers[bi, ki])  # (P, 3)
+            oc = _yaw_rotate(cs * cs.new_tensor([1.0, -1.0]), positions[bi, ni] - centers[bi, ki])  # (P, d)
             proj = oc @ dirs.T  # (P, Rr)
             c0 = oc.square().sum(-1) - radii[bi, ki].square()  # (P,); <= 0: the agent is inside
             disc = proj.square() - c0[:, None]
@@ -157,7 +183,7 @@ def lidar_scan(
     best, idx = best.view(b, n, h), idx.view(b, n, h)
     valid = torch.isfinite(best)
     cs = planar_frame(headings)  # (B, N, 2)
-    d = _yaw_rotate(cs[:, :, None, :], dirs[idx])  # (B, N, H, 3)
+    d = _yaw_rotate(cs[:, :, None, :], dirs[idx])  # (B, N, H, d)
     step = torch.where(valid, best, torch.zeros_like(best))
     points = positions[:, :, None, :] + d * step[..., None]
     return LidarScan(points=points, valid=valid, distance=best)

@@ -1,6 +1,7 @@
 """Vectorized rejection sampling of well-separated points (agents' starts and goals).
 
-GCBF+ convention: points uniform in ``[0, l]^3``, pairwise distance ``> min_separation`` (4 r), and outside every
+GCBF+ convention: points uniform in ``[0, l]^d`` (``d = 3`` for the quadrotor, ``d = 2`` for a planar swarm; the
+argument ``dim``), pairwise distance ``> min_separation`` (4 r), and outside every
 obstacle inflated by ``obstacle_margin`` (4 r). GCBF+ places points one at a time; here every still-unplaced
 point of every set is proposed at once per round: each unplaced slot draws one or more uniform candidates (more
 when few slots are left, so that the last points of a crowded arena do not take hundreds of rounds), takes the
@@ -8,8 +9,9 @@ first one that is clear of the obstacles and of all placed points (a uniform dra
 sequential placement), and the slot's choice is kept unless it conflicts with the choice of a lower-indexed slot
 of the same round (so the accepted set is conflict-free). Conflicts are found with the sparse cell-list search,
 never with a dense ``N x N`` matrix.
-Rounds are bounded; an impossible request raises ``ValueError`` (immediately if even the densest sphere packing
-cannot hold the points, otherwise after ``max_rounds`` rounds).
+Rounds are bounded; an impossible request raises ``ValueError`` (immediately if even the densest packing of
+balls (``d = 3``) or discs (``d = 2``) cannot hold the points, see :func:`packing_feasible`, otherwise after
+``max_rounds`` rounds).
 """
 
 from __future__ import annotations
@@ -24,14 +26,31 @@ from .obstacles import Obstacles
 
 __all__ = ["packing_feasible", "sample_separated_points"]
 
-_DENSEST_PACKING = math.pi / (3 * math.sqrt(2))  # 0.7405, Kepler
+_DENSEST_PACKING = math.pi / (3 * math.sqrt(2))  # 0.7405, Kepler (balls in 3-D; proved by Hales)
+_DENSEST_DISC_PACKING = math.pi / (2 * math.sqrt(3))  # 0.9069, hexagonal (discs in 2-D; Thue, Fejes Toth)
 
 
-def packing_feasible(num_points: int, area_size: float, min_separation: float) -> bool:
-    """Whether ``num_points`` points pairwise farther apart than ``min_separation`` can fit in ``[0, l]^3`` by the
-    densest-packing bound (a necessary condition, checked before any sampling: points separated by ``sep`` have
-    disjoint balls of radius ``sep / 2`` inside ``[-sep/2, l + sep/2]^3``)."""
+def _check_dim(dim: int) -> int:
+    if dim not in (2, 3):
+        raise ValueError(f"dim must be 2 (planar) or 3 (spatial), got {dim!r}")
+    return int(dim)
+
+
+def packing_feasible(num_points: int, area_size: float, min_separation: float, dim: int = 3) -> bool:
+    """Whether ``num_points`` points pairwise farther apart than ``min_separation`` can fit in ``[0, l]^dim`` by
+    the densest-packing bound (a necessary condition, checked before any sampling).
+
+    Points separated by ``sep`` have disjoint balls (``dim = 3``) or discs (``dim = 2``) of radius ``sep / 2``
+    inside the cube/square ``[-sep/2, l + sep/2]^dim`` of side ``l + sep``. Translating that finite packing by the
+    lattice ``(l + sep) Z^dim`` gives a periodic packing of all of space with the same density, so its density is
+    at most the densest packing density: ``pi / (3 sqrt 2)`` for balls (Kepler's conjecture, Hales) and
+    ``pi / (2 sqrt 3)`` for discs (Thue, Fejes Toth). The bound compares the summed *volume*
+    ``N (4/3) pi (sep/2)^3`` with ``0.7405 (l + sep)^3`` in 3-D, and the summed *area* ``N pi (sep/2)^2`` with
+    ``0.9069 (l + sep)^2`` in 2-D.
+    """
     sep, l = float(min_separation), float(area_size)
+    if _check_dim(dim) == 2:
+        return num_points * math.pi * (sep / 2) ** 2 <= _DENSEST_DISC_PACKING * (l + sep) ** 2
     return num_points * (4 / 3) * math.pi * (sep / 2) ** 3 <= _DENSEST_PACKING * (l + sep) ** 3
 
 
@@ -47,8 +66,14 @@ def sample_separated_points(
     generator: torch.Generator | None = None,
     dtype: torch.dtype = torch.float64,
     max_rounds: int = 200,
+    dim: int = 3,
 ) -> Tensor:
-    """Sample ``(num_envs, num_sets, num_points, 3)`` points; each set of each environment is separated.
+    """Sample ``(num_envs, num_sets, num_points, dim)`` points in ``[0, l]^dim`` (world frame); each set of each
+    environment is separated.
+
+    ``dim`` is 3 (the default; the quadrotor) or 2 (a planar swarm); ``obstacles`` must be ``dim``-dimensional
+    (spheres or discs, centres ``(num_envs, K, dim)``). With ``dim = 3`` the generator is consumed exactly as it
+    always was (the same seed gives the same points).
 
     Sets are independent (e.g. set 0 = start positions, set 1 = goals: a start may coincide with another agent's
     goal, as in GCBF+). Runs on the CPU with ``generator`` (reproducible); move the result with ``.to``.
@@ -58,19 +83,25 @@ def sample_separated_points(
     """
     b, s, n = int(num_envs), int(num_sets), int(num_points)
     sep, l = float(min_separation), float(area_size)
+    dim = _check_dim(dim)
+    if obstacles.dim != dim:
+        raise ValueError(
+            f"obstacles must be {dim}-D (centers (B, K, {dim})) to sample {dim}-D points, got centers "
+            f"{tuple(obstacles.centers.shape)}"
+        )
 
     def fail(reason: str) -> ValueError:
         return ValueError(
-            f"cannot place N={n} agents (and goals) in the area [0, {l:g}]^3 with pairwise separation > "
+            f"cannot place N={n} agents (and goals) in the area [0, {l:g}]^{dim} with pairwise separation > "
             f"{sep:g} and obstacle clearance {obstacle_margin:g}: {reason}. Use a larger area_size, fewer agents "
             "or obstacles, or a smaller agent_radius."
         )
 
-    if not packing_feasible(n, l, sep):
-        raise fail("even the densest sphere packing cannot hold them")
+    if not packing_feasible(n, l, sep, dim):
+        raise fail(f"even the densest {'sphere' if dim == 3 else 'disc'} packing cannot hold them")
     obstacles = obstacles.to(dtype=dtype, device="cpu")
     total = b * s * n
-    pos = torch.zeros(total, 3, dtype=dtype)
+    pos = torch.zeros(total, dim, dtype=dtype)
     placed = torch.zeros(total, dtype=torch.bool)
     slot_ids = torch.arange(total)
     group = slot_ids // n  # env * S + set: points of different groups never conflict
@@ -80,11 +111,11 @@ def sample_separated_points(
         todo = slot_ids[~placed]
         u = todo.shape[0]
         if u == 0:
-            return pos.view(b, s, n, 3)
+            return pos.view(b, s, n, dim)
         # candidates per unplaced slot: 1 while most are unplaced, up to 64 for the last few (bounded work)
         per = int(min(64, max(1, -(-total // u))))
         cand_slot = todo.repeat_interleave(per)
-        cand = torch.rand(u * per, 3, generator=generator, dtype=dtype) * l
+        cand = torch.rand(u * per, dim, generator=generator, dtype=dtype) * l
         pi, _ = obstacles.near_pairs_flat(cand, env[cand_slot], obstacle_margin)
         clear = torch.ones(u * per, dtype=torch.bool)
         clear[pi] = False
@@ -116,6 +147,6 @@ def sample_separated_points(
         pos[owner[new_rows]] = pts[new_rows]
         placed[owner[new_rows]] = True
     if bool(placed.all()):
-        return pos.view(b, s, n, 3)
+        return pos.view(b, s, n, dim)
     missing = int((~placed).sum())
     raise fail(f"{missing} of {b * s * n} points still unplaced after {max_rounds} rounds of rejection sampling")

@@ -120,6 +120,10 @@ def eval_cmd(
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="replace the results already in OUT (default: refuse to mix runs)")
     ] = False,
+    robot: Annotated[
+        str | None,
+        typer.Option(help="quadrotor (default) | unicycle (planar); a --checkpoint's robot is its own"),
+    ] = None,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)
@@ -142,6 +146,7 @@ def eval_cmd(
             threads_reason=reason,
             overwrite=overwrite,
             allocator=_ALLOCATOR,
+            robot=robot,
         )
 
 
@@ -275,6 +280,9 @@ def train(
         ),
     ] = False,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    robot: Annotated[
+        str | None, typer.Option(help="quadrotor (default) | unicycle (planar: presets cpu and tiny)")
+    ] = None,
 ) -> None:
     """Train GCBF, GCBF+, EGCBF or EGCBF+ (one learner; the group and the reference controller differ)."""
     from .ckpt_files import CheckpointError
@@ -297,7 +305,7 @@ def train(
     if resume:
         if algo is not None:
             usage_error("--algo cannot change a resumed run (its method is in OUT/config.json); drop --algo")
-        if config is not None or preset is not None or seed is not None or device is not None:
+        if config is not None or preset is not None or seed is not None or device is not None or robot is not None:
             usage_error("--resume continues the saved config: only --steps, --threads and --tensorboard may change")
         current = checkpoint_step(out)
         if steps is not None and current is not None and steps < current:
@@ -322,12 +330,21 @@ def train(
         fields.pop("reference", None)
     name = preset or fields.pop("preset", "cpu")
     fields.pop("preset", None)
+    file_robot = fields.pop("robot", None) or (fields.get("model") or {}).get("robot")
+    require(
+        robot is None or file_robot is None or file_robot == robot,
+        f"--config {config} says robot {file_robot!r} but --robot is {robot!r}",
+    )
+    robot = robot or file_robot or "quadrotor"
+    from .robots import ROBOTS
+
+    require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
     require(name in PRESETS, f"--preset must be one of {PRESETS}, got {name!r}")
     for key, value in (("steps", steps), ("device", device), ("seed", seed), ("num_threads", threads)):
         if value is not None:
             fields[key] = value
     try:
-        cfg = TrainConfig.preset(algo, name, **fields)
+        cfg = TrainConfig.preset(algo, name, robot=robot, **fields)
     except (TypeError, ValueError) as err:
         usage_error(f"{'--config ' + str(config) + ': ' if config is not None else ''}{err}", err)
     check_training_memory(cfg, parse_device(cfg.device))

@@ -82,8 +82,11 @@ def parse_device(name: str, flag: str = "--device") -> torch.device:
     return dev
 
 
-def max_agents(area: float, separation: float) -> int:
-    """The densest-packing bound on how many agents ``separation`` apart fit in ``[0, area]^3``."""
+def max_agents(area: float, separation: float, dim: int = 3) -> int:
+    """The densest-packing bound on how many agents ``separation`` apart fit in ``[0, area]^dim`` (dim 2 or 3)."""
+    if dim == 2:
+        disc = math.pi * (separation / 2) ** 2
+        return int(math.pi / (2 * math.sqrt(3)) * (area + separation) ** 2 / disc) if disc > 0 else 2**62
     ball = (4 / 3) * math.pi * (separation / 2) ** 3
     return int(math.pi / (3 * math.sqrt(2)) * (area + separation) ** 3 / ball) if ball > 0 else 2**62
 
@@ -94,6 +97,7 @@ def check_env_flags(
     obstacles: int,
     max_steps: int | None,
     overrides: dict | None = None,
+    robot: str = "quadrotor",
 ) -> list:
     """The :class:`~egcbf.env.EnvConfig` of every swarm size, or a usage error naming the flag (``--area``,
     ``--obstacles``, ``--max-steps``, ``--num-agents``) if any of them is invalid or cannot be sampled."""
@@ -109,14 +113,14 @@ def check_env_flags(
     configs = []
     for n in sizes:
         try:
-            cfg = EnvConfig(num_agents=n, area_size=area, num_obstacles=obstacles, **kw)
+            cfg = EnvConfig.for_robot(robot, num_agents=n, area_size=area, num_obstacles=obstacles, **kw)
         except (TypeError, ValueError) as err:
             usage_error(f"--num-agents {n}, --area {area:g}, --obstacles {obstacles}: {err}", err)
         sep = cfg.start_separation * cfg.agent_radius
-        if not packing_feasible(n, area, sep):
+        if not packing_feasible(n, area, sep, dim=cfg.dim):
             usage_error(
                 f"--num-agents {n} cannot be placed in --area {area:g} (agents {sep:g} m apart: at most "
-                f"{max_agents(area, sep)} fit); use a larger --area or fewer agents"
+                f"{max_agents(area, sep, cfg.dim)} fit); use a larger --area or fewer agents"
             )
         configs.append(cfg)
     return configs

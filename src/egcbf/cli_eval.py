@@ -98,14 +98,18 @@ def run_eval(
     overwrite: bool = False,
     allocator: str = "default (the CLI's entry point did not run)",
     record: bool = False,
+    robot: str | None = None,
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
     Every input is checked first (flags, all swarm sizes, the checkpoint, ``out``); then each finished swarm size
     is written at once (``metrics.json`` with the rows so far, its renders, ``run.json``), atomically. Returns the
-    first episode of each swarm size ``{N: EpisodeRecord}`` if ``render`` or ``record``, else ``{}``."""
+    first episode of each swarm size ``{N: EpisodeRecord}`` if ``render`` or ``record``, else ``{}``. ``robot``: the
+    robot of a hand-crafted controller's swarm (a checkpoint's robot is its own; a different ``robot`` is an error).
+    """
     from .control.controllers import CONTROLLERS, make_controller
     from .evaluate import evaluate
+    from .robots import ROBOTS
 
     require(dtype in DTYPES, f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
@@ -119,10 +123,19 @@ def run_eval(
         ckpt, learned, train_cfg = load_policy(checkpoint, dev, DTYPES[dtype])
         controller = train_cfg.algo
         env_overrides = dict(train_cfg.env_overrides)  # the sensing the policy was trained with (radii, LiDAR)
+        require(
+            robot in (None, train_cfg.robot),
+            f"--robot {robot} but the checkpoint's policy drives a {train_cfg.robot}; drop --robot",
+        )
+        robot = train_cfg.robot
     else:
         controller = controller or "nominal"
         require(controller in CONTROLLERS, f"--controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
-    configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides)
+    robot = robot or "quadrotor"
+    require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
+    if controller in ("ccbf", "dcbf") and robot != "quadrotor":
+        usage_error(f"--controller {controller}: the hand-crafted CBF-QPs are written for the quadrotor, not a {robot}")
+    configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides, robot)
     if checkpoint is not None:
         check_policy_memory(configs, episodes, batch, train_cfg.model.hidden, dev)
     prepare_out(out, overwrite, EVAL_RESULTS)
@@ -130,6 +143,7 @@ def run_eval(
     meta = {
         "command": " ".join(["egcbf", *sys.argv[1:]]),
         "controller": controller,
+        "robot": robot,
         "checkpoint": None if ckpt is None else str(ckpt),
         "num_agents": sizes,
         "finished": [],
@@ -172,6 +186,7 @@ def run_eval(
         show_progress=progress,
         env_overrides=env_overrides,
         on_size=save_size,
+        robot=robot,
     )
     meta.update(complete=True, wall_s=round(time.time() - t0, 1))
     write_json_atomic(out / "run.json", meta)

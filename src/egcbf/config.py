@@ -6,11 +6,12 @@
 The four methods are points of one grid (``LEARNED_METHODS``): the symmetry group of the networks times the reference
 controller of the control loss::
 
-    gcbf   = (trivial, nominal)    gcbf+  = (trivial, qp)
-    egcbf  = (se2xr,   nominal)    egcbf+ = (se2xr,   qp)
+    gcbf   = (trivial,     nominal)    gcbf+  = (trivial,     qp)
+    egcbf  = (equivariant, nominal)    egcbf+ = (equivariant, qp)
 
-``algo`` names the point; ``model.group`` and ``reference`` are set from it (and checked against it when a config
-file gives them).
+``algo`` names the point; ``model.group`` (``"trivial"`` or the robot's own group: ``"se2xr"`` for the quadrotor,
+``"se2"`` for the planar unicycle) and ``reference`` are set from it (and checked against it when a config file gives
+them). The robot is ``model.robot`` (:mod:`egcbf.robots`); the training environment is built for it.
 """
 
 from __future__ import annotations
@@ -24,16 +25,25 @@ from typing import Any
 
 from .env import EnvConfig
 from .nn.models import ModelConfig
+from .robots import make_robot
 
 __all__ = ["LEARNED_METHODS", "PRESETS", "TrainConfig"]
 
-#: method name -> (group of the networks, reference controller of the control loss)
+#: method name -> (group of the networks: "trivial" or "equivariant", the robot's group; reference controller)
 LEARNED_METHODS: dict[str, tuple[str, str]] = {
     "gcbf": ("trivial", "nominal"),
     "gcbf+": ("trivial", "qp"),
-    "egcbf": ("se2xr", "nominal"),
-    "egcbf+": ("se2xr", "qp"),
+    "egcbf": ("equivariant", "nominal"),
+    "egcbf+": ("equivariant", "qp"),
 }
+
+
+def method_group(algo: str, robot: str = "quadrotor") -> str:
+    """The config name of the networks' group of method ``algo`` for ``robot``: ``"trivial"`` or the robot's."""
+    group = LEARNED_METHODS[algo][0]
+    return make_robot(robot).group_name if group == "equivariant" else group
+
+
 PRESETS = ("cpu", "cpu-torque", "paper", "tiny")
 
 
@@ -42,7 +52,10 @@ class TrainConfig:
     """Everything a training run needs; saved as JSON beside every checkpoint.
 
     Method: ``algo`` (one of :data:`LEARNED_METHODS`), ``reference`` (``"nominal"`` or ``"qp"``, set from ``algo``),
-    ``model`` (:class:`egcbf.nn.ModelConfig`, its ``group`` set from ``algo``).
+    ``model`` (:class:`egcbf.nn.ModelConfig`, its ``group`` set from ``algo`` and its ``robot``).
+
+    Robot: ``model.robot`` (``robot`` is a read-only alias); the environment starts from that robot's defaults
+    (:meth:`egcbf.env.EnvConfig.for_robot`).
 
     Training environment: ``num_agents``, ``area_size``, ``num_obstacles`` and ``env_overrides`` (any other
     :class:`egcbf.env.EnvConfig` field, e.g. ``{"comm_radius": 1.0}``); the episode length of the rollouts is
@@ -150,7 +163,8 @@ class TrainConfig:
             self.model = ModelConfig(**self.model)
         if self.algo not in LEARNED_METHODS:
             raise ValueError(f"TrainConfig.algo must be one of {sorted(LEARNED_METHODS)}, got {self.algo!r}")
-        group, reference = LEARNED_METHODS[self.algo]
+        _, reference = LEARNED_METHODS[self.algo]
+        group = method_group(self.algo, self.model.robot)
         if self.reference != reference or self.model.group != group:
             raise ValueError(
                 f"TrainConfig: algo {self.algo!r} means group={group!r}, reference={reference!r}, but the config "
@@ -197,6 +211,10 @@ class TrainConfig:
     def group(self) -> str:
         return self.model.group
 
+    @property
+    def robot(self) -> str:
+        return self.model.robot
+
     def interface_options(self) -> dict[str, Any]:
         """Keyword arguments of :func:`egcbf.algo.interface.make_interface` beyond the interface's name."""
         return {"model": self.command_model} if self.model.interface == "accel" else {}
@@ -216,7 +234,7 @@ class TrainConfig:
             max_steps=self.rollout_steps,
         )
         kw.update(changes)
-        return EnvConfig(**kw)
+        return EnvConfig.for_robot(self.model.robot, **kw)
 
     def eval_env_config(self) -> EnvConfig:
         """The evaluation environment (training values where the ``eval_*`` fields are ``None``)."""
@@ -225,12 +243,13 @@ class TrainConfig:
                        ("eval_num_obstacles", "num_obstacles")):  # fmt: skip
             if getattr(self, f) is not None:
                 ch[key] = getattr(self, f)
-        ch["max_steps"] = self.eval_max_steps if self.eval_max_steps is not None else EnvConfig().max_steps
+        default_steps = EnvConfig.for_robot(self.model.robot).max_steps
+        ch["max_steps"] = self.eval_max_steps if self.eval_max_steps is not None else default_steps
         return self.env_config(**ch)
 
     # ------------------------------------------------------------------------------------------- presets
     @classmethod
-    def preset(cls, algo: str, name: str = "cpu", **changes) -> TrainConfig:
+    def preset(cls, algo: str, name: str = "cpu", robot: str = "quadrotor", **changes) -> TrainConfig:
         """The config of method ``algo`` under preset ``name``:
 
         * ``"cpu"``: the default CPU recipe (8 agents, ``l = 2``, 5 obstacles; 4 environments x 128 steps per
@@ -244,14 +263,19 @@ class TrainConfig:
           ``alpha = 1``; for a GPU;
         * ``"tiny"``: a seconds-long smoke configuration (tests).
 
+        ``robot`` (:mod:`egcbf.robots`): ``"quadrotor"`` (the recipes above) or ``"unicycle"`` (the planar recipe,
+        :meth:`_planar_preset`: ``"cpu"`` and ``"tiny"``).
         ``changes`` override fields (``model`` may be a dict of :class:`ModelConfig` overrides).
         """
         if algo not in LEARNED_METHODS:
             raise ValueError(f"unknown algo {algo!r}; choose one of {sorted(LEARNED_METHODS)}")
         if name not in PRESETS:
             raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
-        group, reference = LEARNED_METHODS[algo]
-        model = {"group": group}
+        _, reference = LEARNED_METHODS[algo]
+        make_robot(robot)  # a clear error for an unknown robot
+        if robot != "quadrotor":
+            return cls._planar_preset(algo, name, robot, **changes)
+        model = {"group": method_group(algo, robot)}
         base: dict[str, Any] = {"num_threads": 1}  # small matrices: one thread is as fast, and never oversubscribes
         if name == "cpu":
             # the command interface (docs/learning.md, "Command interface"): the policy, the learned-CBF QP and the
@@ -317,6 +341,45 @@ class TrainConfig:
                 rollout_envs=2, rollout_steps=12, horizon=4, buffer_trajectories=8, memory_trajectories=2,
                 unsafe_buffer_size=16, unsafe_samples=8, epochs=1, batch_size=8, steps=4, eval_interval=2,
                 eval_episodes=2, eval_max_steps=12, checkpoint_interval=2, lr_cbf=1e-3, lr_policy=1e-3,
+            )  # fmt: skip
+        model.update(changes.pop("model", {}) or {})
+        base.update(changes)
+        return cls(algo=algo, reference=reference, model=ModelConfig(**model), **base)
+
+    @classmethod
+    def _planar_preset(cls, algo: str, name: str, robot: str, **changes) -> TrainConfig:
+        """The planar recipe (``robot`` with a ``"control"`` interface, e.g. the unicycle): the networks act on
+        the normalized raw control, the CBF has the closest-approach prior (``edge_min``) and reads relative
+        positions and velocities, the policy's residual is a soft-min weighted sum over its closest edges
+        (``edge_sum``, invariant coefficients): an MLP head imitated the learned-CBF QP too weakly (docs/robots.md,
+        "Training the planar swarm"); 32 agents and 8 obstacles at 1-3.6 agents per m^2."""
+        if name not in ("cpu", "tiny"):
+            raise ValueError(f"the {robot} has the presets 'cpu' and 'tiny', not {name!r}")
+        _, reference = LEARNED_METHODS[algo]
+        model: dict[str, Any] = dict(
+            group=method_group(algo, robot), robot=robot, interface="control", cbf_goal_edges=False,
+            policy_gate_isolated=True, edge_velocity=True, edge_closest_approach=True, cbf_head="edge_min",
+            cbf_distance=0.2, action_scale=1.0, policy_head="edge_sum", policy_free_distance=0.5,
+        )  # fmt: skip
+        # 32 agents and 8 obstacles in arenas of side 3 / 4 / 5.6 m in turn (3.6 / 2 / 1 agents per m^2; GCBF+
+        # trains 8 agents and 8 obstacles at l = 4, 0.5 per m^2); validation on 64 agents and 8 obstacles at l = 8
+        base: dict[str, Any] = dict(
+            num_threads=1, num_agents=32, area_size=4.0, area_sizes=[3.0, 4.0, 5.6], num_obstacles=8,
+            memory_trajectories=2, train_graphs=192, unsafe_samples=64, epochs=2, batch_size=32, lr_cbf=3e-4,
+            lr_policy=1e-3, max_wall_minutes=30.0, eval_num_agents=64, eval_area_size=8.0, eval_num_obstacles=8,
+            eval_episodes=4,
+        )  # fmt: skip
+        if reference == "nominal":
+            base.update(eta_c=0.1)
+        if name == "tiny":
+            model.update(hidden=16, heads=2, head_hidden=16)
+            base.update(
+                num_agents=3, area_size=1.0, area_sizes=[1.0, 0.8], num_obstacles=1,
+                env_overrides={"n_rays": 8, "lidar_max_hits": 4},
+                rollout_envs=2, rollout_steps=12, horizon=4, buffer_trajectories=8, memory_trajectories=2,
+                unsafe_buffer_size=16, unsafe_samples=8, epochs=1, batch_size=8, steps=4, eval_interval=2,
+                eval_episodes=2, eval_num_agents=None, eval_area_size=None, eval_max_steps=12,
+                checkpoint_interval=2, lr_cbf=1e-3, lr_policy=1e-3, train_graphs=None,
             )  # fmt: skip
         model.update(changes.pop("model", {}) or {})
         base.update(changes)

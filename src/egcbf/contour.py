@@ -83,7 +83,7 @@ def _placements(state: SwarmState, config: EnvConfig, agent: int, xy: Tensor, ba
     obstacles = Obstacles(
         state.obstacles.centers.expand(p, -1, -1), state.obstacles.radii.expand(p, -1)
     )  # views: read only
-    placed = SwarmState(x, state.goals.expand(p, -1, -1), obstacles, state.t)
+    placed = SwarmState(x, state.goals.expand(p, -1, -1), obstacles, state.t, state.robot)
     sel = slice(agent, agent + 1)
     own = cast_lidar(config, x[:, sel, 0:3], placed.attitudes[:, sel, :, 0], obstacles)
     parts = {}

@@ -21,7 +21,6 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from .control.nominal import nominal_control
 from .env import EnvConfig, SwarmEnv, SwarmState
 from .env.obstacles import Obstacles
 from .metrics import EpisodeStats, summarize
@@ -39,7 +38,8 @@ def episode_seed(seed: int, num_agents: int, episode: int) -> int:
 def concat_states(states: Sequence[SwarmState]) -> SwarmState:
     """Stack single- or multi-environment states along the environment dimension."""
     obs = Obstacles(torch.cat([s.obstacles.centers for s in states]), torch.cat([s.obstacles.radii for s in states]))
-    return SwarmState(torch.cat([s.x for s in states]), torch.cat([s.goals for s in states]), obs, states[0].t)
+    x, goals = torch.cat([s.x for s in states]), torch.cat([s.goals for s in states])
+    return SwarmState(x, goals, obs, states[0].t, states[0].robot)
 
 
 @dataclass
@@ -69,6 +69,7 @@ def run_episodes(
     env1 = SwarmEnv(single, device=device, dtype=dtype)
     state = concat_states([env1.reset(s) for s in seeds])
     env = SwarmEnv(dataclasses.replace(config, num_envs=len(seeds)), device=device, dtype=dtype)
+    robot = env.robot
     stats = EpisodeStats(len(seeds), config.num_agents, device=device)
     timing = {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0}
     rec = None
@@ -83,7 +84,7 @@ def run_episodes(
         u, info = controller(state, env.config)
         u_ref = info.get("u_ref")
         if u_ref is None:  # the reward compares u with the nominal control at the same state
-            u_ref = nominal_control(state.x, state.goals, config.params)
+            u_ref = robot.nominal_control(state.x, state.goals)
         state, step_info = env.step(state, u)
         timing["step_ms"].append(1e3 * (time.perf_counter() - t0))
         stats.update(step_info, u=step_info.u, u_ref=u_ref.to(step_info.u.dtype))
@@ -116,12 +117,14 @@ def evaluate(
     show_progress: bool = True,
     env_overrides: dict | None = None,
     on_size: Callable[[list[dict], EpisodeRecord | None], None] | None = None,
+    robot: str = "quadrotor",
 ) -> tuple[list[dict], dict[int, EpisodeRecord]]:
     """Evaluate a controller at each swarm size; returns one metrics row per size (see ``docs/metrics.md``) and
     the recorded first episode per size (if ``record``).
 
     ``on_size(rows, record)`` is called as soon as each size is finished, with the rows so far and that size's
     record (or ``None``): the CLI writes its results there, so that a later failure loses no finished size.
+    ``robot`` (:mod:`egcbf.robots`) sets the environment's defaults (:meth:`EnvConfig.for_robot`).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -132,7 +135,7 @@ def evaluate(
         overrides = dict(env_overrides or {})
         if max_steps is not None:
             overrides["max_steps"] = max_steps
-        config = EnvConfig(num_agents=n, area_size=area_size, num_obstacles=num_obstacles, **overrides)
+        config = EnvConfig.for_robot(robot, num_agents=n, area_size=area_size, num_obstacles=num_obstacles, **overrides)
         controller = make_controller(config)
         b = batch or max(1, min(episodes, max_agents_per_batch // n))
         seeds = [episode_seed(seed, n, e) for e in range(episodes)]

@@ -16,18 +16,21 @@ Edges ``sender -> receiver`` (row 0 sender index into ``x_src``, row 1 receiver 
 They are sorted by (receiver, sender), so each receiver's edges are contiguous and the order depends only on the
 edge set. ``edge_kind`` is ``KIND_AGENT`` / ``KIND_GOAL`` / ``KIND_HIT`` (the sender's kind).
 
-Features carry no absolute position, so that the graph is invariant to translations by construction:
+Features carry no absolute position, so that the graph is invariant to translations by construction. The robot
+(:mod:`egcbf.robots`, ``graph.robot``) declares them:
 
-* nodes (:data:`NODE_TYPE`, 18 channels): ``kind`` one-hot (agent, goal, hit) | ``v`` world velocity |
-  ``R`` attitude (body-to-world, row-major) | ``w`` body angular velocity. Goals and hits have ``v = 0``,
-  ``R = 0`` (the zero matrix, not the identity, so that the group action ``R -> R_z R`` keeps it fixed) and
-  ``w = 0``.
-* edges (:data:`EDGE_TYPE`): ``dp = p_sender - p_receiver`` (world frame); for goal edges it is rescaled to norm
-  ``<= comm_radius`` (GCBF+), so a far goal looks like one at the edge of the neighbourhood.
+* nodes (``robot.node_type(group)``): ``kind`` one-hot (agent, goal, hit) | the robot's ``node_fields``. For the
+  quadrotor (:data:`NODE_TYPE`, 18 channels): ``v`` world velocity | ``R`` attitude (body-to-world, row-major) |
+  ``w`` body angular velocity; for the unicycle (7 channels): ``v`` world velocity | ``h`` unit heading. Goals and
+  hits hold zeros after the kind (the zero matrix, not the identity, for ``R``, so that the group action
+  ``R -> R_z R`` keeps it fixed).
+* edges (:data:`EDGE_TYPE` in 3-D): ``dp = p_sender - p_receiver`` (world frame, ``d`` components); for goal edges
+  it is rescaled to norm ``<= comm_radius`` (GCBF+), so a far goal looks like one at the edge of the neighbourhood.
 
-``frames`` are the agents' SE2xR frames ``se2xr_frame(R[:, 0], p)`` (yaw of the body x axis, position). With
-``groupcanon.Canonicalize(SE2xR(), in_type=(NODE_TYPE, NODE_TYPE), edge_type=EDGE_TYPE, ...)`` every receiver
-sees its neighbourhood in its own frame, which is invariant under a global SE2xR transform of the scene (tested).
+``frames`` are the agents' frames ``robot.frames(x)``: for the quadrotor the SE2xR frames ``se2xr_frame(R[:, 0],
+p)`` (yaw of the body x axis, position), for the unicycle the SE(2) frames ``(h, p)``. With
+``groupcanon.Canonicalize(group, in_type=(node_type, node_type), edge_type=edge_type, ...)`` every receiver sees
+its neighbourhood in its own frame, which is invariant under a global transform of the scene (tested).
 
 Everything is differentiable with respect to the state (the topology is not): gradients of a network output
 with respect to ``state.x`` flow through the features, edge vectors and frames.
@@ -42,14 +45,12 @@ from torch import Tensor
 
 from groupcanon import FieldType
 from groupcanon.features import Rotation, Scalar, Vector
-from groupcanon.frames import se2xr_frame
 from groupcanon.groups import SE2xR
 
-from .dynamics.quadrotor import ROT, W
-from .dynamics.quadrotor import V as VEL
 from .env.lidar import LidarScan
 from .env.swarm import EnvConfig, SwarmState, cast_lidar
 from .neighbors import radius_neighbors
+from .robots import Robot, make_robot
 
 __all__ = [
     "EDGE_TYPE",
@@ -65,6 +66,7 @@ __all__ = [
     "with_agent_states",
 ]
 
+#: the quadrotor's graph types (other robots: ``robot.node_type(group)``, ``FieldType(group, {"dp": Vector(d)})``)
 GROUP = SE2xR()
 NODE_TYPE = FieldType(GROUP, {"kind": Scalar(3), "v": Vector(3), "R": Rotation(), "w": Scalar(3)})
 EDGE_TYPE = FieldType(GROUP, {"dp": Vector(3)})
@@ -77,17 +79,18 @@ class SwarmGraph:
     """The bipartite graph of a batch of swarms (see the module doc for the layout).
 
     Attributes:
-        x_src: ``(N_src, 18)`` sender features (:data:`NODE_TYPE`), ``N_src = 2M + H``.
-        x_dst: ``(M, 18)`` receiver (agent) features; equal to ``x_src[:M]``.
+        x_src: ``(N_src, F)`` sender features (``robot.node_type``; quadrotor ``F = 18``), ``N_src = 2M + H``.
+        x_dst: ``(M, F)`` receiver (agent) features; equal to ``x_src[:M]``.
         edge_index: ``(2, E)`` long, (sender row in ``x_src``, receiver row in ``x_dst``).
-        edge_attr: ``(E, 3)`` :data:`EDGE_TYPE`: sender position minus receiver position (goal edges clipped).
+        edge_attr: ``(E, d)``: sender position minus receiver position (goal edges clipped).
         edge_kind: ``(E,)`` long, the sender's kind.
-        frames: ``(M, 5)`` SE2xR frames of the agents.
-        pos_src: ``(N_src, 3)`` world positions of the senders; ``pos_dst`` ``(M, 3)`` of the agents.
+        frames: ``(M, *element)`` frames of the agents in the robot's group (quadrotor: SE2xR, ``(M, 5)``).
+        pos_src: ``(N_src, d)`` world positions of the senders; ``pos_dst`` ``(M, d)`` of the agents.
         src_kind: ``(N_src,)`` long kind of each sender.
         batch: ``(M,)`` environment of each agent; ``src_batch`` ``(N_src,)`` of each sender.
         hit_owner: ``(H,)`` the agent (row of ``x_dst``) that sensed each hit node.
         num_envs, num_agents: ``B`` and ``N`` (``M = B * N``); comm_radius: the goal-clipping radius.
+        robot: the robot whose states the agents are (``None``: the quadrotor).
     """
 
     x_src: Tensor
@@ -105,6 +108,11 @@ class SwarmGraph:
     num_envs: int
     num_agents: int
     comm_radius: float
+    robot: Robot | None = None
+
+    def __post_init__(self) -> None:
+        if self.robot is None:
+            self.robot = make_robot("quadrotor")
 
     @property
     def num_dst(self) -> int:
@@ -137,7 +145,10 @@ class SwarmGraph:
         (a rotation again; the body x axis keeps its yaw), body rates become ``(-wx, -wy, wz)`` (``R^T dR/dt``
         conjugated by the improper ``sigma``), frames keep their yaw and flip ``tz``. The reflection commutes with
         every SE(2) x R element, so averaging a network over ``{G, G.reflect_z()}`` keeps SE2xR invariance.
+        Quadrotor graphs only.
         """
+        if self.robot.name != "quadrotor":
+            raise ValueError(f"reflect_z is defined for quadrotor graphs, not for a {self.robot.name}")
         like = self.x_src
         flip = torch.ones(NODE_DIM, dtype=like.dtype, device=like.device)
         # channels (NODE_TYPE): kind 0:3 | v 3:6 | R 6:15 (row-major) | w 15:18
@@ -155,9 +166,9 @@ class SwarmGraph:
         )
 
     def relative_velocity(self, edge_index: Tensor) -> Tensor:
-        """``(E, 3)`` world-frame ``v_sender - v_receiver`` of the edges ``edge_index`` (goals and hits: ``v = 0``),
+        """``(E, d)`` world-frame ``v_sender - v_receiver`` of the edges ``edge_index`` (goals and hits: ``v = 0``),
         read from the node features (so it follows :func:`refresh_graph` and the edge-expanded Jacobian graph)."""
-        v = slice(3, 6)  # NODE_TYPE channels: kind 0:3 | v 3:6 | R 6:15 | w 15:18
+        v = slice(3, 3 + self.robot.dim)  # node features: kind 0:3 | v (the robot's first node field) | ...
         return self.x_src[:, v].index_select(0, edge_index[0]) - self.x_dst[:, v].index_select(0, edge_index[1])
 
     def with_receivers(self, keep: Tensor) -> SwarmGraph:
@@ -182,6 +193,12 @@ class SwarmGraph:
         return SwarmGraph(**out)
 
 
+def _check_velocity_first(robot: Robot) -> None:
+    names = list(robot.node_fields)
+    if not names or names[0] != "v":
+        raise ValueError(f"{robot.name}: the first node field must be 'v' (world velocity), got {names}")
+
+
 def _device_of(args, kwargs, like: Tensor):
     if "device" in kwargs:
         return kwargs["device"]
@@ -193,15 +210,15 @@ def _device_of(args, kwargs, like: Tensor):
     return like.device
 
 
-def _agent_features(x: Tensor) -> Tensor:
-    """``(M, 18)`` node features of agents from states ``(M, 18)``."""
+def _agent_features(robot: Robot, x: Tensor) -> Tensor:
+    """``(M, F)`` node features of agents from states ``(M, S)``: kind one-hot | ``robot.agent_features``."""
     kind = torch.zeros(x.shape[0], 3, dtype=x.dtype, device=x.device)
     kind[:, KIND_AGENT] = 1
-    return torch.cat((kind, x[:, VEL], x[:, ROT], x[:, W]), dim=-1)
+    return torch.cat((kind, robot.agent_features(x)), dim=-1)
 
 
 def _static_features(num: int, kind: int, like: Tensor) -> Tensor:
-    f = torch.zeros(num, NODE_DIM, dtype=like.dtype, device=like.device)
+    f = torch.zeros(num, like.shape[1], dtype=like.dtype, device=like.device)
     f[:, kind] = 1
     return f
 
@@ -210,11 +227,6 @@ def _clip_norm(v: Tensor, max_norm: float) -> Tensor:
     n = v.norm(dim=-1, keepdim=True)
     scale = max_norm / torch.where(n > max_norm, n, torch.full_like(n, max_norm))
     return v * scale
-
-
-def _frames(x: Tensor) -> Tensor:
-    body_x = x[:, ROT].reshape(-1, 3, 3)[:, :, 0]
-    return se2xr_frame(body_x, x[:, 0:3])
 
 
 def _edge_attr(pos_src: Tensor, pos_dst: Tensor, edge_index: Tensor, edge_kind: Tensor, comm: float) -> Tensor:
@@ -231,22 +243,27 @@ def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None
         config: the environment config (comm radius, LiDAR pattern and range).
         lidar: a precomputed scan of ``state`` (e.g. from :meth:`SwarmEnv.lidar`); cast here if ``None``.
     """
+    robot = state.robot
+    _check_velocity_first(robot)
     x = state.x
     b, n, _ = x.shape
+    d = robot.dim
     m = b * n
     device = x.device
     xf = x.reshape(m, -1)
-    p = xf[:, 0:3]
+    p = robot.positions(xf)
     if lidar is None:
-        lidar = cast_lidar(config, x[..., 0:3], x[..., ROT].reshape(b, n, 3, 3)[..., :, 0], state.obstacles)
+        lidar = cast_lidar(config, state.positions, robot.heading(x), state.obstacles)
     valid = lidar.valid.reshape(m, -1)
     owner, _slot = valid.nonzero(as_tuple=True)  # row-major: owner-major, closest first
-    hit_pos = lidar.points.reshape(m, -1, 3)[valid]  # same order as nonzero
+    hit_pos = lidar.points.reshape(m, -1, d)[valid]  # same order as nonzero
     h = owner.shape[0]
 
-    agent_feat = _agent_features(xf)
-    x_src = torch.cat((agent_feat, _static_features(m, KIND_GOAL, xf), _static_features(h, KIND_HIT, xf)))
-    pos_src = torch.cat((p, state.goals.reshape(m, 3).to(p.dtype), hit_pos))
+    agent_feat = _agent_features(robot, xf)
+    x_src = torch.cat(
+        (agent_feat, _static_features(m, KIND_GOAL, agent_feat), _static_features(h, KIND_HIT, agent_feat))
+    )
+    pos_src = torch.cat((p, state.goals.reshape(m, d).to(p.dtype), hit_pos))
     agent_ids = torch.arange(m, device=device)
     batch = agent_ids // n
     src_kind = torch.cat(
@@ -275,7 +292,7 @@ def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None
         edge_index=edge_index,
         edge_attr=edge_attr,
         edge_kind=edge_kind,
-        frames=_frames(xf),
+        frames=robot.frames(xf),
         pos_src=pos_src,
         pos_dst=p,
         src_kind=src_kind,
@@ -285,15 +302,16 @@ def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None
         num_envs=b,
         num_agents=n,
         comm_radius=float(config.comm_radius),
+        robot=robot,
     )
 
 
 def refresh_graph(graph: SwarmGraph, x: Tensor) -> SwarmGraph:
-    """The same graph (same edges, goals and LiDAR hit points) with new agent states ``x`` ``(B, N, 18)``.
+    """The same graph (same edges, goals and LiDAR hit points) with new agent states ``x`` ``(B, N, S)``.
 
     This is GCBF+'s way of evaluating ``h`` at the next state for the ``h-dot`` loss: the topology and the world
     positions of goals and hits are kept, the agent features, agent positions, frames and edge vectors are
-    recomputed from ``x`` (differentiably). Same as ``with_agent_states(graph, x.reshape(M, 18))``.
+    recomputed from ``x`` (differentiably). Same as ``with_agent_states(graph, x.reshape(M, S))``.
     """
     return with_agent_states(graph, x.reshape(graph.num_dst, -1))
 
@@ -302,15 +320,16 @@ def with_agent_states(graph: SwarmGraph, x_recv: Tensor, x_edge: Tensor | None =
     """``graph`` with new agent states (topology, goals and LiDAR hits held fixed; differentiable in the states).
 
     Args:
-        x_recv: ``(M, 18)`` the receivers' (agents') states.
-        x_edge: ``None``: every agent sender reads ``x_recv`` (the same agents). Else ``(E_a, 18)``: each
+        x_recv: ``(M, S)`` the receivers' (agents') states.
+        x_edge: ``None``: every agent sender reads ``x_recv`` (the same agents). Else ``(E_a, S)``: each
             agent-to-agent edge, in edge order, reads its own copy of its sender's state; the result then has one
             source row per edge (``edge_index[0] = arange(E)``), so that the gradient of ``sum_i h_i`` with respect
             to the copies holds every ``dh_i / dx_j`` at once (:func:`egcbf.algo.qp.cbf_jacobian`).
     """
     m = graph.num_dst
-    p_recv = x_recv[:, 0:3]
-    agent_feat = _agent_features(x_recv)
+    robot = graph.robot
+    p_recv = robot.positions(x_recv)
+    agent_feat = _agent_features(robot, x_recv)
     if x_edge is None:
         x_src = torch.cat((agent_feat, graph.x_src[m:].to(x_recv.dtype)))
         pos_src = torch.cat((p_recv, graph.pos_src[m:].to(p_recv.dtype)))
@@ -318,12 +337,12 @@ def with_agent_states(graph: SwarmGraph, x_recv: Tensor, x_edge: Tensor | None =
     else:
         src, dst = graph.edge_index
         rows = (src < m).nonzero()[:, 0]
-        x_src = graph.x_src[src].to(x_recv.dtype).index_put((rows,), _agent_features(x_edge))
-        pos_src = graph.pos_src[src].to(x_recv.dtype).index_put((rows,), x_edge[:, 0:3])
+        x_src = graph.x_src[src].to(x_recv.dtype).index_put((rows,), _agent_features(robot, x_edge))
+        pos_src = graph.pos_src[src].to(x_recv.dtype).index_put((rows,), robot.positions(x_edge))
         edge_index = torch.stack((torch.arange(src.shape[0], device=src.device), dst))
         extra = {"src_kind": graph.src_kind[src], "src_batch": graph.src_batch[src]}
     edge_attr = _edge_attr(pos_src, p_recv, edge_index, graph.edge_kind, graph.comm_radius)
     return replace(
         graph, x_src=x_src, x_dst=agent_feat, pos_src=pos_src, pos_dst=p_recv, edge_index=edge_index,
-        edge_attr=edge_attr, frames=_frames(x_recv), **extra,
+        edge_attr=edge_attr, frames=robot.frames(x_recv), **extra,
     )  # fmt: skip

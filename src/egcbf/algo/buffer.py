@@ -25,6 +25,7 @@ from torch import Tensor
 
 from ..env import EnvConfig, LidarScan, Obstacles, SwarmState
 from ..graph import SwarmGraph, build_graph
+from ..robots import Robot
 
 __all__ = ["Samples", "TrajectoryBuffer", "UnsafeBuffer"]
 
@@ -34,7 +35,7 @@ class Samples:
     """A batch of time steps, leading dimensions ``lead`` (e.g. ``(S,)`` or ``(L, B)``).
 
     Attributes:
-        x: ``(*lead, N, 18)`` agent states; goals ``(*lead, N, 3)``.
+        x: ``(*lead, N, S)`` agent states; goals ``(*lead, N, d)``.
         centers: ``(*lead, K, 3)`` and radii ``(*lead, K)``: the obstacles.
         hit_points: ``(*lead, N, H, 3)`` LiDAR hits (world frame) and hit_valid ``(*lead, N, H)``.
         safe, unsafe: ``(*lead, N)`` bool labels (:func:`egcbf.algo.labels.finite_horizon_labels`).
@@ -74,19 +75,22 @@ class Samples:
     def num_agents(self) -> int:
         return self.x.shape[-2]
 
-    def state(self) -> SwarmState:
-        """The ``SwarmState`` of ``S`` environments (needs exactly one leading dimension)."""
+    def state(self, robot: Robot | None = None) -> SwarmState:
+        """The ``SwarmState`` of ``S`` environments of ``robot`` (``None``: the quadrotor; needs exactly one
+        leading dimension)."""
         if self.x.dim() != 3:
             raise ValueError(f"state() needs samples with one leading dimension, got x {tuple(self.x.shape)}")
-        return SwarmState(self.x, self.goals, Obstacles(self.centers, self.radii))
+        return SwarmState(self.x, self.goals, Obstacles(self.centers, self.radii), robot=robot)
 
-    def lidar(self) -> LidarScan:
-        d = (self.hit_points - self.x[..., None, 0:3]).norm(dim=-1)
+    def lidar(self, robot: Robot | None = None) -> LidarScan:
+        p = self.x[..., 0:3] if robot is None else robot.positions(self.x)
+        d = (self.hit_points - p[..., None, :]).norm(dim=-1)
         return LidarScan(self.hit_points, self.hit_valid, torch.where(self.hit_valid, d, torch.full_like(d, torch.inf)))
 
     def graph(self, env_config: EnvConfig) -> SwarmGraph:
         """The swarm graph of these samples (with the stored LiDAR hits)."""
-        return build_graph(self.state(), env_config, lidar=self.lidar())
+        robot = env_config.make_robot()
+        return build_graph(self.state(robot), env_config, lidar=self.lidar(robot))
 
 
 def _empty_like(s: Samples, capacity: int) -> Samples:

@@ -11,6 +11,10 @@ learning works with, how the symmetry acts on it, and how a command becomes the 
   velocity targets (its learned CBF never acts on raw torques).
 * :class:`TorqueInterface` (``"torque"``): the body torque and thrust themselves, normalized by the actuator box
   (:mod:`egcbf.algo.actions`); invariant under the symmetry. Kept for comparison (docs/learning.md).
+* :class:`ControlInterface` (``"control"``): any robot's raw control ``u = s c`` (``s`` the larger bound of each
+  channel, so ``c`` lies in a box within ``[-1, 1]``), with ``Lf h``, ``Lg h`` from the robot's control-affine
+  dynamics and the loss's next state from its integrator. The planar unicycle's interface; invariant controls
+  (``robot.command_feature``).
 
 Each interface gives, for normalized commands ``c`` ``(..., k)``:
 
@@ -50,6 +54,7 @@ from ..control.nominal import (
 from ..dynamics import quadrotor as dyn
 from ..env import EnvConfig
 from ..graph import SwarmGraph, refresh_graph
+from ..robots import Quadrotor, Robot
 from .actions import control_bounds, control_scale, normalize, unnormalize
 from .qp import CBFQPResult, cbf_jacobian, solve_cbf_qp
 
@@ -57,12 +62,13 @@ __all__ = [
     "INTERFACES",
     "AccelInterface",
     "CommandInterface",
+    "ControlInterface",
     "TorqueInterface",
     "make_interface",
     "solve_command_qp",
 ]
 
-INTERFACES = ("accel", "torque")
+INTERFACES = ("accel", "torque", "control")
 
 
 class CommandInterface:
@@ -230,13 +236,58 @@ class AccelInterface(CommandInterface):
         return h0, lf, lg
 
 
-def make_interface(name: str, params: dyn.QuadrotorParams = dyn.DEFAULT_PARAMS, **kwargs) -> CommandInterface:
-    """The interface called ``name`` (``"accel"`` or ``"torque"``); ``kwargs`` go to :class:`AccelInterface`."""
+class ControlInterface(CommandInterface):
+    """A robot's raw control, normalized: ``u = s c`` with ``s_k = max(|lo_k|, |hi_k|)`` of the actuator box
+    (module doc). ``Lf h = sum_j dh/dx_j . f0(x_j)``, ``Lg_j h = dh/dx_j f1(x_j) s``; the next state is one control
+    period of the robot's integrator."""
+
+    name = "control"
+
+    def __init__(self, robot: Robot):
+        self.robot = robot
+        self.dim = robot.control_dim
+
+    def _scale(self, like: Tensor) -> Tensor:
+        lo, hi = self.robot.control_bounds(like)
+        return torch.maximum(lo.abs(), hi.abs())
+
+    def bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        lo, hi = self.robot.control_bounds(like)
+        s = self._scale(like)
+        return lo / s, hi / s
+
+    def nominal(self, x: Tensor, goals: Tensor) -> Tensor:
+        return self.robot.nominal_control(x, goals) / self._scale(x)
+
+    def apply(self, x: Tensor, c: Tensor) -> Tensor:
+        return c * self._scale(c)
+
+    def lie_derivatives(
+        self, cbf: nn.Module, graph: SwarmGraph, x: Tensor, env: EnvConfig | None = None, c_lin: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        h, jac = cbf_jacobian(cbf, graph, x)
+        xd = x.detach().to(jac.dtype)
+        lf = torch.einsum("bijs,bjs->bi", jac, self.robot.f0(xd))
+        lg = torch.einsum("bijs,bjsk->bijk", jac, self.robot.f1(xd)) * self._scale(jac)
+        return h, lf, lg
+
+    def model_step(self, x: Tensor, c: Tensor, env: EnvConfig) -> Tensor:
+        return self.robot.step(x, self.apply(x, c), env.dt, env.substeps, env.integrator)
+
+
+def make_interface(name: str, robot: Robot | dyn.QuadrotorParams | None = None, **kwargs) -> CommandInterface:
+    """The interface called ``name`` for ``robot`` (default: the quadrotor; a ``QuadrotorParams`` means a quadrotor
+    with those parameters): ``"accel"`` and ``"torque"`` (quadrotor; ``kwargs`` go to :class:`AccelInterface`) or
+    ``"control"`` (any robot)."""
+    if robot is None or isinstance(robot, dyn.QuadrotorParams):
+        robot = Quadrotor(robot)
+    if name not in robot.interfaces:
+        raise ValueError(f"unknown control interface {name!r} for the {robot.name}; choose one of {robot.interfaces}")
+    if name == "control":
+        return ControlInterface(robot)
     if name == "accel":
-        return AccelInterface(params=params, **kwargs)
-    if name == "torque":
-        return TorqueInterface(params=params)
-    raise ValueError(f"unknown control interface {name!r}; choose one of {INTERFACES}")
+        return AccelInterface(params=robot.params, **kwargs)
+    return TorqueInterface(params=robot.params)
 
 
 def solve_command_qp(

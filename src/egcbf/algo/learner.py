@@ -30,11 +30,10 @@ from torch import Tensor
 from torch.func import functional_call
 
 from ..config import TrainConfig
-from ..control.nominal import nominal_control
-from ..dynamics import quadrotor as dyn
 from ..env import EnvConfig, SwarmEnv, SwarmState
 from ..graph import SwarmGraph, build_graph, refresh_graph
 from ..nn import CBFNet, ModelConfig, PolicyNet
+from ..robots import Robot
 from .buffer import Samples, TrajectoryBuffer, UnsafeBuffer
 from .interface import CommandInterface, make_interface, solve_command_qp
 from .labels import finite_horizon_labels
@@ -71,7 +70,7 @@ class LearnedController:
         p = next(self.policy.parameters())
         s = state if state.x.dtype == p.dtype and state.x.device == p.device else state.to(p.device, dtype=p.dtype)
         graph = build_graph(s, env_config)
-        u, u_nom = act(self.policy, self.model_config, graph, s, env_config.params)
+        u, u_nom = act(self.policy, self.model_config, graph, s, env_config.make_robot())
         u = u.to(state.x.dtype).to(state.x.device)
         info = {"u_ref": u_nom.to(u), "num_slack": 0, "num_failed": 0, "ctrl_ms": 1e3 * (time.perf_counter() - t0)}
         return u, info
@@ -89,12 +88,13 @@ def policy_command(
 
 
 def act(
-    policy: PolicyNet, model_config: ModelConfig, graph: SwarmGraph, state: SwarmState, params: dyn.QuadrotorParams
+    policy: PolicyNet, model_config: ModelConfig, graph: SwarmGraph, state: SwarmState, robot: Robot
 ) -> tuple[Tensor, Tensor]:
-    """The policy's body control ``(B, N, 4)`` in physical units, and the nominal controller's control."""
-    itf = make_interface(model_config.interface, params)
+    """The policy's control ``(B, N, control_dim)`` in physical units (quadrotor: body torque and thrust), and the
+    nominal controller's control."""
+    itf = make_interface(model_config.interface, robot)
     c, _ = policy_command(policy, model_config, itf, graph, state.x, state.goals)
-    return itf.apply(state.x, c), nominal_control(state.x, state.goals, params)
+    return itf.apply(state.x, c), robot.nominal_control(state.x, state.goals)
 
 
 class GraphCBFLearner:
@@ -110,7 +110,8 @@ class GraphCBFLearner:
         self.dtype = dtype or DTYPES[config.dtype]
         self.env_config = config.env_config()
         self.params = self.env_config.params
-        self.interface = make_interface(config.model.interface, self.params, **config.interface_options())
+        self.robot = self.env_config.make_robot()
+        self.interface = make_interface(config.model.interface, self.robot, **config.interface_options())
         torch.manual_seed(config.seed)
         self.cbf = CBFNet(config.model).to(self.device, self.dtype)
         self.policy = PolicyNet(config.model).to(self.device, self.dtype)
@@ -146,7 +147,7 @@ class GraphCBFLearner:
             pts.append(scan.points)
             valid.append(scan.valid)
             uns.append(unsafe)
-            u, _ = act(self.policy, self.config.model, graph, state, self.params)
+            u, _ = act(self.policy, self.config.model, graph, state, self.robot)
             state, info = env.step(state, u)
             unsafe = info.unsafe
         unsafe_t = torch.stack(uns)  # (L, B, N)

@@ -29,7 +29,9 @@ __all__ = [
 
 
 class NominalController:
-    """The equivariant geometric nominal controller (:func:`egcbf.control.nominal.nominal_control`), no safety."""
+    """The equivariant nominal controller, no safety: the quadrotor's geometric controller
+    (:func:`egcbf.control.nominal.nominal_control`, with ``gains`` and ``max_position_error``), or another robot's
+    own ``Robot.nominal_control``."""
 
     name = "nominal"
 
@@ -39,7 +41,10 @@ class NominalController:
 
     def __call__(self, state, env_config) -> tuple[Tensor, dict]:
         t0 = time.perf_counter()
-        u = nominal_control(state.x, state.goals, env_config.params, self.gains, self.max_position_error)
+        if env_config.robot == "quadrotor":
+            u = nominal_control(state.x, state.goals, env_config.params, self.gains, self.max_position_error)
+        else:
+            u = env_config.make_robot().nominal_control(state.x, state.goals)
         info = {"qp_ms": 0.0, "num_slack": 0, "num_failed": 0, "ctrl_ms": 1e3 * (time.perf_counter() - t0)}
         return u, info
 

@@ -1,4 +1,7 @@
-"""The quadrotor swarm environment: configuration, batched state, reset (sampling), step, safety masks.
+"""The swarm environment: configuration, batched state, reset (sampling), step, safety masks.
+
+The robot is a plug-in (``EnvConfig.robot``, :mod:`egcbf.robots`): the paper's quadrotor (default, 3-D) or the
+planar unicycle (2-D: positions, goals, obstacles and LiDAR live in the plane). ``d`` below is ``robot.dim``.
 
 Everything is batched over ``B = num_envs`` environments of ``N = num_agents`` agents and vectorized: no Python
 loop over agents or environments. Agent–agent proximity always goes through the sparse cell-list search
@@ -10,8 +13,9 @@ Conventions (GCBF+, see ``docs/metrics.md``), with ``r`` the agent radius:
 * unsafe (training labels): agent–agent distance ``< 2.5 r``, or inside an obstacle inflated by ``1.5 r``;
 * reached: distance to the own goal ``< 2 r``.
 
-Reset: obstacles (spheres, centre uniform in ``[0, l]^3``, radius uniform in ``obstacle_radius_range``), then
-starts and goals uniform in ``[0, l]^3`` with pairwise distance ``> 4 r`` within each set and outside every
+Reset: obstacles (spheres in 3-D, discs in 2-D, centre uniform in ``[0, l]^d``, radius uniform in
+``obstacle_radius_range``), then
+starts and goals uniform in ``[0, l]^d`` with pairwise distance ``> 4 r`` within each set and outside every
 obstacle inflated by ``4 r``. Agents start at rest and level; with ``random_yaw=True`` (default) each gets a
 uniformly random yaw, so that training data covers the whole orbit of the rotation part of the symmetry group
 (with a fixed yaw every episode would start at the same heading, an arbitrary world direction that the
@@ -20,14 +24,17 @@ non-equivariant baselines could overfit to).
 
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from ..dynamics import quadrotor as dyn
 from ..neighbors import radius_neighbors
+from ..robots import Robot, make_robot
 from .lidar import LidarScan, lidar_scan
 from .obstacles import Obstacles, sample_obstacles
 from .sampling import sample_separated_points
@@ -66,7 +73,7 @@ class EnvConfig:
     """Configuration of a batch of swarm environments (frozen; change it with ``dataclasses.replace``).
 
     Defaults are the paper's training setting (8 agents, ``l = 2``, 5 obstacles) with GCBF+'s CrazyFlie
-    conventions. Lengths in metres, times in seconds.
+    conventions; :meth:`for_robot` starts from another robot's defaults. Lengths in metres, times in seconds.
 
     Attributes:
         num_agents: ``N >= 1`` agents per environment.
@@ -85,7 +92,8 @@ class EnvConfig:
         clip_control: clip controls to the actuator box (``dynamics.clip_control``) before integrating.
         start_separation, obstacle_clearance: sampling separations in units of ``agent_radius`` (GCBF+: 4 and 4).
         max_sampling_rounds: bound on the rejection-sampling rounds before ``reset`` gives up with ``ValueError``.
-        params: the quadrotor's physical parameters.
+        robot: the robot's name (:data:`egcbf.robots.ROBOTS`); ``make_robot()`` builds it.
+        params: the robot's parameters (``None``: its defaults; for the quadrotor a ``QuadrotorParams``).
     """
 
     num_agents: int = 8
@@ -107,7 +115,8 @@ class EnvConfig:
     start_separation: float = 4.0
     obstacle_clearance: float = 4.0
     max_sampling_rounds: int = 200
-    params: dyn.QuadrotorParams = field(default_factory=lambda: dyn.DEFAULT_PARAMS)
+    params: Any = None
+    robot: str = "quadrotor"
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, what: str) -> None:
@@ -146,9 +155,31 @@ class EnvConfig:
             "max_sampling_rounds",
             "an integer >= 1",
         )
-        need(isinstance(self.params, dyn.QuadrotorParams), "params", "a QuadrotorParams")
+        try:
+            robot = make_robot(self.robot, self.params)
+        except (ValueError, TypeError) as err:
+            raise ValueError(f"EnvConfig.robot / params: {err}") from None
+        if self.params is None:
+            object.__setattr__(self, "params", robot.params)
+        need(type(self.params) is type(robot.params), "params", f"a {type(robot.params).__name__}")
         if self.params.radius != self.agent_radius:
             object.__setattr__(self, "params", replace(self.params, radius=float(self.agent_radius)))
+
+    @classmethod
+    def for_robot(cls, robot: str, **changes) -> EnvConfig:
+        """The config of ``robot`` with its own defaults (``Robot.env_defaults``), then ``changes``."""
+        kw = dict(make_robot(robot).env_defaults)
+        kw.update(changes)
+        return cls(robot=robot, **kw)
+
+    def make_robot(self) -> Robot:
+        """The :class:`egcbf.robots.Robot` of this config (cached: equal configs share one)."""
+        return _robot(self.robot, self.params)
+
+    @property
+    def dim(self) -> int:
+        """The spatial dimension ``d`` of the robot's world (2 or 3)."""
+        return self.make_robot().dim
 
     @property
     def resolved_lidar_range(self) -> float:
@@ -157,8 +188,8 @@ class EnvConfig:
 
     @property
     def density(self) -> float:
-        """Agents per cubic metre, ``N / l^3`` (the paper's density axis)."""
-        return self.num_agents / self.area_size**3
+        """Agents per unit volume (3-D) or area (2-D), ``N / l^d`` (the paper's density axis)."""
+        return self.num_agents / self.area_size**self.dim
 
     def to_dict(self) -> dict:
         """Plain (JSON-friendly) dict of the config; ``params`` as a nested dict."""
@@ -170,8 +201,13 @@ class EnvConfig:
     def from_dict(cls, d: dict) -> EnvConfig:
         d = dict(d)
         if isinstance(d.get("params"), dict):
-            d["params"] = dyn.QuadrotorParams(**d["params"])
+            d["params"] = type(make_robot(d.get("robot", "quadrotor")).params)(**d["params"])
         return cls(**d)
+
+
+@functools.lru_cache(maxsize=64)
+def _robot(name: str, params) -> Robot:
+    return make_robot(name, params)
 
 
 @dataclass
@@ -179,22 +215,28 @@ class SwarmState:
     """State of ``B`` environments of ``N`` agents.
 
     Attributes:
-        x: ``(B, N, 18)`` agent states ``[p, R (row-major), v, w]`` (see ``egcbf.dynamics.quadrotor``).
-        goals: ``(B, N, 3)`` goal positions.
-        obstacles: the spheres, ``centers`` ``(B, K, 3)``, ``radii`` ``(B, K)``.
+        x: ``(B, N, S)`` agent states of ``robot`` (quadrotor: ``S = 18``, ``[p, R (row-major), v, w]``, see
+            ``egcbf.dynamics.quadrotor``; unicycle: ``S = 5``, ``[p, h, v]``).
+        goals: ``(B, N, d)`` goal positions (``d = robot.dim``).
+        obstacles: spheres (discs in 2-D), ``centers`` ``(B, K, d)``, ``radii`` ``(B, K)``.
         t: steps taken since reset (all environments step together).
+        robot: the robot the states belong to (``None``: the quadrotor).
     """
 
     x: Tensor
     goals: Tensor
     obstacles: Obstacles
     t: int = 0
+    robot: Robot | None = None
 
     def __post_init__(self) -> None:
-        if self.x.dim() != 3 or self.x.shape[-1] != dyn.STATE_DIM:
-            raise ValueError(f"state x must be (B, N, {dyn.STATE_DIM}), got {tuple(self.x.shape)}")
-        if self.goals.shape != (*self.x.shape[:2], 3):
-            raise ValueError(f"goals must be (B, N, 3) = {(*self.x.shape[:2], 3)}, got {tuple(self.goals.shape)}")
+        if self.robot is None:
+            self.robot = _robot("quadrotor", None)
+        s, d = self.robot.state_dim, self.robot.dim
+        if self.x.dim() != 3 or self.x.shape[-1] != s:
+            raise ValueError(f"{self.robot.name} state x must be (B, N, {s}), got {tuple(self.x.shape)}")
+        if self.goals.shape != (*self.x.shape[:2], d):
+            raise ValueError(f"goals must be (B, N, {d}) = {(*self.x.shape[:2], d)}, got {tuple(self.goals.shape)}")
         if self.obstacles.num_envs != self.x.shape[0]:
             raise ValueError(f"obstacles are for {self.obstacles.num_envs} environments, x for {self.x.shape[0]}")
 
@@ -205,10 +247,10 @@ class SwarmState:
         that enter the simulator (``t == 0``: a reset or a hand-built state), not on every step."""
         if not bool(torch.isfinite(self.x).all()):
             try:
-                dyn.check_state(self.x, atol)
+                self.robot.check_state(self.x, atol)
             except ValueError as err:  # names the first non-finite agent and field
                 raise NonFiniteInputError(str(err)) from None
-        dyn.check_state(self.x, atol)
+        self.robot.check_state(self.x, atol)
         if not bool(torch.isfinite(self.goals).all()):
             b, i = (~torch.isfinite(self.goals)).any(-1).nonzero()[0].tolist()
             raise ValueError(f"goals hold NaN or inf (first: environment {b}, agent {i})")
@@ -224,31 +266,35 @@ class SwarmState:
 
     @property
     def positions(self) -> Tensor:
-        """``(B, N, 3)`` agent positions (a view)."""
-        return self.x[..., dyn.P]
+        """``(B, N, d)`` agent positions (a view)."""
+        return self.robot.positions(self.x)
 
     @property
     def attitudes(self) -> Tensor:
-        """``(B, N, 3, 3)`` body-to-world rotations (a view)."""
+        """``(B, N, 3, 3)`` body-to-world rotations (a view; quadrotor only)."""
+        if self.robot.name != "quadrotor":
+            raise AttributeError(f"a {self.robot.name} has no attitude matrix")
         return self.x[..., dyn.ROT].reshape(*self.x.shape[:2], 3, 3)
 
     def to(self, *args, **kwargs) -> SwarmState:
         return SwarmState(
-            self.x.to(*args, **kwargs), self.goals.to(*args, **kwargs), self.obstacles.to(*args, **kwargs), self.t
-        )
+            self.x.to(*args, **kwargs), self.goals.to(*args, **kwargs), self.obstacles.to(*args, **kwargs), self.t,
+            self.robot,
+        )  # fmt: skip
 
     def detach(self) -> SwarmState:
         obs = Obstacles(self.obstacles.centers.detach(), self.obstacles.radii.detach())
-        return SwarmState(self.x.detach(), self.goals.detach(), obs, self.t)
+        return SwarmState(self.x.detach(), self.goals.detach(), obs, self.t, self.robot)
 
     def transform(self, g: Tensor) -> SwarmState:
-        """The scene moved by ``g`` ``(B, 5)``, one SE2xR element per environment: agent states act with
-        ``dynamics.STATE_TYPE``, goals and obstacle centres move as points, radii are unchanged.
+        """The scene moved by ``g`` ``(B, *element)``, one element of the robot's group per environment (SE2xR
+        ``(B, 5)`` for the quadrotor, SE2 ``(B, 4)`` for the unicycle): agent states act with ``robot.state_type``,
+        goals and obstacle centres move as points, radii are unchanged.
 
-        ``g`` may also be a single element ``(5,)`` applied to every environment. This is the global transform
-        under which graph features in agent frames, the CBF and the body-frame controls are invariant.
+        ``g`` may also be a single element applied to every environment. This is the global transform under
+        which graph features in agent frames, the CBF and invariant controls are invariant.
         """
-        group = dyn.GROUP
+        group = self.robot.group
         group.check(g, "g")
         if g.dim() == 1:
             g = g.expand(self.num_envs, g.shape[-1])
@@ -256,7 +302,8 @@ class SwarmState:
             raise ValueError(f"g has {g.shape[0]} elements for {self.num_envs} environments")
         ge = g[:, None].to(self.x.dtype)
         obs = Obstacles(group.transform(ge, self.obstacles.centers), self.obstacles.radii)
-        return SwarmState(dyn.STATE_TYPE.act(ge, self.x), group.transform(ge, self.goals), obs, self.t)
+        x = self.robot.state_type.act(ge, self.x)
+        return SwarmState(x, group.transform(ge, self.goals), obs, self.t, self.robot)
 
 
 @dataclass
@@ -270,7 +317,8 @@ class StepInfo:
         agent_collision, obstacle_collision: the two parts of ``collision``.
         done: ``(B,)`` the episode has reached ``max_steps``.
         t: the step index of the state (1 after the first step).
-        u: ``(B, N, 4)`` the control actually applied (after clipping), or ``None`` for masks of a reset state.
+        u: ``(B, N, control_dim)`` the control actually applied (after clipping), or ``None`` for masks of a reset
+            state.
     """
 
     collision: Tensor
@@ -289,9 +337,9 @@ def safety_masks(positions: Tensor, goals: Tensor, obstacles: Obstacles, agent_r
     Returns a dict with keys ``collision``, ``unsafe``, ``reached``, ``agent_collision``, ``obstacle_collision``,
     ``agent_unsafe``, ``obstacle_unsafe``.
     """
-    b, n, _ = positions.shape
+    b, n, d = positions.shape
     r = float(agent_radius)
-    p = positions.detach().reshape(b * n, 3)
+    p = positions.detach().reshape(b * n, d)
     batch = torch.arange(b, device=p.device).repeat_interleave(n)
     src, dst = radius_neighbors(p, 2.5 * r, batch, sort=False)  # every pair closer than 2.5 r
     close = (p.index_select(0, src) - p.index_select(0, dst)).norm(dim=-1) < 2 * r
@@ -322,15 +370,15 @@ def safety_masks(positions: Tensor, goals: Tensor, obstacles: Obstacles, agent_r
     }
 
 
-def cast_lidar(config: EnvConfig, positions: Tensor, body_x: Tensor, obstacles: Obstacles) -> LidarScan:
+def cast_lidar(config: EnvConfig, positions: Tensor, heading: Tensor, obstacles: Obstacles) -> LidarScan:
     """:func:`egcbf.env.lidar.lidar_scan` with the ray pattern, range and hit count of ``config``.
 
-    ``positions`` and ``body_x`` (the body x axes, world frame) are ``(B, N, 3)``; ``obstacles`` has ``B``
-    environments.
+    ``positions`` and ``heading`` (``Robot.heading``: the body x axes of quadrotors, whose horizontal part turns the
+    pattern; the unit headings of planar robots) are ``(B, N, d)``; ``obstacles`` has ``B`` environments.
     """
     return lidar_scan(
         positions,
-        body_x,
+        heading,
         obstacles,
         n_rays=config.n_rays,
         max_range=config.resolved_lidar_range,
@@ -339,16 +387,18 @@ def cast_lidar(config: EnvConfig, positions: Tensor, body_x: Tensor, obstacles: 
 
 
 class SwarmEnv:
-    """Batched quadrotor swarm environment.
+    """Batched swarm environment of the robot ``config.make_robot()``.
 
     ``env = SwarmEnv(EnvConfig(num_agents=8), device="cpu", dtype=torch.float32)``;
-    ``state = env.reset(seed)``; ``state, info = env.step(state, u)`` with ``u`` ``(B, N, 4)``.
+    ``state = env.reset(seed)``; ``state, info = env.step(state, u)`` with ``u`` ``(B, N, control_dim)``
+    (quadrotor: 4, body torque and thrust).
     """
 
     def __init__(self, config: EnvConfig, device: torch.device | str | None = None, dtype: torch.dtype | None = None):
         if not isinstance(config, EnvConfig):
             raise TypeError(f"SwarmEnv needs an EnvConfig, got {type(config).__name__}")
         self.config = config
+        self.robot = config.make_robot()
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.dtype = dtype or torch.get_default_dtype()
         if not self.dtype.is_floating_point:
@@ -369,8 +419,9 @@ class SwarmEnv:
         c = self.config
         gen = torch.Generator().manual_seed(seed)
         f64 = torch.float64
+        d = self.robot.dim
         obstacles = sample_obstacles(
-            c.num_envs, c.num_obstacles, c.area_size, c.obstacle_radius_range, generator=gen, dtype=f64
+            c.num_envs, c.num_obstacles, c.area_size, c.obstacle_radius_range, generator=gen, dtype=f64, dim=d
         )
         pts = sample_separated_points(
             c.num_envs,
@@ -383,13 +434,14 @@ class SwarmEnv:
             generator=gen,
             dtype=f64,
             max_rounds=c.max_sampling_rounds,
+            dim=d,
         )
         if c.random_yaw:
             yaw = (torch.rand(c.num_envs, c.num_agents, generator=gen, dtype=f64) * 2 - 1) * math.pi
         else:
             yaw = torch.zeros(c.num_envs, c.num_agents, dtype=f64)
-        x = dyn.hover_state(pts[:, 0], yaw)
-        state = SwarmState(x, pts[:, 1], obstacles, 0)
+        x = self.robot.rest_state(pts[:, 0], yaw)
+        state = SwarmState(x, pts[:, 1], obstacles, 0, self.robot)
         return state.to(device=self.device, dtype=self.dtype)
 
     # ----------------------------------------------------------------------------------------------- step
@@ -406,16 +458,17 @@ class SwarmEnv:
                 covers ``u``).
         """
         c = self.config
-        expected = (*state.x.shape[:2], dyn.CONTROL_DIM)
+        expected = (*state.x.shape[:2], self.robot.control_dim)
         if not isinstance(u, Tensor) or tuple(u.shape) != expected:
             shape = tuple(u.shape) if isinstance(u, Tensor) else type(u).__name__
-            raise ValueError(f"control u must be {expected} (num_envs, num_agents, 4), got {shape}")
+            k = self.robot.control_dim
+            raise ValueError(f"control u must be {expected} (num_envs, num_agents, {k}), got {shape}")
         if state.t == 0:
             state.validate()
         u_in = u = u.to(state.x.dtype)
         if c.clip_control:
-            u = dyn.clip_control(u, c.params)
-        x = dyn.step(state.x, u, c.dt, c.params, c.substeps, c.integrator)
+            u = self.robot.clip_control(u)
+        x = self.robot.step(state.x, u, c.dt, c.substeps, c.integrator)
         if not bool(torch.isfinite(x).all() & torch.isfinite(u_in).all()):
             if not bool(torch.isfinite(u_in).all()):
                 bad = (~torch.isfinite(u_in)).any(-1).nonzero()[0].tolist()
@@ -428,7 +481,7 @@ class SwarmEnv:
                 f"non-finite state after step {state.t + 1}: {bad.shape[0]} agent(s), first (env, agent) = "
                 f"{tuple(bad[0].tolist())}; the control there was {u[tuple(bad[0].tolist())].tolist()}"
             )
-        new = SwarmState(x, state.goals, state.obstacles, state.t + 1)
+        new = SwarmState(x, state.goals, state.obstacles, state.t + 1, state.robot)
         return new, self.info(new, u=u)
 
     # ---------------------------------------------------------------------------------------------- masks
@@ -450,4 +503,4 @@ class SwarmEnv:
     # ---------------------------------------------------------------------------------------- perception
     def lidar(self, state: SwarmState) -> LidarScan:
         """LiDAR scan of every agent (rays in the agent's yaw frame; see ``egcbf.env.lidar``)."""
-        return cast_lidar(self.config, state.positions, state.attitudes[..., :, 0], state.obstacles)
+        return cast_lidar(self.config, state.positions, self.robot.heading(state.x), state.obstacles)

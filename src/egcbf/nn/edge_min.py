@@ -77,24 +77,27 @@ class EdgeMinHead(nn.Module):
         distance: ``D`` (m), the closest-approach distance at which the prior barrier is 0.
         temperature: ``tau`` (m) of the smooth minimum.
         horizon: look-ahead (s) of the closest approach.
+        dim: the spatial dimension ``d`` of the edge vectors (3: quadrotor, 2: planar robots).
     """
 
     def __init__(self, group: Group, hidden: int, head_hidden: int, distance: float, temperature: float,
-                 horizon: float):  # fmt: skip
+                 horizon: float, dim: int = 3):  # fmt: skip
         super().__init__()
         if not (distance > 0 and temperature > 0 and horizon > 0):
             raise ValueError("EdgeMinHead: distance, temperature and horizon must be > 0")
-        self.vectors = FieldType(group, [Vector(3, 2)])
+        self.vectors = FieldType(group, [Vector(dim, 2)])
         self.group = group
+        self.dim = dim
         self.distance, self.temperature, self.horizon = distance, temperature, horizon
-        self.edge_mlp = mlp([6 + 3 + 1 + hidden, head_hidden, head_hidden, 1])
+        # per edge: dp and dv in the receiver's frame (2 d), |dp|, closest approach (d_min, t_min), is-a-hit
+        self.edge_mlp = mlp([2 * dim + 3 + 1 + hidden, head_hidden, head_hidden, 1])
         with torch.no_grad():
             self.edge_mlp[-1].weight.zero_()
             self.edge_mlp[-1].bias.zero_()
 
     def forward(self, graph: SwarmGraph, z: Tensor, frames: Tensor) -> Tensor:
         feats, dst = edge_features(graph, frames, self.group, self.vectors, self.horizon)
-        approach = feats[:, 7:9]
+        approach = feats[:, 2 * self.dim + 1 : 2 * self.dim + 3]
         b = approach[:, 0] - self.distance + mlp_on_edges(self.edge_mlp, feats, z, dst).squeeze(-1)
         tau = self.temperature
         return -tau * segment_logsumexp(-b / tau, dst, graph.num_dst, -(1.0 - self.distance) / tau)

@@ -6,7 +6,9 @@ Both follow the paper (Architecture & Training)::
     pi_theta(G_i) = psi_{g_i} m_theta2 ( phi_{g_i^-1} M_theta1(G_i) )      (command residual)
 
 ``M`` is :class:`~egcbf.nn.layers.GraphTransformerLayer` wrapped with ``groupcanon.Canonicalize`` over the group
-named in the config: ``"se2xr"`` (EGCBF, EGCBF+) or ``"trivial"`` (GCBF, GCBF+). It is the *same code*: with the
+named in the config: the robot's symmetry group (EGCBF, EGCBF+: ``"se2xr"`` for the quadrotor, ``"se2"`` for the
+planar unicycle) or ``"trivial"`` (GCBF, GCBF+). The node and edge feature types and the frames come from the
+robot named in the config (``ModelConfig.robot``, :mod:`egcbf.robots`). It is the *same code*: with the
 trivial group every action is the identity, so the layer sees world-frame features and the network is the
 ordinary non-equivariant GNN. The layer's output type is ``Scalar(hidden)`` (invariant features expressed in the
 receiver's frame), so the heads are plain MLPs. The CBF value is invariant by construction. The policy's output
@@ -31,10 +33,11 @@ import torch
 from torch import Tensor, nn
 
 from groupcanon import Canonicalize, FieldType, Group
-from groupcanon.features import Rotation, Scalar, Vector
-from groupcanon.groups import SE2xR, Trivial
+from groupcanon.features import Scalar, Vector
+from groupcanon.groups import SE2, SE2xR, Trivial
 
-from ..graph import KIND_GOAL, NODE_DIM, SwarmGraph
+from ..graph import KIND_GOAL, SwarmGraph
+from ..robots import make_robot
 from .edge_min import EdgeMinHead, closest_approach
 from .edge_sum import EdgeSumHead
 from .layers import GraphTransformerLayer, mlp
@@ -53,45 +56,43 @@ __all__ = [
     "sensing",
 ]
 
-GROUPS = {"se2xr": SE2xR, "trivial": Trivial}
-#: the body-rate channels ``w`` of the node features (:data:`egcbf.graph.NODE_TYPE`: kind 3, v 3, R 9, w 3)
-W_SLICE = slice(NODE_DIM - 3, NODE_DIM)
-#: the attitude channels ``R`` (row-major)
-R_SLICE = slice(6, 15)
+GROUPS = {"se2xr": SE2xR, "se2": SE2, "trivial": Trivial}
 
 
 def make_group(name: str) -> Group:
-    """The group of a config name: ``"se2xr"`` or ``"trivial"``."""
+    """The group of a config name: ``"se2xr"``, ``"se2"`` or ``"trivial"``."""
     try:
         return GROUPS[name]()
     except KeyError:
         raise ValueError(f"unknown group {name!r}; choose one of {sorted(GROUPS)}") from None
 
 
-def node_type(group: Group) -> FieldType:
-    """:data:`egcbf.graph.NODE_TYPE` declared over ``group`` (kind one-hot, world velocity, attitude, body rate)."""
-    return FieldType(group, {"kind": Scalar(3), "v": Vector(3), "R": Rotation(3), "w": Scalar(3)})
+def node_type(group: Group, robot: str = "quadrotor") -> FieldType:
+    """The node features of ``robot`` declared over ``group`` (quadrotor: kind one-hot, world velocity, attitude,
+    body rate; :data:`egcbf.graph.NODE_TYPE`)."""
+    return make_robot(robot).node_type(group)
 
 
-def edge_type(group: Group, velocity: bool = False, closest_approach: bool = False) -> FieldType:
-    """:data:`egcbf.graph.EDGE_TYPE` declared over ``group`` (the relative position, a vector), with the relative
-    velocity ``dv = v_sender - v_receiver`` (a vector) appended if ``velocity``, and the closest approach
+def edge_type(group: Group, velocity: bool = False, closest_approach: bool = False, dim: int = 3) -> FieldType:
+    """The edge features declared over ``group``: the relative position ``dp`` (a ``dim``-vector), with the
+    relative velocity ``dv = v_sender - v_receiver`` (a vector) appended if ``velocity``, and the closest approach
     ``(d_min, t_min)`` (two invariant scalars, :func:`closest_approach`) after it if ``closest_approach``."""
-    fields = {"dp": Vector(3)}
+    fields = {"dp": Vector(dim)}
     if velocity:
-        fields["dv"] = Vector(3)
+        fields["dv"] = Vector(dim)
         if closest_approach:
             fields["approach"] = Scalar(2)
     return FieldType(group, fields)
 
 
 def frames_for(group: Group, graph: SwarmGraph) -> Tensor:
-    """The receivers' frames as elements of ``group``: the graph's SE2xR frames, or identities of another group."""
-    if isinstance(group, SE2xR):
-        return graph.frames
+    """The receivers' frames as elements of ``group``: the graph's frames (in its robot's group), or identities of
+    the trivial group."""
     if isinstance(group, Trivial):
         return group.identity(graph.num_dst, dtype=graph.x_dst.dtype, device=graph.x_dst.device)
-    raise ValueError(f"no frames for {group}: the swarm graph carries SE2xR frames")
+    if type(group) is type(graph.robot.group):
+        return graph.frames
+    raise ValueError(f"no frames for {group}: the {graph.robot.name} graph carries {graph.robot.group} frames")
 
 
 @dataclass
@@ -99,7 +100,9 @@ class ModelConfig:
     """Architecture of the CBF and policy networks.
 
     Attributes:
-        group: ``"se2xr"`` (equivariant: EGCBF, EGCBF+) or ``"trivial"`` (GCBF, GCBF+).
+        robot: the robot the networks read (:data:`egcbf.robots.ROBOTS`): its node features, frames and commands.
+        group: the robot's group (equivariant: EGCBF, EGCBF+; ``"se2xr"`` for the quadrotor, ``"se2"`` for the
+            unicycle) or ``"trivial"`` (GCBF, GCBF+).
         hidden: width of the graph layer (encoders, attention, output).
         heads: attention heads.
         head_hidden: width of the two hidden layers of the MLP heads.
@@ -149,14 +152,16 @@ class ModelConfig:
             bias, so that an untrained policy stays close to the nominal controller.
         interface: what the policy commands (:mod:`egcbf.algo.interface`): ``"accel"``, a desired acceleration
             (a world-frame vector, produced in the agent's frame and mapped back by the group: ``psi_{g_i}``)
-            tracked by the attitude loop; or ``"torque"``, body torque and thrust (invariant).
+            tracked by the attitude loop; ``"torque"``, body torque and thrust (invariant); or ``"control"``, the
+            robot's normalized raw control (the planar unicycle's). ``robot.interfaces`` lists a robot's.
         accel_action_scale: with ``"accel"``, the residual ``pi`` in ``[-1, 1]^3`` is multiplied by this (in units
             of ``AccelInterface.accel_unit``, 5 m/s^2) and added to the nominal command.
         policy_head: ``"mlp"`` (the paper's: an MLP on the agent's graph-transformer features) or ``"edge_sum"``
             (with ``"accel"``: that MLP plus :class:`egcbf.nn.edge_sum.EdgeSumHead`, a soft-min weighted sum over
             the agent's edges of learned coefficients times the edge's relative position, relative velocity and
             closest-approach vectors, with soft-min temperature ``policy_temperature`` (m) and a free slot at
-            ``policy_free_distance`` (m)).
+            ``policy_free_distance`` (m); with ``"control"``: learned invariant coefficients summed with the same
+            weights).
         policy_gate_isolated: the residual is zero for an agent that senses nothing (no neighbour agent and no
             LiDAR hit): with nothing to avoid there is no reason to leave the nominal controller, and the data
             says little about such agents (docs/learning.md, "isolated agents"). The gate is a function of edge
@@ -164,6 +169,7 @@ class ModelConfig:
     """
 
     group: str = "se2xr"
+    robot: str = "quadrotor"
     hidden: int = 64
     heads: int = 4
     head_hidden: int = 64
@@ -190,6 +196,18 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         make_group(self.group)
+        robot = make_robot(self.robot)
+        if self.group not in ("trivial", robot.group_name):
+            raise ValueError(
+                f"ModelConfig.group must be the {self.robot}'s group {robot.group_name!r} or 'trivial', "
+                f"got {self.group!r}"
+            )
+        if self.cbf_z_symmetric and robot.dim != 3:
+            raise ValueError(f"ModelConfig.cbf_z_symmetric mirrors a 3-D scene; the {self.robot} is planar")
+        if self.interface not in robot.interfaces:
+            raise ValueError(
+                f"ModelConfig.interface: the {self.robot} offers {robot.interfaces}, not {self.interface!r}"
+            )
         if self.hidden < 1 or self.heads < 1 or self.hidden % self.heads:
             raise ValueError(f"ModelConfig: hidden ({self.hidden}) must be a positive multiple of heads ({self.heads})")
         if self.head_hidden < 1:
@@ -198,14 +216,14 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.action_scale must be > 0, got {self.action_scale}")
         if self.torque_action_scale is not None and not self.torque_action_scale > 0:
             raise ValueError(f"ModelConfig.torque_action_scale must be > 0 or None, got {self.torque_action_scale}")
-        if self.interface not in ("accel", "torque"):
-            raise ValueError(f"ModelConfig.interface must be 'accel' or 'torque', got {self.interface!r}")
+        if self.interface not in ("accel", "torque", "control"):
+            raise ValueError(f"ModelConfig.interface must be 'accel', 'torque' or 'control', got {self.interface!r}")
         if self.cbf_head not in ("mlp", "edge_min"):
             raise ValueError(f"ModelConfig.cbf_head must be 'mlp' or 'edge_min', got {self.cbf_head!r}")
         if self.policy_head not in ("mlp", "edge_sum"):
             raise ValueError(f"ModelConfig.policy_head must be 'mlp' or 'edge_sum', got {self.policy_head!r}")
-        if self.policy_head == "edge_sum" and self.interface != "accel":
-            raise ValueError("ModelConfig.policy_head = 'edge_sum' needs interface = 'accel' (a vector residual)")
+        if self.policy_head == "edge_sum" and self.interface == "torque":
+            raise ValueError("ModelConfig.policy_head = 'edge_sum' needs interface 'accel' or 'control', not 'torque'")
         if not (self.policy_temperature > 0 and self.policy_free_distance > 0):
             raise ValueError("ModelConfig.policy_temperature and policy_free_distance must be > 0")
         if not self.accel_action_scale > 0:
@@ -213,15 +231,18 @@ class ModelConfig:
 
     @property
     def action_dim(self) -> int:
-        """Channels of the command: 3 (acceleration) or 4 (torque, thrust)."""
-        return 3 if self.interface == "accel" else 4
+        """Channels of the command (quadrotor: 3, acceleration, or 4, torque and thrust; unicycle: 2)."""
+        return make_robot(self.robot).command_feature(self.interface).dim
 
     @property
     def action_scales(self) -> tuple[float, ...]:
-        """The per-channel residual scale: ``(torque (3), thrust)`` in units of the actuator box, or the
-        acceleration residual's scale (3 equal channels, so scaling commutes with rotations) in ``accel_unit``."""
+        """The per-channel residual scale: ``(torque (3), thrust)`` in units of the actuator box, the
+        acceleration residual's scale (3 equal channels, so scaling commutes with rotations) in ``accel_unit``, or
+        ``action_scale`` on every channel of a ``"control"`` command (in units of the actuator box)."""
         if self.interface == "accel":
             return (self.accel_action_scale,) * 3
+        if self.interface == "control":
+            return (self.action_scale,) * self.action_dim
         t = self.action_scale if self.torque_action_scale is None else self.torque_action_scale
         return (t, t, t, self.action_scale)
 
@@ -230,10 +251,13 @@ class ModelConfig:
 
 
 class GraphEncoder(nn.Module):
-    """The canonicalized graph transformer layer: ``SwarmGraph -> (M, hidden)`` invariant agent features."""
+    """The canonicalized graph transformer layer: ``SwarmGraph -> (M, hidden)`` invariant agent features.
+
+    ``body_rates=False`` / ``attitude=False`` zero the node fields ``w`` / ``R`` (where the robot has them)."""
 
     def __init__(self, config: ModelConfig, body_rates: bool = True, goal_edges: bool = True, attitude: bool = True):
         super().__init__()
+        self.robot = make_robot(config.robot)
         self.body_rates = body_rates
         self.attitude = attitude
         self.goal_edges = goal_edges
@@ -241,23 +265,30 @@ class GraphEncoder(nn.Module):
         self.closest_approach = config.edge_closest_approach
         self.horizon = config.closest_approach_horizon
         self.group = make_group(config.group)
-        nt, et = node_type(self.group), edge_type(self.group, self.edge_velocity, self.closest_approach)
+        if not isinstance(self.group, Trivial) and type(self.group) is not type(self.robot.group):
+            raise ValueError(
+                f"ModelConfig.group {config.group!r} is not the {self.robot.name}'s symmetry group "
+                f"({self.robot.group_name!r}) or 'trivial'"
+            )
+        self.dim = self.robot.dim
+        nt = self.robot.node_type(self.group)
+        et = edge_type(self.group, self.edge_velocity, self.closest_approach, self.dim)
+        self.masked_fields = [n for n, keep in (("w", body_rates), ("R", attitude)) if not keep and n in nt.names]
+        self._node_type = nt
         out = FieldType(self.group, [Scalar(config.hidden)])
         canon = Canonicalize(
             self.group, in_type=(nt, nt), out_type=out, edge_type=et, mode="pair", self_loops=config.self_loops
         )
-        self.layer = canon(GraphTransformerLayer(NODE_DIM, et.dim, config.hidden, config.heads))
+        self.layer = canon(GraphTransformerLayer(nt.dim, et.dim, config.hidden, config.heads))
 
     def forward(self, graph: SwarmGraph) -> Tensor:
         frames = frames_for(self.group, graph)
         x_src, x_dst = graph.x_src, graph.x_dst
-        if not (self.body_rates and self.attitude):
+        if self.masked_fields:
             # w is an invariant scalar block and the zero matrix is fixed by R -> Rz R: zeroing commutes with the action
-            keep = torch.ones(NODE_DIM, dtype=x_src.dtype, device=x_src.device)
-            if not self.body_rates:
-                keep[W_SLICE] = 0
-            if not self.attitude:
-                keep[R_SLICE] = 0
+            keep = torch.ones(self._node_type.dim, dtype=x_src.dtype, device=x_src.device)
+            for name in self.masked_fields:
+                keep[self._node_type.slice(name)] = 0
             x_src, x_dst = x_src * keep, x_dst * keep
         edge_index, edge_attr = graph.edge_index, graph.edge_attr
         if not self.goal_edges:  # an edge subset chosen by kind (an invariant): commutes with the group action
@@ -267,7 +298,7 @@ class GraphEncoder(nn.Module):
             dv = graph.relative_velocity(edge_index).to(edge_attr.dtype)
             edge_attr = torch.cat((edge_attr, dv), -1)
             if self.closest_approach:
-                edge_attr = torch.cat((edge_attr, closest_approach(edge_attr[:, :3], dv, self.horizon)), -1)
+                edge_attr = torch.cat((edge_attr, closest_approach(edge_attr[:, : self.dim], dv, self.horizon)), -1)
         return self.layer((x_src, x_dst), edge_index, frames=frames, edge_attr=edge_attr)
 
 
@@ -283,7 +314,7 @@ class CBFNet(nn.Module):
         if config.cbf_head == "edge_min":
             self.head = EdgeMinHead(
                 self.encoder.group, config.hidden, config.head_hidden, config.cbf_distance,
-                config.cbf_temperature, config.closest_approach_horizon,
+                config.cbf_temperature, config.closest_approach_horizon, self.encoder.dim,
             )  # fmt: skip
         else:
             self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, 1])
@@ -318,8 +349,11 @@ class PolicyNet(nn.Module):
         super().__init__()
         self.config = config
         self.encoder = GraphEncoder(config)
-        dim = config.action_dim if action_dim is None else action_dim
-        self.out_type = FieldType(self.encoder.group, [Vector(3)] if config.interface == "accel" else [Scalar(dim)])
+        feature = self.encoder.robot.command_feature(config.interface)
+        if action_dim is not None and action_dim != feature.dim:
+            feature = Scalar(action_dim)
+        dim = feature.dim
+        self.out_type = FieldType(self.encoder.group, [feature])
         self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, dim])
         last = self.head[-1]
         with torch.no_grad():
@@ -329,7 +363,8 @@ class PolicyNet(nn.Module):
         if config.policy_head == "edge_sum":
             self.edge_head = EdgeSumHead(
                 self.encoder.group, config.hidden, config.head_hidden, config.policy_temperature,
-                config.policy_free_distance, config.closest_approach_horizon,
+                config.policy_free_distance, config.closest_approach_horizon, dim=self.encoder.dim,
+                scalar_out=None if isinstance(feature, Vector) else dim,
             )  # fmt: skip
 
     def raw(self, graph: SwarmGraph) -> Tensor:

@@ -1,0 +1,33 @@
+"""Robots of the swarm as plug-ins (:class:`Robot`): the quadrotor of the paper and a planar unicycle.
+
+``make_robot("unicycle")`` builds one by name; :func:`register_robot` adds a user's robot to the registry the
+environment (``EnvConfig.robot``), the learner and the CLI (``--robot``) read. See docs/robots.md.
+"""
+
+from __future__ import annotations
+
+from .base import Robot, rk4_step
+from .quadrotor import Quadrotor
+from .unicycle import Unicycle, UnicycleParams
+
+__all__ = ["ROBOTS", "Quadrotor", "Robot", "Unicycle", "UnicycleParams", "make_robot", "register_robot", "rk4_step"]
+
+#: robot name -> class (the class is called with its ``params``, or with none for the defaults)
+ROBOTS: dict[str, type[Robot]] = {"quadrotor": Quadrotor, "unicycle": Unicycle}
+
+
+def register_robot(cls: type[Robot]) -> type[Robot]:
+    """Add a :class:`Robot` subclass to :data:`ROBOTS` under its ``name`` (usable as a class decorator)."""
+    if not (isinstance(cls, type) and issubclass(cls, Robot)) or not cls.name:
+        raise TypeError(f"register_robot needs a Robot subclass with a name, got {cls!r}")
+    ROBOTS[cls.name] = cls
+    return cls
+
+
+def make_robot(name: str, params=None) -> Robot:
+    """The robot called ``name`` with ``params`` (``None``: its defaults)."""
+    try:
+        cls = ROBOTS[name]
+    except KeyError:
+        raise ValueError(f"unknown robot {name!r}; choose one of {sorted(ROBOTS)}") from None
+    return cls() if params is None else cls(params)

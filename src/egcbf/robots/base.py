@@ -1,0 +1,167 @@
+"""The robot interface: everything the swarm, the graph, the learner and the evaluation need to know about a robot.
+
+A robot is a plug-in. It declares
+
+* its **dynamics** in control-affine form, ``x' = f0(x) + f1(x) u``, and an integrator ``step`` for one control
+  period with the control held (zero-order hold), with the actuator box ``clip_control``;
+* its **symmetry**: a ``groupcanon`` group and how it acts on states and controls (``state_type``,
+  ``control_type``: groupcanon FieldTypes, so the property tests can check every claim);
+* its **geometry** in the world: ``dim`` (2 or 3), ``positions(x)``, ``velocities(x)`` (world frame), a unit
+  ``heading(x)`` (the direction of the LiDAR pattern and of the frames), ``frames(x)`` (one group element per
+  agent: canonicalization puts every agent's neighbourhood in its own frame), the state of an agent at rest
+  (``rest_state``);
+* its **graph features**: ``node_fields`` (the agent node's features after the kind one-hot, as groupcanon feature
+  types; must contain ``"v"``, the world velocity) and ``agent_features(x)``;
+* its **controllers**: ``nominal_control(x, goals)`` (equivariant), and ``interfaces``: the names of the command
+  interfaces the learned methods may act on (built by :func:`egcbf.algo.interface.make_interface`; ``"control"``,
+  the normalized raw control, works for every robot), with ``command_feature(name)``, how the group acts on it;
+* the **defaults** of an environment for it (``env_defaults``: arena, radii, LiDAR, time step).
+
+:mod:`egcbf.robots.quadrotor` (the paper's rigid body) and :mod:`egcbf.robots.unicycle` (a planar unicycle) are
+the two implementations; ``examples/new_robot.py`` and docs/robots.md show how to add one. Shapes: ``x``
+``(*batch, state_dim)``, ``u`` ``(*batch, control_dim)``, points and vectors ``(*batch, dim)``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor
+
+from groupcanon import FeatureType, FieldType, Group
+from groupcanon.features import Scalar
+
+__all__ = ["Robot", "rk4_step"]
+
+
+class Robot:
+    """Base class of robots (module doc). Subclasses set the class attributes and implement the methods."""
+
+    #: the registry name (``--robot``)
+    name: ClassVar[str] = ""
+    #: spatial dimension of positions, obstacles and LiDAR (2 or 3)
+    dim: ClassVar[int] = 3
+    state_dim: ClassVar[int] = 0
+    control_dim: ClassVar[int] = 0
+    #: the config name of the symmetry group (:data:`egcbf.nn.models.GROUPS`)
+    group_name: ClassVar[str] = ""
+    #: command interfaces the learned methods may use; the first is the default
+    interfaces: ClassVar[tuple[str, ...]] = ()
+    #: :class:`egcbf.env.EnvConfig` defaults for this robot (fields not named keep the EnvConfig defaults)
+    env_defaults: ClassVar[dict[str, Any]] = {}
+
+    #: the robot's parameters (a frozen dataclass; ``None`` if it has none)
+    params: Any = None
+    #: the symmetry group (set by the subclass, as an attribute or a property)
+    group: Group
+    #: how the group acts on a state
+    state_type: FieldType
+    #: how the group acts on a control
+    control_type: FieldType
+
+    # ------------------------------------------------------------------------------------------- dynamics
+    def f0(self, x: Tensor) -> Tensor:
+        """Drift ``(*batch, state_dim)``."""
+        raise NotImplementedError
+
+    def f1(self, x: Tensor) -> Tensor:
+        """Input matrix ``(*batch, state_dim, control_dim)``."""
+        raise NotImplementedError
+
+    def xdot(self, x: Tensor, u: Tensor) -> Tensor:
+        """``f0(x) + f1(x) u`` ``(*batch, state_dim)``."""
+        return self.f0(x) + (self.f1(x) @ u[..., None])[..., 0]
+
+    def step(self, x: Tensor, u: Tensor, dt: float, substeps: int = 1, integrator: str = "rk4") -> Tensor:
+        """The state after ``dt`` with ``u`` held (no clipping here: :meth:`clip_control` first)."""
+        raise NotImplementedError
+
+    def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        """``lo, hi`` ``(control_dim,)``: the actuator box (dtype and device of ``like``)."""
+        raise NotImplementedError
+
+    def clip_control(self, u: Tensor) -> Tensor:
+        """``u`` clamped into the actuator box."""
+        lo, hi = self.control_bounds(u)
+        return torch.maximum(torch.minimum(u, hi), lo)
+
+    def check_state(self, x: Tensor, atol: float = 1e-3) -> None:
+        """Raise ``ValueError`` naming the first bad agent if a state is not finite or off its manifold."""
+        if x.shape[-1] != self.state_dim:
+            raise ValueError(f"{self.name} states must be (..., {self.state_dim}), got {tuple(x.shape)}")
+        if not bool(torch.isfinite(x).all()):
+            bad = (~torch.isfinite(x)).any(-1).nonzero()[0].tolist()
+            raise ValueError(f"state x holds NaN or inf (first at index {tuple(bad)})")
+
+    # ------------------------------------------------------------------------------------------- geometry
+    def positions(self, x: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def velocities(self, x: Tensor) -> Tensor:
+        """World-frame velocities ``(*batch, dim)``."""
+        raise NotImplementedError
+
+    def heading(self, x: Tensor) -> Tensor:
+        """Unit heading ``(*batch, dim)`` (horizontal for 3-D robots): the LiDAR pattern turns with it."""
+        raise NotImplementedError
+
+    def frames(self, x: Tensor) -> Tensor:
+        """The agents' frames ``(*batch, *group.element_shape)``: ``frames(phi_g x) = g frames(x)``."""
+        raise NotImplementedError
+
+    def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
+        """Agents at rest at ``positions`` ``(*batch, dim)`` with heading angle ``yaw`` ``(*batch,)``."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------------------------------- features
+    @property
+    def node_fields(self) -> dict[str, FeatureType]:
+        """The agent node's features after the kind one-hot (goals and LiDAR hits hold zeros there)."""
+        raise NotImplementedError
+
+    def node_type(self, group: Group) -> FieldType:
+        """The node features ``kind (3) | node_fields`` declared over ``group`` (the robot's, or the trivial one)."""
+        return FieldType(group, {"kind": Scalar(3), **self.node_fields})
+
+    def agent_features(self, x: Tensor) -> Tensor:
+        """``(*batch, sum of node_fields dims)``: the agent node's features after the kind one-hot."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------------------------------- control
+    def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:
+        """The equivariant nominal controller's control ``(*batch, control_dim)`` towards ``goals``
+        ``(*batch, dim)``, clipped to the actuator box."""
+        raise NotImplementedError
+
+    def command_feature(self, interface: str) -> FeatureType:
+        """How the group acts on the normalized command of ``interface`` (one of :attr:`interfaces`): the policy's
+        output type (a ``Vector`` for a world-frame command, a ``Scalar`` for an invariant one)."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------------------------------- identity
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
+
+    def __eq__(self, other: object) -> bool:
+        return type(self) is type(other) and self.params == getattr(other, "params", None)
+
+    def __hash__(self) -> int:
+        return hash((type(self).__name__, self.params))
+
+
+def rk4_step(xdot, x: Tensor, u: Tensor, dt: float, substeps: int = 1, project=None) -> Tensor:
+    """``substeps`` classical Runge-Kutta 4 steps of ``x' = xdot(x, u)`` over ``dt`` with ``u`` held; ``project``
+    (a function of the state, or ``None``) maps each sub-step's result back onto the state manifold."""
+    if int(substeps) != substeps or substeps < 1:
+        raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+    h = dt / int(substeps)
+    for _ in range(int(substeps)):
+        k1 = xdot(x, u)
+        k2 = xdot(x + 0.5 * h * k1, u)
+        k3 = xdot(x + 0.5 * h * k2, u)
+        k4 = xdot(x + h * k3, u)
+        x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+        if project is not None:
+            x = project(x)
+    return x

@@ -157,7 +157,7 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
         usage_error(
             f"unknown method {name!r}: a learned method {sorted(LEARNED_METHODS)} or a controller {sorted(CONTROLLERS)}"
         )
-    from .train import find_checkpoint
+    from .checkpoint import find_checkpoint
 
     path = checkpoints / name
     try:
@@ -277,9 +277,8 @@ def train(
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
 ) -> None:
     """Train GCBF, GCBF+, EGCBF or EGCBF+ (one learner; the group and the reference controller differ)."""
-    from .ckpt_files import CheckpointError
+    from .checkpoint import CheckpointError, checkpoint_step
     from .config import LEARNED_METHODS, PRESETS, TrainConfig
-    from .train import checkpoint_step
     from .train import train as run_training
 
     require(algo is None or algo in LEARNED_METHODS, f"--algo must be one of {sorted(LEARNED_METHODS)}, got {algo!r}")
@@ -420,7 +419,7 @@ def reproduce(
     obstacles, and OBSTACLE-METHODS with OBSTACLES obstacles; SEED-METHODS once per training seed) and at the
     SCALE-SIZES at fixed density, resumably (finished cells are kept; stop and rerun the same command), and write
     REPORT."""
-    from .ckpt_files import read_config
+    from .checkpoint import read_config
     from .reproduce import SweepConfig, load_cells, sweep, validate, write_report
 
     try:

@@ -21,10 +21,10 @@ import dataclasses
 import torch
 
 from egcbf.algo.interface import solve_command_qp
+from egcbf.checkpoint import load_learner
 from egcbf.evaluate import evaluate
 from egcbf.graph import build_graph
 from egcbf.nn import CBFNet
-from egcbf.train import load_learner
 
 
 class LearnedCBFQP:

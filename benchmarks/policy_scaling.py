@@ -60,7 +60,7 @@ overrides = {}
 if name == "nominal":
     ctrl = make_controller("nominal")
 else:
-    from egcbf.train import load_controller
+    from egcbf.checkpoint import load_controller
     ctrl, cfg = load_controller(sys.argv[8], device=device)
     overrides = dict(cfg.env_overrides)
 def rss_mb():
@@ -88,7 +88,7 @@ torch.set_num_threads(1)
 import egcbf.algo.learner as learner_mod, egcbf.graph as graph_mod
 from groupcanon.features import FieldType
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.train import load_learner
+from egcbf.checkpoint import load_learner
 name, n, area, steps, ckpt = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
 acc, active = collections.defaultdict(float), [True]
 def timed(label, fn):

@@ -1,3 +1,5 @@
-"""The version of the distribution (egcbf and groupcanon ship together); pyproject.toml reads it."""
+"""egcbf's version: groupcanon's (one number for both distributions of the repository: src/groupcanon/_version.py)."""
 
-__version__ = "0.1.0"
+from groupcanon._version import __version__
+
+__all__ = ["__version__"]

@@ -5,8 +5,9 @@ policy) and ``egcbf demo`` (the main job).
     egcbf train --algo egcbf+ --steps 300 --out runs/egcbf+          # CPU recipe; --preset paper --device cuda
     egcbf eval --checkpoint runs/egcbf+ --num-agents 8,16,64 --out runs/egcbf+/eval
 
-A user error (a bad flag value, an unusable file) ends a command with one ``Error: ...`` line naming the flag or
-file and exit code 2 (:mod:`egcbf.cli_checks`); ``EGCBF_DEBUG=1`` shows the traceback instead. Every input is
+Options with a fixed set of values take enums (:mod:`egcbf.cli_choices`): ``--help`` lists the values. A user
+error (a bad flag value, an unusable file) ends a command with one ``Error: ...`` line naming the flag or file and
+exit code 2 (:mod:`egcbf.cli_checks`); ``EGCBF_DEBUG=1`` shows the traceback instead. Every input is
 checked before any work starts, and ``eval`` writes each swarm size's results as soon as it is finished.
 """
 
@@ -21,6 +22,7 @@ from typing import Annotated
 
 import torch
 import typer
+from typer.core import TyperGroup
 
 from .allocator import keep_freed_memory
 from .cli_checks import (
@@ -35,12 +37,52 @@ from .cli_checks import (
     require,
     usage_error,
 )
+from .cli_choices import Backend, Controller, DemoMethod, Dtype, LearnedMethod, Preset, choice_error
 from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval
 from .threads import choose_threads
 
 __all__ = ["app", "format_table", "main"]
 
+
+class _OneLineErrors(TyperGroup):
+    """The ``egcbf`` command group: a usage error that typer or click finds (a bad flag value, a value outside an
+    option's choices, a missing argument, an unknown command or flag) ends the command with one ``Error:`` line
+    naming the flag (exit code 2) instead of typer's boxed panel, whether it runs from :func:`main` or as ``app``
+    (``typer.testing.CliRunner``); ``EGCBF_DEBUG=1`` re-raises."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            code = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except typer.Abort:
+            typer.echo("Aborted!", err=True)
+            sys.exit(1)
+        except Exception as err:  # click's ClickException and UsageError (typer vendors click: duck-typed)
+            if _debug() or not (hasattr(err, "format_message") and isinstance(getattr(err, "exit_code", None), int)):
+                raise
+            if type(err).__name__ == "NoArgsIsHelpError":
+                err.show()
+                sys.exit(0)
+            typer.echo(f"Error: {_error_line(err)}", err=True)
+            sys.exit(err.exit_code)
+        sys.exit(code if isinstance(code, int) else 0)
+
+
+def _error_line(err) -> str:
+    """One line for a click usage error: the choices of an enum option spelled out (:func:`choice_error`), and a
+    pointer to the command's ``--help``."""
+    message = " ".join(err.format_message().split())
+    param = getattr(err, "param", None)
+    if param is not None and getattr(param, "opts", None):
+        better = choice_error(param.opts[0], param.name or param.opts[0].lstrip("-"), message)
+        message = better or message.replace("Value error, ", "")
+    ctx = getattr(err, "ctx", None)
+    return message + (f" (see `{ctx.command_path} --help`)" if ctx is not None else "")
+
+
 app = typer.Typer(
+    cls=_OneLineErrors,
     add_completion=False,
     no_args_is_help=True,
     help="Equivariant graph CBFs for quadrotor swarms. (EGCBF_DEBUG=1 shows the traceback of a usage error.)",
@@ -98,7 +140,7 @@ def _torch_threads(threads: int, reason: str) -> Iterator[None]:
 @app.command("eval")
 def eval_cmd(
     controller: Annotated[
-        str | None, typer.Option(help="nominal (default) | ccbf | dcbf; not with --checkpoint")
+        Controller | None, typer.Option(help="a hand-crafted controller (default: nominal); not with --checkpoint")
     ] = None,
     num_agents: Annotated[str, typer.Option("--num-agents", help="comma-separated swarm sizes")] = "8,16,64",
     area: Annotated[float, typer.Option(help="side l of the arena [0, l]^3 (m)")] = 4.0,
@@ -109,8 +151,8 @@ def eval_cmd(
     render: Annotated[bool, typer.Option("--render/--no-render", help="write a GIF and a top-down PNG per N")] = False,
     max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's)")] = None,
     batch: Annotated[int | None, typer.Option(help="episodes simulated together (default: automatic)")] = None,
-    device: Annotated[str, typer.Option(help="cpu | cuda")] = "cpu",
-    dtype: Annotated[str, typer.Option(help="float32 | float64")] = "float32",
+    device: Annotated[str, typer.Option(help="cpu | cuda | cuda:K")] = "cpu",
+    dtype: Annotated[Dtype, typer.Option(help="floating-point type of the simulation and the policy")] = Dtype.float32,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
     checkpoint: Annotated[
         Path | None,
@@ -129,7 +171,7 @@ def eval_cmd(
     n_threads, reason = _threads(threads)
     with _torch_threads(n_threads, reason):
         run_eval(
-            controller=controller,
+            controller=None if controller is None else controller.value,
             num_agents=num_agents,
             area=area,
             obstacles=obstacles,
@@ -140,7 +182,7 @@ def eval_cmd(
             max_steps=max_steps,
             batch=batch,
             device=device,
-            dtype=dtype,
+            dtype=dtype.value,
             progress=progress,
             checkpoint=checkpoint,
             threads_reason=reason,
@@ -162,7 +204,7 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
         usage_error(
             f"unknown method {name!r}: a learned method {sorted(LEARNED_METHODS)} or a controller {sorted(CONTROLLERS)}"
         )
-    from .train import find_checkpoint
+    from .checkpoint import find_checkpoint
 
     path = checkpoints / name
     try:
@@ -184,8 +226,8 @@ def demo(
         Path, typer.Option(help="directory holding one checkpoint directory per learned method (egcbf+/, gcbf+/, ...)")
     ] = Path("checkpoints"),
     method: Annotated[
-        str, typer.Option(help="a learned method (gcbf, gcbf+, egcbf, egcbf+) or a controller (nominal, ccbf, dcbf)")
-    ] = "egcbf+",
+        DemoMethod, typer.Option(help="a learned method (its checkpoint in CHECKPOINTS) or a hand-crafted controller")
+    ] = DemoMethod.egcbf_plus,
     compare: Annotated[
         str | None,
         typer.Option(
@@ -202,7 +244,7 @@ def demo(
     seed: Annotated[int, typer.Option()] = 0,
     out: Annotated[Path, typer.Option(help="output directory")] = Path("out/demo"),
     max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's)")] = None,
-    device: Annotated[str, typer.Option()] = "cpu",
+    device: Annotated[str, typer.Option(help="cpu | cuda | cuda:K")] = "cpu",
     threads: Annotated[int | None, typer.Option(help=_THREADS_HELP.replace("run.json", "demo.json"))] = None,
     render: Annotated[bool, typer.Option("--render/--no-render", help="the comparison GIF and a still")] = True,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
@@ -216,6 +258,7 @@ def demo(
     OUT/demo.json."""
     from .cli_demo import run_demo
 
+    method = method.value
     if compare is None:  # a hand-crafted --method alone is compared with the nominal controller only
         learned = _demo_source(method, checkpoints) is not None
         names = [method, *(c for c in (_DEMO_COMPARE if learned else ("nominal",)) if c != method)]
@@ -256,14 +299,18 @@ def demo(
 
 @app.command()
 def train(
-    algo: Annotated[str | None, typer.Option(help="gcbf | gcbf+ | egcbf | egcbf+ (default; not with --resume)")] = None,
+    algo: Annotated[
+        LearnedMethod | None, typer.Option(help="the learned method (default: egcbf+; not with --resume)")
+    ] = None,
     out: Annotated[Path, typer.Option(help="run directory (config, logs, metrics.csv, checkpoints)")] = Path(
         "out/train"
     ),
     config: Annotated[
         Path | None, typer.Option(help="JSON file of TrainConfig fields overriding the preset (may set 'preset')")
     ] = None,
-    preset: Annotated[str | None, typer.Option(help="cpu (default) | paper | tiny")] = None,
+    preset: Annotated[
+        Preset | None, typer.Option(help="the recipe the --config fields override (default: cpu)")
+    ] = None,
     steps: Annotated[
         int | None, typer.Option(help="total number of updates (default: the config's; with --resume: extend to)")
     ] = None,
@@ -285,12 +332,12 @@ def train(
     ] = None,
 ) -> None:
     """Train GCBF, GCBF+, EGCBF or EGCBF+ (one learner; the group and the reference controller differ)."""
-    from .ckpt_files import CheckpointError
-    from .config import LEARNED_METHODS, PRESETS, TrainConfig
-    from .train import checkpoint_step
+    from .checkpoint import CheckpointError, checkpoint_step
+    from .config import PRESETS, TrainConfig
     from .train import train as run_training
 
-    require(algo is None or algo in LEARNED_METHODS, f"--algo must be one of {sorted(LEARNED_METHODS)}, got {algo!r}")
+    algo = None if algo is None else algo.value
+    preset = None if preset is None else preset.value
     require(steps is None or steps >= 1, f"--steps must be >= 1, got {steps}")
     require(threads is None or threads >= 1, f"--threads must be >= 1, got {threads}")
     if tensorboard:
@@ -426,8 +473,10 @@ def reproduce(
         Path | None, typer.Option(help="earlier `egcbf eval` outputs to import baseline cells from")
     ] = Path("docs/results/baselines"),
     workers: Annotated[int, typer.Option(help="cells evaluated in parallel (one torch thread each)")] = 2,
-    backend: Annotated[str, typer.Option(help="process | ray (optional extra, for several machines)")] = "process",
-    device: Annotated[str, typer.Option(help="cpu | cuda")] = "cpu",
+    backend: Annotated[
+        Backend, typer.Option(help="local processes, or Ray (the optional `ray` extra, for several machines)")
+    ] = Backend.process,
+    device: Annotated[str, typer.Option(help="cpu | cuda | cuda:K")] = "cpu",
     report_only: Annotated[
         bool, typer.Option("--report-only", help="regenerate the report from the existing cells")
     ] = False,
@@ -437,7 +486,7 @@ def reproduce(
     obstacles, and OBSTACLE-METHODS with OBSTACLES obstacles; SEED-METHODS once per training seed) and at the
     SCALE-SIZES at fixed density, resumably (finished cells are kept; stop and rerun the same command), and write
     REPORT."""
-    from .ckpt_files import read_config
+    from .checkpoint import read_config
     from .reproduce import SweepConfig, load_cells, sweep, validate, write_report
 
     try:
@@ -463,7 +512,7 @@ def reproduce(
             baselines=baselines,
             device=device,
             workers=workers,
-            backend=backend,
+            backend=backend.value,
         )
         if not report_only:
             parse_device(device)
@@ -491,27 +540,12 @@ def reproduce(
 
 
 def main(argv: list[str] | None = None) -> None:
-    """The ``egcbf`` command: keeps freed memory for reuse (:mod:`egcbf.allocator`), runs :data:`app`, and prints a
-    bad flag value or a missing argument as one ``Error:`` line naming the flag (exit code 2) instead of typer's
-    boxed panel; ``EGCBF_DEBUG=1`` re-raises. ``argv``: the arguments (default: ``sys.argv[1:]``)."""
+    """The ``egcbf`` command: keeps freed memory for reuse (:mod:`egcbf.allocator`) and runs :data:`app`, which
+    prints a bad flag value or a missing argument as one ``Error:`` line naming the flag (exit code 2) instead of
+    typer's boxed panel; ``EGCBF_DEBUG=1`` re-raises. ``argv``: the arguments (default: ``sys.argv[1:]``)."""
     global _ALLOCATOR
     _ALLOCATOR = keep_freed_memory()[1]
-    try:
-        code = app(args=argv, prog_name="egcbf", standalone_mode=False)
-    except typer.Abort:
-        typer.echo("Aborted!", err=True)
-        sys.exit(1)
-    except Exception as err:  # click's ClickException and UsageError (typer vendors click: duck-typed)
-        if _debug() or not (hasattr(err, "format_message") and isinstance(getattr(err, "exit_code", None), int)):
-            raise
-        if type(err).__name__ == "NoArgsIsHelpError":
-            err.show()
-            sys.exit(0)
-        ctx = getattr(err, "ctx", None)
-        hint = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
-        typer.echo(f"Error: {err.format_message()}{hint}", err=True)
-        sys.exit(err.exit_code)
-    sys.exit(code if isinstance(code, int) else 0)
+    app(args=argv, prog_name="egcbf")
 
 
 if __name__ == "__main__":  # pragma: no cover

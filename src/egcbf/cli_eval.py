@@ -69,7 +69,7 @@ def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path
 
 def load_policy(checkpoint: Path, dev: torch.device, dtype: torch.dtype, flag: str = "--checkpoint"):
     """``(checkpoint directory, controller, training config)`` of ``checkpoint``, or a usage error naming it."""
-    from .train import CheckpointError, find_checkpoint, load_controller
+    from .checkpoint import CheckpointError, find_checkpoint, load_controller
 
     try:
         ckpt = find_checkpoint(checkpoint)

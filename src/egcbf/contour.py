@@ -60,7 +60,7 @@ def load_cbf(path: str | Path, device: str | torch.device = "cpu", dtype: torch.
 
     Needs only ``config.json`` and ``model.safetensors`` (the ``cbf.*`` weights).
     """
-    from .train import load_network
+    from .checkpoint import load_network
 
     return load_network(path, "cbf", device, dtype)
 

@@ -7,17 +7,10 @@ submodules :mod:`groups`, :mod:`features`, :mod:`frames` and :mod:`testing`.
 """
 
 from . import features, frames, groups
+from ._version import __version__ as __version__
 from .canonicalize import Canonicalize, CanonicalizedLayer, globalize, localize
 from .features import FeatureType, FieldType
 from .group import Group
-
-try:  # the distribution's one version source (egcbf/_version.py); groupcanon ships inside egcbf
-    from importlib.metadata import PackageNotFoundError, version
-
-    __version__ = version("egcbf")
-except PackageNotFoundError:  # pragma: no cover - run from a source tree without installing
-    __version__ = "unknown"
-
 
 __all__ = [
     "Canonicalize",
@@ -34,7 +27,7 @@ __all__ = [
 ]
 
 
-def __getattr__(name):  # import the testing kit (and hypothesis) only when asked for
+def __getattr__(name):  # import the testing kit only when asked for
     if name == "testing":
         import importlib
 

@@ -10,12 +10,13 @@ import pytest
 from typer.testing import CliRunner
 
 from egcbf import reproduce as rp
+from egcbf.checkpoint import load_controller
 from egcbf.cli import app
 from egcbf.config import TrainConfig
 from egcbf.control.controllers import make_controller
 from egcbf.evaluate import evaluate
 from egcbf.reproduce import Cell, SweepConfig
-from egcbf.train import load_controller, train
+from egcbf.train import train
 
 TIMING = ("step_ms_median", "qp_ms_median")
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from egcbf.checkpoint import load_controller
 from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.train import load_controller
 
 ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
 SHIPPED = sorted(p.parent for p in ROOT.glob("**/model.safetensors"))
@@ -57,7 +57,7 @@ def test_shipped_policy_outputs_are_unchanged(method):
 @pytest.mark.parametrize("state", sorted(ROOT.glob("**/state.json")), ids=lambda p: str(p.parent.relative_to(ROOT)))
 def test_shipped_checkpoints_carry_their_identity(state):
     """Every shipped checkpoint says what it is (format, method, group, interface, weights hash) and matches it."""
-    from egcbf.ckpt_files import FORMAT_VERSION, check_identity, identity, read_config
+    from egcbf.checkpoint import FORMAT_VERSION, check_identity, identity, read_config
 
     meta = json.loads(state.read_text())
     cfg = read_config(state.parent)

@@ -8,10 +8,11 @@ import torch
 from typer.testing import CliRunner
 
 from egcbf.algo import GraphCBFLearner
+from egcbf.checkpoint import find_checkpoint, load_controller, load_learner
 from egcbf.cli import app
 from egcbf.config import LEARNED_METHODS, TrainConfig
 from egcbf.env import SwarmEnv
-from egcbf.train import find_checkpoint, load_controller, load_learner, train
+from egcbf.train import train
 
 
 def _quiet(cfg, out, **kw):

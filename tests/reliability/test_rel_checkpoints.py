@@ -9,8 +9,15 @@ import pytest
 import torch
 
 from egcbf.atomic import recover_dir, replace_dir
-from egcbf.ckpt_files import FORMAT_VERSION, CheckpointError
-from egcbf.train import _truncate_csv, find_checkpoint, load_controller, load_learner, load_network, train
+from egcbf.checkpoint import (
+    FORMAT_VERSION,
+    CheckpointError,
+    find_checkpoint,
+    load_controller,
+    load_learner,
+    load_network,
+)
+from egcbf.train import _truncate_csv, train
 
 
 def _tiny_config(**changes):
@@ -160,7 +167,7 @@ def test_weights_of_another_run_are_refused(run, tmp_path):
 
 
 def test_state_json_records_the_weights_hash(run):
-    from egcbf.ckpt_files import sha256
+    from egcbf.checkpoint import sha256
 
     state = json.loads((run / "best" / "state.json").read_text())
     assert state["weights_sha256"] == sha256(run / "best" / "model.safetensors")

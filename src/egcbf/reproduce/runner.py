@@ -34,7 +34,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..atomic import write_json_atomic
-from ..ckpt_files import sha256
+from ..checkpoint import sha256
 from ..report import machine_info
 from .paper import BASELINES, LABELS, LEARNED
 from .plan import Cell, SweepConfig, cell_key
@@ -80,10 +80,10 @@ def find_method_checkpoint(root: str | Path, method: str, train_seed: int = 0) -
     """The checkpoint of ``method`` trained with ``train_seed`` under ``root`` (:func:`checkpoint_dir`, or its
     ``best`` subdirectory).
 
-    Raises ``FileNotFoundError`` if there is none, :class:`~egcbf.ckpt_files.CheckpointError` (a ``ValueError``
+    Raises ``FileNotFoundError`` if there is none, :class:`~egcbf.checkpoint.CheckpointError` (a ``ValueError``
     naming the file) if its files are corrupted, truncated or of another method, and ``ValueError`` if its config
     was trained with another seed."""
-    from ..ckpt_files import check_identity, read_config, read_state, read_tensors
+    from ..checkpoint import check_identity, read_config, read_state, read_tensors
 
     base = checkpoint_dir(root, method, train_seed)
     path = next((d for d in (base, base / "best") if (d / "model.safetensors").exists()), None)
@@ -128,7 +128,7 @@ def _evaluate_cell(task: CellTask) -> dict:
     learned, env_overrides = None, None
     with tempfile.TemporaryDirectory(prefix="egcbf-ckpt-") as tmp:
         if task.checkpoint_files is not None:  # the same loading as `egcbf eval --checkpoint`
-            from ..train import load_controller
+            from ..checkpoint import load_controller
 
             for name, data in task.checkpoint_files.items():
                 (Path(tmp) / name).write_bytes(data)

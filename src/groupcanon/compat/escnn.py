@@ -53,7 +53,8 @@ from ..groups import O2, SO2, SO3, Cyclic, Trivial
 __all__ = ["EscnnFeature", "from_escnn", "to_escnn_element"]
 
 INSTALL_HINT = (
-    "install the optional extra: pip install 'egcbf[escnn]' && pip install --no-deps escnn==1.0.11 "
+    "install the optional extra: pip install 'egcbf[escnn]' (or 'groupcanon[escnn]' for groupcanon alone) && "
+    "pip install --no-deps escnn==1.0.11 "
     "(escnn's py3nj dependency needs a Fortran compiler and is optional, hence --no-deps), "
     "or run `make setup-escnn` in the egcbf repository. escnn needs numpy<2."
 )

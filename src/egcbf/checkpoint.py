@@ -1,0 +1,387 @@
+"""Checkpoints on disk: writing, finding, checking and loading the directories of trained learners.
+
+A checkpoint directory (``OUT/checkpoints/step_XXXXXX`` of a run, ``OUT/best``, or a shipped ``checkpoints/<algo>``)
+holds::
+
+    config.json             the run's TrainConfig
+    model.safetensors       the weights: cbf.*, policy.*, cbf_target.* (safetensors: no pickle)
+    state.json              step, wall time and what the weights are (below); OUT/best adds its metrics row
+    training_state.pt       optimizer states and RNG state (run checkpoints only; loaded with weights_only=True)
+    buffers.safetensors     replay buffers (the newest run checkpoint only, with save_buffers)
+
+``config.json`` and ``model.safetensors`` are enough to evaluate (:func:`load_controller`, :func:`load_network`);
+:func:`load_learner` restores everything training needs to continue.
+
+Every checkpoint records what it is in ``state.json``: ``format_version`` (:data:`FORMAT_VERSION`), ``algo``,
+``group``, ``interface`` and ``weights_sha256`` (the hash of its ``model.safetensors``). :func:`check_identity`
+compares them with the directory's ``config.json`` and weights file on load, so that one method's weights (or another
+run's) are never loaded under another's config. Checkpoints written before the format was versioned (no
+``format_version``) are checked on ``algo`` only. A missing, corrupted, truncated or mismatched file raises
+:class:`CheckpointError` (a ``ValueError``) naming the file instead of a raw parser error.
+
+Directories are written into ``NAME.tmp`` and swapped into place (:mod:`egcbf.atomic`), so a kill at any moment
+leaves a complete directory (the new one or the previous one); every reader recovers a swap killed half-way.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import re
+import shutil
+import sys
+import warnings
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from .atomic import recover_dir, replace_dir
+
+if TYPE_CHECKING:
+    from .algo.learner import GraphCBFLearner, LearnedController
+    from .config import TrainConfig
+    from .nn import CBFNet, PolicyNet
+
+__all__ = [
+    "CHECKPOINTS_DIR",
+    "FORMAT_VERSION",
+    "CheckpointError",
+    "best_metrics",
+    "check_identity",
+    "checkpoint_step",
+    "find_checkpoint",
+    "identity",
+    "list_checkpoints",
+    "load_controller",
+    "load_learner",
+    "load_network",
+    "no_checkpoint",
+    "read_config",
+    "read_state",
+    "read_tensors",
+    "read_training_state",
+    "save_best",
+    "save_checkpoint",
+    "set_aside",
+    "sha256",
+]
+
+#: Version of the checkpoint layout written by this code (``state.json["format_version"]``).
+FORMAT_VERSION = 1
+#: The subdirectory of a run directory holding its ``step_XXXXXX`` checkpoints.
+CHECKPOINTS_DIR = "checkpoints"
+_STEP_DIR = re.compile(r"step_(\d+)")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file that is missing, corrupted, truncated or does not match its config."""
+
+
+# ---------------------------------------------------------------------------------------------------- reading files
+def identity(config: TrainConfig) -> dict:
+    """What a checkpoint of ``config`` (a :class:`~egcbf.config.TrainConfig`) is, as stored in ``state.json``."""
+    return {
+        "format_version": FORMAT_VERSION,
+        "algo": config.algo,
+        "group": config.group,
+        "interface": config.model.interface,
+    }
+
+
+def sha256(path: Path) -> str:
+    """Hex SHA-256 of a file (read in 1 MiB blocks)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def read_config(ckpt: Path) -> TrainConfig:
+    """The :class:`~egcbf.config.TrainConfig` of ``ckpt/config.json``."""
+    from .config import TrainConfig
+
+    path = Path(ckpt) / "config.json"
+    try:
+        return TrainConfig.from_json(path)
+    except FileNotFoundError:
+        raise CheckpointError(f"{path} is missing (a checkpoint holds config.json and model.safetensors)") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise CheckpointError(f"{path} is corrupted or truncated (not JSON: {err})") from None
+    except (TypeError, ValueError, KeyError) as err:
+        raise CheckpointError(f"{path} is not a valid training config: {err}") from None
+
+
+def read_state(ckpt: Path) -> dict:
+    """``ckpt/state.json`` as a dict (``{}`` if the file is absent)."""
+    path = Path(ckpt) / "state.json"
+    if not path.exists():
+        return {}
+    try:
+        state = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise CheckpointError(f"{path} is corrupted or truncated (not JSON: {err})") from None
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{path} is not a JSON object")
+    return state
+
+
+def read_tensors(path: Path) -> dict[str, torch.Tensor]:
+    """A safetensors file, or :class:`CheckpointError` naming it if it is missing, truncated or corrupted."""
+    path = Path(path)
+    if not path.exists():
+        raise CheckpointError(f"{path} is missing")
+    try:
+        return load_file(str(path))
+    except Exception as err:  # safetensors raises its own SafetensorError (and OSError) on bad files
+        raise CheckpointError(f"{path} is corrupted or truncated ({type(err).__name__}: {err})") from None
+
+
+def read_training_state(path: Path) -> dict:
+    """The optimizer and RNG state of ``training_state.pt`` (``weights_only`` load)."""
+    try:
+        return torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as err:  # zip / pickle errors of a truncated file
+        raise CheckpointError(f"{path} is corrupted or truncated ({type(err).__name__}: {err})") from None
+
+
+def check_identity(ckpt: Path, config: TrainConfig, state: dict | None = None) -> None:
+    """Raise :class:`CheckpointError` if ``ckpt/state.json`` says the weights are of another method, group,
+    interface or a newer format than ``config`` (the directory's ``config.json``)."""
+    state = read_state(ckpt) if state is None else state
+    version = state.get("format_version", 0)
+    if not isinstance(version, int) or version > FORMAT_VERSION:
+        raise CheckpointError(
+            f"{Path(ckpt) / 'state.json'} has checkpoint format {version!r}; this egcbf reads up to "
+            f"{FORMAT_VERSION} (upgrade egcbf)"
+        )
+    want = identity(config)
+    keys = ("algo", "group", "interface") if version >= 1 else ("algo",)
+    for key in keys:
+        if key in state and state[key] != want[key]:
+            raise CheckpointError(
+                f"{ckpt}: state.json says the weights are {key} {state[key]!r} but config.json says "
+                f"{want[key]!r}; the files come from different runs (copy the whole checkpoint directory)"
+            )
+    weights = Path(ckpt) / "model.safetensors"
+    if "weights_sha256" in state and weights.exists() and sha256(weights) != state["weights_sha256"]:
+        raise CheckpointError(
+            f"{weights} is not the file its state.json was written with (SHA-256 differs): replaced by another "
+            "run's weights, or corrupted; copy the whole checkpoint directory"
+        )
+
+
+# ---------------------------------------------------------------------------------------------------- writing
+def _ckpt_dir(out: Path, step: int) -> Path:
+    return out / CHECKPOINTS_DIR / f"step_{step:06d}"
+
+
+def _to_cpu(obj):
+    if isinstance(obj, torch.Tensor):
+        return obj.cpu()
+    if isinstance(obj, dict):
+        return {k: _to_cpu(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_to_cpu(v) for v in obj)
+    return obj
+
+
+def _write_dir_atomically(learner: GraphCBFLearner, final: Path, state: dict, extra=None) -> Path:
+    """Write ``config.json``, ``model.safetensors``, ``state.json`` (and whatever ``extra(tmp_dir)`` adds) into
+    ``final.tmp``, then swap it into place (:func:`egcbf.atomic.replace_dir`): a kill at any moment leaves a
+    complete ``final`` (new or previous) or a previous one that :func:`egcbf.atomic.recover_dir` restores."""
+    tmp = final.with_name(final.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    learner.config.to_json(tmp / "config.json")
+    save_file({k: v.cpu() for k, v in learner.weights().items()}, str(tmp / "model.safetensors"))
+    if extra is not None:
+        extra(tmp)
+    state = {**state, **identity(learner.config), "weights_sha256": sha256(tmp / "model.safetensors")}
+    (tmp / "state.json").write_text(json.dumps(state, indent=2) + "\n")
+    return replace_dir(tmp, final)
+
+
+def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: int = 0, buffers: bool = True) -> Path:
+    """Write the learner's checkpoint ``OUT/checkpoints/step_XXXXXX`` atomically; keep the newest ``keep`` (0: all)."""
+
+    def training_files(tmp: Path) -> None:
+        torch.save(_to_cpu(learner.training_state()), tmp / "training_state.pt")
+        if buffers:
+            save_file({k: v.cpu() for k, v in learner.buffers().items()}, str(tmp / "buffers.safetensors"))
+
+    state = {
+        "step": learner.step,
+        "wall_s": wall_s,
+        "algo": learner.config.algo,
+        "torch": torch.__version__,
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+    }
+    out = Path(out)
+    final = _write_dir_atomically(learner, _ckpt_dir(out, learner.step), state, training_files)
+    older = list_checkpoints(out)[:-1]
+    for old in older:  # resuming needs the buffers of the newest checkpoint only (they can be large)
+        (old / "buffers.safetensors").unlink(missing_ok=True)
+    if keep > 0:
+        for old in older[: max(0, len(older) + 1 - keep)]:
+            shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def save_best(learner: GraphCBFLearner, out: Path, wall_s: float, row: dict) -> Path:
+    """Write ``OUT/best`` (weights, config, and the evaluation ``row`` that selected it) atomically."""
+    state = {"step": learner.step, "wall_s": wall_s, "algo": learner.config.algo, "metrics": row}
+    return _write_dir_atomically(learner, Path(out) / "best", state)
+
+
+def best_metrics(out: str | Path) -> dict | None:
+    """The evaluation row that selected ``OUT/best`` (:func:`save_best`); ``None`` if there is none or it cannot be
+    read (an unreadable ``best/`` is replaced by the next one saved)."""
+    f = recover_dir(Path(out) / "best") / "state.json"
+    try:
+        row = json.loads(f.read_text())["metrics"] if f.exists() else None
+    except (ValueError, KeyError, TypeError):
+        return None
+    return row if isinstance(row, dict) else None
+
+
+def set_aside(ckpt: Path) -> Path:
+    """Rename the checkpoint ``ckpt`` (one that does not load) to ``step_XXXXXX.corrupt`` (``.corrupt1``, ... if
+    taken), out of the way of new checkpoints and kept for inspection; returns the new path."""
+    aside = ckpt.with_name(ckpt.name + ".corrupt")
+    k = 1
+    while aside.exists():  # an earlier fallback set aside the same step
+        aside, k = ckpt.with_name(f"{ckpt.name}.corrupt{k}"), k + 1
+    os.replace(ckpt, aside)
+    return aside
+
+
+# ---------------------------------------------------------------------------------------------------- finding
+def list_checkpoints(out: str | Path) -> list[Path]:
+    """Complete checkpoints of the run ``out``, oldest first (``step_XXXXXX`` directories with a ``state.json``; a
+    checkpoint swap killed between its renames is recovered first)."""
+    root = Path(out) / CHECKPOINTS_DIR
+    if not root.is_dir():
+        return []
+    for old in root.glob("step_*.old"):
+        recover_dir(old.with_name(old.name[: -len(".old")]))
+    done = [
+        p for p in root.glob("step_*") if _STEP_DIR.fullmatch(p.name) and p.is_dir() and (p / "state.json").exists()
+    ]
+    return sorted(done, key=lambda p: int(p.name.split("_")[1]))
+
+
+def no_checkpoint(out: str | Path) -> FileNotFoundError:
+    """The error for a run directory ``out`` without a checkpoint."""
+    return FileNotFoundError(f"no checkpoint in {out} (expected {out}/{CHECKPOINTS_DIR}/step_*/model.safetensors)")
+
+
+def find_checkpoint(path: str | Path) -> Path:
+    """A checkpoint directory: ``path`` itself if it holds one, else the newest checkpoint of the run ``path``."""
+    p = recover_dir(Path(path))
+    if (p / "model.safetensors").exists() and (p / "config.json").exists():
+        return p
+    if p.exists() and not p.is_dir():
+        raise FileNotFoundError(f"{p} is a file; pass a checkpoint directory (config.json + model.safetensors)")
+    found = list_checkpoints(p)
+    if not found:
+        raise no_checkpoint(p)
+    return found[-1]
+
+
+def checkpoint_step(out: str | Path) -> int | None:
+    """The update count of the newest checkpoint of run ``out`` (``None`` without a readable one)."""
+    found = list_checkpoints(out)
+    if not found:
+        return None
+    try:
+        return int(read_state(found[-1])["step"])
+    except (CheckpointError, KeyError, TypeError, ValueError):
+        return None
+
+
+# ---------------------------------------------------------------------------------------------------- loading
+def _load_state_dict(ckpt: Path, load, name: str = "model.safetensors") -> None:
+    """Run ``load()`` (a ``load_state_dict``); a key or shape mismatch becomes a :class:`CheckpointError`."""
+    try:
+        load()
+    except (RuntimeError, KeyError, ValueError, TypeError) as err:
+        first = str(err).strip().splitlines()[0][:300]
+        raise CheckpointError(
+            f"{ckpt / name} does not match {ckpt / 'config.json'} ({first}); were the files written by another "
+            "method or config?"
+        ) from None
+
+
+def _optim_to(learner: GraphCBFLearner, device) -> None:
+    for opt in (learner.opt_cbf, learner.opt_policy):
+        for st in opt.state.values():
+            for k, v in st.items():
+                if isinstance(v, torch.Tensor) and k != "step":
+                    st[k] = v.to(device)
+
+
+def load_learner(path: str | Path, device=None, dtype=None, config: TrainConfig | None = None) -> GraphCBFLearner:
+    """The learner of checkpoint ``path`` (a checkpoint or run directory): weights, optimizers, RNG, buffers."""
+    from .algo.learner import GraphCBFLearner
+
+    ckpt = find_checkpoint(path)
+    cfg = config or read_config(ckpt)
+    weights = read_tensors(ckpt / "model.safetensors")
+    check_identity(ckpt, cfg)
+    learner = GraphCBFLearner(cfg, device=device, dtype=dtype)
+    _load_state_dict(
+        ckpt, lambda: learner.load_weights({k: v.to(learner.device, learner.dtype) for k, v in weights.items()})
+    )
+    if (ckpt / "training_state.pt").exists():
+        state = read_training_state(ckpt / "training_state.pt")
+        _load_state_dict(ckpt, lambda: learner.load_training_state(state), "training_state.pt")
+        _optim_to(learner, learner.device)
+    if (ckpt / "buffers.safetensors").exists():
+        buffers = read_tensors(ckpt / "buffers.safetensors")
+        _load_state_dict(ckpt, lambda: learner.load_buffers(buffers), "buffers.safetensors")
+    elif learner.step > 0:
+        warnings.warn(
+            f"{ckpt} holds no replay buffers (only the newest checkpoint of a run keeps them, and only with "
+            "save_buffers): continuing with empty buffers, not bit for bit",
+            stacklevel=2,
+        )
+    return learner
+
+
+def load_network(
+    path: str | Path, part: str, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
+) -> tuple[CBFNet | PolicyNet, TrainConfig]:
+    """One trained network, ``part = "policy"`` or ``"cbf"``, of a checkpoint (or run) directory, in eval mode, and
+    the training config; needs only ``config.json`` and ``model.safetensors`` (the ``<part>.*`` weights)."""
+    from .nn import CBFNet, PolicyNet
+
+    nets = {"policy": PolicyNet, "cbf": CBFNet}
+    if part not in nets:
+        raise ValueError(f"part must be one of {sorted(nets)}, got {part!r}")
+    ckpt = find_checkpoint(path)
+    cfg = read_config(ckpt)
+    weights = read_tensors(ckpt / "model.safetensors")
+    check_identity(ckpt, cfg)
+    net = nets[part](cfg.model)
+    prefix = part + "."
+    _load_state_dict(
+        ckpt, lambda: net.load_state_dict({k[len(prefix) :]: v for k, v in weights.items() if k.startswith(prefix)})
+    )
+    return net.to(device=device, dtype=dtype).eval(), cfg
+
+
+def load_controller(
+    path: str | Path, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
+) -> tuple[LearnedController, TrainConfig]:
+    """An evaluation controller ``(state, env_config) -> (u, info)`` from a checkpoint (or run) directory; needs only
+    its ``config.json`` and ``model.safetensors``. Returns the controller and the training config."""
+    from .algo.learner import LearnedController
+
+    policy, cfg = load_network(path, "policy", device, dtype)
+    return LearnedController(policy, cfg.model), cfg

@@ -1,0 +1,84 @@
+"""The fixed choices of the command line's options, as ``str`` enums: typer lists them in ``--help`` and refuses any
+other value before the command runs, as one ``Error:`` line naming the flag and the choices
+(:func:`choice_error`).
+
+Each enum mirrors a registry of the library (``tests/egcbf/test_cli.py`` checks that they agree); the commands pass
+the plain string (``.value``) on, so configs and results hold strings, never enum members. ``--device`` stays a
+string (``cuda:1`` is as valid as ``cuda``: :func:`egcbf.cli_checks.parse_device` checks it), as do the comma lists
+(``--compare``, ``--methods``), which are parsed and checked by their commands.
+"""
+
+from __future__ import annotations
+
+import re
+from enum import Enum
+
+__all__ = ["Backend", "Controller", "DemoMethod", "Dtype", "LearnedMethod", "Preset", "choice_error"]
+
+
+class Controller(str, Enum):
+    """A hand-crafted controller (``egcbf.control.controllers.CONTROLLERS``): ``egcbf eval --controller``."""
+
+    nominal = "nominal"
+    ccbf = "ccbf"
+    dcbf = "dcbf"
+
+
+class LearnedMethod(str, Enum):
+    """A learned method (``egcbf.config.LEARNED_METHODS``): ``egcbf train --algo``."""
+
+    gcbf = "gcbf"
+    gcbf_plus = "gcbf+"
+    egcbf = "egcbf"
+    egcbf_plus = "egcbf+"
+
+
+class DemoMethod(str, Enum):
+    """A learned method (its checkpoint in ``--checkpoints``) or a hand-crafted controller: ``egcbf demo --method``."""
+
+    gcbf = "gcbf"
+    gcbf_plus = "gcbf+"
+    egcbf = "egcbf"
+    egcbf_plus = "egcbf+"
+    nominal = "nominal"
+    ccbf = "ccbf"
+    dcbf = "dcbf"
+
+
+class Preset(str, Enum):
+    """A training preset (``egcbf.config.PRESETS``): ``egcbf train --preset``."""
+
+    cpu = "cpu"
+    cpu_torque = "cpu-torque"
+    paper = "paper"
+    tiny = "tiny"
+
+
+class Dtype(str, Enum):
+    """The floating-point type of an evaluation (``egcbf.cli_eval.DTYPES``): ``egcbf eval --dtype``."""
+
+    float32 = "float32"
+    float64 = "float64"
+
+
+class Backend(str, Enum):
+    """Where the reproduction's cells run (``egcbf.reproduce.plan.BACKENDS``): ``egcbf reproduce --backend``."""
+
+    process = "process"
+    ray = "ray"
+
+
+# typer's (and click's) message for a value outside the choices: "'ppo' is not one of 'gcbf', 'gcbf+'."
+_NOT_ONE_OF = re.compile(r"""(?P<value>'[^']*'|"[^"]*") is not one of (?P<choices>.+?)\.?$""", re.DOTALL)
+
+
+def choice_error(flag: str, name: str, message: str) -> str | None:
+    """The one-line message for a value of option ``flag`` (parameter ``name``) outside its choices, from typer's
+    ``message``: ``"--algo: unknown algo 'ppo'; choose one of gcbf, gcbf+, egcbf, egcbf+"``; ``None`` if
+    ``message`` is not about choices."""
+    found = _NOT_ONE_OF.search(message.strip())
+    if found is None:
+        return None
+    choices = [a or b for a, b in re.findall(r"'([^']*)'|\"([^\"]*)\"", found["choices"])]
+    listed = ", ".join(choices) if choices else found["choices"]
+    return f"{flag}: unknown {name.replace('_', ' ')} {found['value']}; choose one of {listed}"

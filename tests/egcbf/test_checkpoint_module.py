@@ -1,0 +1,27 @@
+"""`egcbf.checkpoint` is the on-disk format alone: evaluating, plotting and reproducing from checkpoints never import
+the trainer, and reading a checkpoint's metadata needs no network code."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+CODE = """
+import sys
+import egcbf.checkpoint as ckpt
+assert "egcbf.algo.learner" not in sys.modules and "egcbf.nn" not in sys.modules, "metadata needs no networks"
+assert ckpt.read_config(sys.argv[1]).algo == "egcbf+"
+import egcbf.cli, egcbf.cli_demo, egcbf.cli_eval, egcbf.contour, egcbf.reproduce
+ctrl, cfg = ckpt.load_controller(sys.argv[1])
+net, _ = egcbf.contour.load_cbf(sys.argv[1])
+assert "egcbf.train" not in sys.modules, sorted(m for m in sys.modules if m.startswith("egcbf"))
+print("OK")
+"""
+
+
+def test_loading_checkpoints_does_not_import_the_trainer():
+    res = subprocess.run(
+        [sys.executable, "-c", CODE, str(ROOT / "checkpoints" / "egcbf+")], capture_output=True, text=True, timeout=300
+    )
+    assert res.returncode == 0 and "OK" in res.stdout, res.stdout + res.stderr

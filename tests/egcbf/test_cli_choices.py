@@ -1,0 +1,98 @@
+"""The command line's fixed choices are enums: they agree with the library's registries, `--help` lists them, a value
+outside them is one `Error:` line naming the flag and the choices, and the commands pass plain strings on."""
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from egcbf import cli
+from egcbf.cli_choices import Backend, Controller, DemoMethod, Dtype, LearnedMethod, Preset, choice_error
+from egcbf.cli_eval import DTYPES
+from egcbf.config import LEARNED_METHODS, PRESETS
+from egcbf.control.controllers import CONTROLLERS
+from egcbf.reproduce.plan import BACKENDS
+
+OPTIONS = [  # (command, flag, enum)
+    ("eval", "--controller", Controller),
+    ("eval", "--dtype", Dtype),
+    ("demo", "--method", DemoMethod),
+    ("train", "--algo", LearnedMethod),
+    ("train", "--preset", Preset),
+    ("reproduce", "--backend", Backend),
+]
+
+
+def _values(enum) -> list[str]:
+    return [m.value for m in enum]
+
+
+def test_the_choices_are_the_library_registries():
+    assert _values(Controller) == list(CONTROLLERS)
+    assert _values(LearnedMethod) == list(LEARNED_METHODS)
+    assert _values(DemoMethod) == [*LEARNED_METHODS, *CONTROLLERS]
+    assert _values(Preset) == list(PRESETS)
+    assert _values(Dtype) == list(DTYPES)
+    assert _values(Backend) == list(BACKENDS)
+    for enum in (Controller, LearnedMethod, DemoMethod, Preset, Dtype, Backend):
+        assert all(isinstance(m, str) and json.dumps(m) == json.dumps(m.value) for m in enum)
+
+
+@pytest.mark.parametrize("command, flag, enum", OPTIONS)
+def test_help_lists_the_choices(command, flag, enum):
+    res = CliRunner().invoke(cli.app, [command, "--help"], env={"COLUMNS": "400"})
+    assert res.exit_code == 0, res.output
+    line = next(line for line in res.output.splitlines() if f" {flag} " in line)
+    assert "|".join(_values(enum)) in line, line
+
+
+@pytest.mark.parametrize("command, flag, enum", OPTIONS)
+def test_a_value_outside_the_choices_is_one_error_line(command, flag, enum, monkeypatch, capsys):
+    monkeypatch.delenv("EGCBF_DEBUG", raising=False)
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([command, flag, "bogus"])
+    err = capsys.readouterr().err.strip()
+    res = CliRunner().invoke(cli.app, [command, flag, "bogus"], env={"COLUMNS": "400"})
+    for code, text in ((exit_.value.code, err), (res.exit_code, res.output.strip())):
+        assert code == 2 and text.startswith("Error: ") and len(text.splitlines()) == 1, text
+        assert f"{flag}: unknown" in text and "'bogus'" in text and "╭" not in text
+        assert "choose one of " + ", ".join(_values(enum)) in text, text
+    assert f"see `egcbf {command} --help`" in err
+
+
+def test_choice_error_reads_the_messages_of_typer_and_click():
+    assert choice_error("--algo", "algo", "Value error, 'x' is not one of 'gcbf', 'gcbf+'.") == (
+        "--algo: unknown algo 'x'; choose one of gcbf, gcbf+"
+    )
+    assert choice_error("--algo", "algo", "'x' is not one of 'gcbf', 'gcbf+'.").endswith("gcbf, gcbf+")
+    assert choice_error("--episodes", "episodes", "'x' is not a valid integer.") is None
+
+
+def test_the_commands_pass_plain_strings_on(monkeypatch, tmp_path):
+    """Library code and the configs saved beside checkpoints get strings, never enum members."""
+    import egcbf.cli_demo
+    import egcbf.reproduce
+    import egcbf.train
+
+    seen = {}
+    monkeypatch.setattr(cli, "run_eval", lambda **kw: seen.update(eval=kw))
+    monkeypatch.setattr(egcbf.train, "train", lambda config, out, **kw: seen.update(train=config))
+    monkeypatch.setattr(egcbf.cli_demo, "run_demo", lambda sources, **kw: seen.update(demo=sources))
+
+    def sweep_config(**kw):
+        seen["reproduce"] = kw
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(egcbf.reproduce, "SweepConfig", sweep_config)
+    run = CliRunner().invoke
+    assert run(cli.app, ["eval", "--controller", "ccbf", "--dtype", "float64", "--threads", "1"]).exit_code == 0
+    args = ["train", "--algo", "gcbf+", "--preset", "tiny", "--out", str(tmp_path / "run"), "--no-progress"]
+    assert run(cli.app, args).exit_code == 0
+    args = ["demo", "--method", "dcbf", "--compare", "none", "--out", str(tmp_path / "demo"), "--threads", "1"]
+    assert run(cli.app, args).exit_code == 0
+    assert run(cli.app, ["reproduce", "--backend", "ray", "--methods", "nominal"]).exit_code == 2
+    assert type(seen["eval"]["controller"]) is str and type(seen["eval"]["dtype"]) is str
+    config = seen["train"]
+    assert (type(config.algo), config.algo, type(config.group)) == (str, "gcbf+", str)
+    assert list(seen["demo"]) == ["dcbf"] and all(type(k) is str for k in seen["demo"])
+    assert type(seen["reproduce"]["backend"]) is str and seen["reproduce"]["backend"] == "ray"

@@ -37,7 +37,7 @@ from .cli_checks import (
     require,
     usage_error,
 )
-from .cli_choices import Backend, Controller, DemoMethod, Dtype, LearnedMethod, Preset, choice_error
+from .cli_choices import Backend, Controller, DemoMethod, Dtype, LearnedMethod, Preset, RobotName, choice_error
 from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval
 from .threads import choose_threads
 
@@ -163,8 +163,8 @@ def eval_cmd(
         bool, typer.Option("--overwrite", help="replace the results already in OUT (default: refuse to mix runs)")
     ] = False,
     robot: Annotated[
-        str | None,
-        typer.Option(help="quadrotor (default) | unicycle (planar); a --checkpoint's robot is its own"),
+        RobotName | None,
+        typer.Option(help="the robot of a --controller's swarm (default: quadrotor); a --checkpoint's is its own"),
     ] = None,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
@@ -188,7 +188,7 @@ def eval_cmd(
             threads_reason=reason,
             overwrite=overwrite,
             allocator=_ALLOCATOR,
-            robot=robot,
+            robot=None if robot is None else robot.value,
         )
 
 
@@ -328,7 +328,7 @@ def train(
     ] = False,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
     robot: Annotated[
-        str | None, typer.Option(help="quadrotor (default) | unicycle (planar: presets cpu and tiny)")
+        RobotName | None, typer.Option(help="the robot (default: quadrotor; the unicycle has the presets cpu and tiny)")
     ] = None,
 ) -> None:
     """Train GCBF, GCBF+, EGCBF or EGCBF+ (one learner; the group and the reference controller differ)."""
@@ -338,6 +338,7 @@ def train(
 
     algo = None if algo is None else algo.value
     preset = None if preset is None else preset.value
+    robot = None if robot is None else robot.value
     require(steps is None or steps >= 1, f"--steps must be >= 1, got {steps}")
     require(threads is None or threads >= 1, f"--threads must be >= 1, got {threads}")
     if tensorboard:

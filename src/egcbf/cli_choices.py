@@ -13,7 +13,7 @@ from __future__ import annotations
 import re
 from enum import Enum
 
-__all__ = ["Backend", "Controller", "DemoMethod", "Dtype", "LearnedMethod", "Preset", "choice_error"]
+__all__ = ["Backend", "Controller", "DemoMethod", "Dtype", "LearnedMethod", "Preset", "RobotName", "choice_error"]
 
 
 class Controller(str, Enum):
@@ -52,6 +52,13 @@ class Preset(str, Enum):
     cpu_torque = "cpu-torque"
     paper = "paper"
     tiny = "tiny"
+
+
+class RobotName(str, Enum):
+    """A robot (``egcbf.robots.ROBOTS``, the ones shipped): ``egcbf train --robot``, ``egcbf eval --robot``."""
+
+    quadrotor = "quadrotor"
+    unicycle = "unicycle"
 
 
 class Dtype(str, Enum):

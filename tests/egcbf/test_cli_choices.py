@@ -7,11 +7,12 @@ import pytest
 from typer.testing import CliRunner
 
 from egcbf import cli
-from egcbf.cli_choices import Backend, Controller, DemoMethod, Dtype, LearnedMethod, Preset, choice_error
+from egcbf.cli_choices import Backend, Controller, DemoMethod, Dtype, LearnedMethod, Preset, RobotName, choice_error
 from egcbf.cli_eval import DTYPES
 from egcbf.config import LEARNED_METHODS, PRESETS
 from egcbf.control.controllers import CONTROLLERS
 from egcbf.reproduce.plan import BACKENDS
+from egcbf.robots import ROBOTS
 
 OPTIONS = [  # (command, flag, enum)
     ("eval", "--controller", Controller),
@@ -34,7 +35,8 @@ def test_the_choices_are_the_library_registries():
     assert _values(Preset) == list(PRESETS)
     assert _values(Dtype) == list(DTYPES)
     assert _values(Backend) == list(BACKENDS)
-    for enum in (Controller, LearnedMethod, DemoMethod, Preset, Dtype, Backend):
+    assert _values(RobotName) == list(ROBOTS)
+    for enum in (Controller, LearnedMethod, DemoMethod, Preset, Dtype, Backend, RobotName):
         assert all(isinstance(m, str) and json.dumps(m) == json.dumps(m.value) for m in enum)
 
 

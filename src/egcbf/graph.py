@@ -150,9 +150,10 @@ class SwarmGraph:
         if self.robot.name != "quadrotor":
             raise ValueError(f"reflect_z is defined for quadrotor graphs, not for a {self.robot.name}")
         like = self.x_src
-        flip = torch.ones(NODE_DIM, dtype=like.dtype, device=like.device)
-        # channels (NODE_TYPE): kind 0:3 | v 3:6 | R 6:15 (row-major) | w 15:18
-        flip[[5, 6 + 2, 6 + 5, 6 + 6, 6 + 7, 15, 16]] = -1  # v_z; R_02, R_12, R_20, R_21; w_x, w_y
+        layout = self.robot.node_layout
+        v, r, w = layout.slice("v").start, layout.slice("R").start, layout.slice("w").start
+        flip = torch.ones(layout.dim, dtype=like.dtype, device=like.device)
+        flip[[v + 2, r + 2, r + 5, r + 6, r + 7, w, w + 1]] = -1  # v_z; R_02, R_12, R_20, R_21 (row-major); w_x, w_y
         vec = torch.tensor((1.0, 1.0, -1.0), dtype=like.dtype, device=like.device)
         frame = torch.tensor((1.0, 1.0, 1.0, 1.0, -1.0), dtype=like.dtype, device=like.device)
         return replace(
@@ -168,7 +169,7 @@ class SwarmGraph:
     def relative_velocity(self, edge_index: Tensor) -> Tensor:
         """``(E, d)`` world-frame ``v_sender - v_receiver`` of the edges ``edge_index`` (goals and hits: ``v = 0``),
         read from the node features (so it follows :func:`refresh_graph` and the edge-expanded Jacobian graph)."""
-        v = slice(3, 3 + self.robot.dim)  # node features: kind 0:3 | v (the robot's first node field) | ...
+        v = self.robot.node_layout.slice("v")
         return self.x_src[:, v].index_select(0, edge_index[0]) - self.x_dst[:, v].index_select(0, edge_index[1])
 
     def with_receivers(self, keep: Tensor) -> SwarmGraph:
@@ -193,10 +194,10 @@ class SwarmGraph:
         return SwarmGraph(**out)
 
 
-def _check_velocity_first(robot: Robot) -> None:
+def _check_velocity_field(robot: Robot) -> None:
     names = list(robot.node_fields)
-    if not names or names[0] != "v":
-        raise ValueError(f"{robot.name}: the first node field must be 'v' (world velocity), got {names}")
+    if "v" not in names:
+        raise ValueError(f"{robot.name}: the node fields must include 'v' (the world velocity), got {names}")
 
 
 def _device_of(args, kwargs, like: Tensor):
@@ -244,7 +245,7 @@ def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None
         lidar: a precomputed scan of ``state`` (e.g. from :meth:`SwarmEnv.lidar`); cast here if ``None``.
     """
     robot = state.robot
-    _check_velocity_first(robot)
+    _check_velocity_field(robot)
     x = state.x
     b, n, _ = x.shape
     d = robot.dim

@@ -24,6 +24,7 @@ the two implementations; ``examples/new_robot.py`` and docs/robots.md show how t
 
 from __future__ import annotations
 
+import functools
 from typing import Any, ClassVar
 
 import torch
@@ -31,6 +32,7 @@ from torch import Tensor
 
 from groupcanon import FeatureType, FieldType, Group
 from groupcanon.features import Scalar
+from groupcanon.groups import Trivial
 
 __all__ = ["Robot", "rk4_step"]
 
@@ -123,6 +125,12 @@ class Robot:
     def node_type(self, group: Group) -> FieldType:
         """The node features ``kind (3) | node_fields`` declared over ``group`` (the robot's, or the trivial one)."""
         return FieldType(group, {"kind": Scalar(3), **self.node_fields})
+
+    @functools.cached_property
+    def node_layout(self) -> FieldType:
+        """The node features' channel layout (over the trivial group): slice a field by name,
+        ``robot.node_layout.slice("v")``, instead of indexing channels by hand."""
+        return self.node_type(Trivial())
 
     def agent_features(self, x: Tensor) -> Tensor:
         """``(*batch, sum of node_fields dims)``: the agent node's features after the kind one-hot."""

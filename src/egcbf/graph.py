@@ -44,7 +44,7 @@ import torch
 from torch import Tensor
 
 from groupcanon import FieldType
-from groupcanon.features import Rotation, Scalar, Vector
+from groupcanon.features import Vector
 from groupcanon.groups import SE2xR
 
 from .env.lidar import LidarScan
@@ -68,7 +68,7 @@ __all__ = [
 
 #: the quadrotor's graph types (other robots: ``robot.node_type(group)``, ``FieldType(group, {"dp": Vector(d)})``)
 GROUP = SE2xR()
-NODE_TYPE = FieldType(GROUP, {"kind": Scalar(3), "v": Vector(3), "R": Rotation(), "w": Scalar(3)})
+NODE_TYPE = make_robot("quadrotor").node_type(GROUP)  # kind 3 | v 3 | R 9 | w 3 (declared by the robot)
 EDGE_TYPE = FieldType(GROUP, {"dp": Vector(3)})
 NODE_DIM = NODE_TYPE.dim  # 18
 KIND_AGENT, KIND_GOAL, KIND_HIT = 0, 1, 2

@@ -32,10 +32,11 @@ def test_shipped_checkpoint_loads_and_acts(path):
         assert (path / name).exists(), name
     assert json.loads((path / "state.json").read_text())["step"] >= 0
     ctrl, _ = load_controller(path)
-    env_cfg = EnvConfig(num_agents=4, num_envs=1, area_size=1.5, num_obstacles=1)
+    env_cfg = EnvConfig.for_robot(cfg.robot, num_agents=4, num_envs=1, area_size=1.5, num_obstacles=1)
     state = SwarmEnv(env_cfg).reset(0)
     u, info = ctrl(state, env_cfg)
-    assert u.shape == (1, 4, 4) and torch.isfinite(u).all() and info["num_failed"] == 0
+    k = env_cfg.make_robot().control_dim
+    assert u.shape == (1, 4, k) and torch.isfinite(u).all() and info["num_failed"] == 0
 
 
 @pytest.mark.parametrize("method", ["egcbf+", "gcbf+"])

@@ -11,6 +11,10 @@ machine). Cases:
 
     .venv/bin/python docs/gen_planar.py            # evaluate the missing cells, then write the table
     .venv/bin/python docs/gen_planar.py --table    # only the table, from docs/results/planar/
+    .venv/bin/python docs/gen_planar.py --gif      # also the side-by-side GIF docs/figures/planar_compare_N128.gif
+
+The GIF shows one episode (128 agents, l = 8 m, 16 obstacles, 600 steps, evaluation seed 31337) of the nominal
+controller, GCBF+ and EGCBF+ side by side.
 """
 
 from __future__ import annotations
@@ -107,7 +111,7 @@ def table() -> str:
             if row not in rows:
                 continue
 
-            def col(key: str, per_n=rows[row]) -> str:
+            def col(key: str, per_n=rows[row], sizes=sizes) -> str:
                 return " / ".join(f"{100 * per_n[n][key]:.1f}" if n in per_n else "-" for n in sizes)
 
             lines.append(f"| {LABELS[row]} | {col('safe_rate')} | {col('reach_rate')} | {col('success_rate')} |")
@@ -115,9 +119,39 @@ def table() -> str:
     return "\n".join(lines)
 
 
+def gif() -> Path:
+    """The side-by-side GIF of one planar episode (module doc)."""
+    import torch
+
+    from egcbf.checkpoint import load_controller
+    from egcbf.control.controllers import make_controller
+    from egcbf.evaluate import evaluate
+    from egcbf.render import render_comparison_gif
+
+    torch.set_num_threads(1)
+    controllers = {
+        "nominal controller": make_controller("nominal"),
+        "GCBF+ (ours)": load_controller(REPO / "checkpoints/unicycle/gcbf+")[0],
+        "EGCBF+ (ours)": load_controller(REPO / "checkpoints/unicycle/egcbf+")[0],
+    }
+    panels, first = {}, None
+    for label, ctrl in controllers.items():
+        _, records = evaluate(
+            lambda cfg, ctrl=ctrl: ctrl, [128], robot="unicycle", area_size=8.0, num_obstacles=16, episodes=1,
+            seed=SEED, max_steps=600, record=True, show_progress=False,
+        )  # fmt: skip
+        rec = records[128]
+        panels[label] = (torch.stack(rec.positions), torch.stack(rec.collided))
+        first = first or rec
+    out = ROOT / "figures" / "planar_compare_N128.gif"
+    title = "planar unicycles, N = 128, l = 8 m, 16 obstacles, one episode (red: colliding)"
+    return render_comparison_gif(out, panels, first.goals, first.centers, first.radii, area_size=8.0, title=title)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--table", action="store_true", help="only write the table from the stored cells")
+    parser.add_argument("--gif", action="store_true", help="also render docs/figures/planar_compare_N128.gif")
     parser.add_argument("--rows", default=",".join(ROWS), help=f"rows to evaluate, comma list of {list(ROWS)}")
     args = parser.parse_args()
     rows = [r for r in args.rows.split(",") if r]
@@ -131,6 +165,8 @@ def main() -> None:
 
     replace_section(ROOT / "robots.md", "planar-results", table(), heading="## Results")
     print(f"wrote the 'planar-results' section of {ROOT / 'robots.md'}")
+    if args.gif:
+        print(f"wrote {gif()}")
 
 
 if __name__ == "__main__":

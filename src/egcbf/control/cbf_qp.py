@@ -99,8 +99,8 @@ class CBFQPConfig:
         penalty: slack cost ``1/2 w2 s^2 + w1 s`` (s in m/s^2).
         solver: centralized sparse solver: ``"piqp"`` (default, fastest measured), ``"proxsuite"``, ``"osqp"``,
             ``"clarabel"``. ``fallback_solver`` is tried when it fails.
-        dcbf_solver: per-agent QPs: ``"ipm"`` (vectorized interior point + polishing, default, fastest measured) or
-            ``"proxsuite"`` (``dense.BatchQP`` + ``solve_in_parallel``).
+        dcbf_solver: per-agent QPs: ``"ipm"`` (batched interior point + polishing, on the state's device; default,
+            fastest measured at N = 512) or ``"proxsuite"`` (``dense.BatchQP`` + ``solve_in_parallel``).
         eps_abs: absolute primal/dual tolerance (m/s^2). ``max_iter``: iteration cap per solve.
         slack_tol: a QP "needs slack" when some slack exceeds this (m/s^2); also the feasibility check tolerance.
         gains, max_position_error: the nominal controller's (position loop and attitude loop).

@@ -11,6 +11,7 @@ decentralized CBF-QP baseline (:func:`egcbf.control.dense_qp.solve_dense_batch_i
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -27,39 +28,41 @@ def _mv(a: Tensor, x: Tensor) -> Tensor:
     return (a @ x[..., None])[..., 0]
 
 
-def _cols_mv(cols: tuple[Tensor, ...], x: Tensor) -> Tensor:
-    """``A @ x`` from the columns ``cols`` of ``A`` (``c`` tensors ``(M, r)``) and ``x`` ``(M, c)``: for small ``c``
-    a chain of ``c`` fused multiply-adds is faster than a batched matrix product."""
-    out = cols[0] * x[:, :1]
-    for j in range(1, len(cols)):
-        out = torch.addcmul(out, cols[j], x[:, j : j + 1])
+def _cols_mv(cols: tuple[Tensor, ...], x: Tensor, init: Tensor | None = None) -> Tensor:
+    """``init + A @ x`` from the columns ``cols`` of ``A`` (``c`` tensors ``(M, r)``) and ``x`` ``(M, c)``: for
+    small ``c`` a chain of ``c`` fused multiply-adds is faster than a batched matrix product."""
+    xs = x.unbind(-1)
+    out = cols[0] * xs[0][:, None] if init is None else torch.addcmul(init, cols[0], xs[0][:, None])
+    for col, xj in zip(cols[1:], xs[1:]):
+        out = torch.addcmul(out, col, xj[:, None])
     return out
 
 
-@dataclass
-class _DenseNewton:
+class _DenseNewton(NamedTuple):
     g_cols: tuple[Tensor, ...]  # the n columns of G, (M, m) each
     gt: Tensor  # G' (M, n, m), contiguous
     chol: Tensor  # (M, n, n) Cholesky factor of P + G' W G + 1e-14 I
     w: Tensor  # z / s (M, m)
-    r_d: Tensor
+    neg_r_d: Tensor  # -r_d (M, n, 1)
     r_p: Tensor
     s: Tensor
     z: Tensor
 
     def direction(self, rc: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        t = self.r_p + rc / self.z
-        dx = torch.cholesky_solve((-self.r_d - _mv(self.gt, self.w * t))[..., None], self.chol)[..., 0]
-        dz = self.w * (_cols_mv(self.g_cols, dx) + t)
-        return dx, (rc - self.s * dz) / self.z, dz
+        t = torch.addcdiv(self.r_p, rc, self.z)  # r_p + rc / z
+        rhs = torch.baddbmm(self.neg_r_d, self.gt, (self.w * t)[..., None], alpha=-1.0)  # -r_d - G' W t
+        dx = torch.cholesky_solve(rhs, self.chol)[..., 0]
+        dz = self.w * _cols_mv(self.g_cols, dx, init=t)  # W (G dx + t)
+        return dx, torch.addcmul(rc, self.s, dz, value=-1.0) / self.z, dz  # ds = (rc - s dz) / z
 
 
 @dataclass
 class DenseKKT:
     """Dense batch ``P`` ``(n, n)`` (shared) or ``(M, n, n)``, ``q`` ``(M, n)``, ``G`` ``(M, m, n)``, ``h``
     ``(M, m)`` as a :class:`egcbf.control.ipm.KKTSystem`: ``dual_scale = 1 + |q|_inf``,
-    ``primal_scale = 1 + |h|_inf`` over the finite entries of ``h`` (below ``INF / 2``). ``GT`` is ``G'``
-    ``(M, n, m)``, stored contiguously (its rows are the columns of ``G``: faster products at small ``n``)."""
+    ``primal_scale = 1 + |h|_inf`` over the finite entries of ``h`` (below ``INF / 2``). Also kept: ``G'``
+    ``(M, n, m)`` contiguous, whose rows are the columns of ``G`` (faster products at small ``n``), and
+    ``P + 1e-14 I`` (the Newton matrix's regularized Hessian)."""
 
     P: Tensor
     q: Tensor
@@ -68,10 +71,7 @@ class DenseKKT:
     h: Tensor
     dual_scale: Tensor
     primal_scale: Tensor
-
-    @property
-    def _g_cols(self) -> tuple[Tensor, ...]:
-        return self.GT.unbind(1)
+    p_reg: Tensor
 
     @classmethod
     def build(cls, P: Tensor, q: Tensor, G: Tensor, h: Tensor) -> DenseKKT:
@@ -80,18 +80,21 @@ class DenseKKT:
         dual = 1.0 + q.abs().amax(-1) if n else q.new_ones(m_)
         hf = torch.where(h.abs() < INF / 2, h.abs(), torch.zeros_like(h))
         primal = 1.0 + (hf.amax(-1) if h.shape[-1] else h.new_zeros(m_))
-        return cls(P, q, G, G.transpose(-1, -2).contiguous(), h, dual, primal)
+        p_reg = P + 1e-14 * torch.eye(n, dtype=P.dtype, device=P.device)
+        return cls(P, q, G, G.transpose(-1, -2).contiguous(), h, dual, primal, p_reg)
 
     def take(self, idx: Tensor) -> DenseKKT:
-        P = self.P if self.P.dim() == 2 else self.P[idx]
-        rest = (t[idx] for t in (self.q, self.G, self.GT, self.h, self.dual_scale, self.primal_scale))
-        return DenseKKT(P, *rest)
+        P, p_reg = (self.P, self.p_reg) if self.P.dim() == 2 else (self.P[idx], self.p_reg[idx])
+        q, G, GT, h, dual, primal = (
+            t[idx] for t in (self.q, self.G, self.GT, self.h, self.dual_scale, self.primal_scale)
+        )
+        return DenseKKT(P, q, G, GT, h, dual, primal, p_reg)
 
     def p_mul(self, x: Tensor) -> Tensor:
         return x @ self.P.mT if self.P.dim() == 2 else _mv(self.P, x)
 
     def g_mul(self, x: Tensor) -> Tensor:
-        return _cols_mv(self._g_cols, x)
+        return _cols_mv(self.GT.unbind(1), x)
 
     def gt_mul(self, z: Tensor) -> Tensor:
         return _mv(self.GT, z)
@@ -99,10 +102,10 @@ class DenseKKT:
     def newton(self, s: Tensor, z: Tensor, r_d: Tensor, r_p: Tensor) -> tuple[_DenseNewton, Tensor]:
         w = z / s
         n = self.P.shape[-1]
-        reg = (self.P + 1e-14 * torch.eye(n, dtype=s.dtype, device=s.device)).expand(s.shape[0], n, n)
-        chol, info = torch.linalg.cholesky_ex(torch.baddbmm(reg, self.GT * w[:, None, :], self.G))
+        k = torch.baddbmm(self.p_reg.expand(s.shape[0], n, n), self.GT * w[:, None, :], self.G)
+        chol, info = torch.linalg.cholesky_ex(k)
         # (a NaN pivot fails the factorization; other non-finite entries give a non-finite step: both stop the QP)
-        return _DenseNewton(self._g_cols, self.GT, chol, w, r_d, r_p, s, z), info == 0
+        return _DenseNewton(self.GT.unbind(1), self.GT, chol, w, -r_d[..., None], r_p, s, z), info == 0
 
 
 def polish_dense(

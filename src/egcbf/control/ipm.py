@@ -54,7 +54,7 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
-__all__ = ["INF", "IPMResult", "IPMSettings", "KKTSystem", "NewtonSystem", "max_step", "solve_ipm"]
+__all__ = ["INF", "IPMResult", "IPMSettings", "KKTSystem", "NewtonSystem", "solve_ipm"]
 
 INF = 1e20  # "no bound" (proxsuite's and OSQP's convention); DenseKKT leaves such entries of h out of its scale
 
@@ -158,10 +158,10 @@ class IPMResult:
     passes: Tensor
 
 
-def max_step(v: Tensor, dv: Tensor) -> Tensor:
-    """Largest ``a`` in ``(0, 1]`` with ``v + a dv >= 0``, per row: ``(B, k), (B, k) -> (B, 1)``."""
-    ratio = torch.where(dv < 0, -v / dv, torch.inf)  # the other entries are never used
-    return ratio.amin(-1, keepdim=True).clamp(max=1.0) if ratio.shape[-1] else torch.ones_like(v[..., :1])
+def _max_step(neg_v: Tensor, dv: Tensor) -> Tensor:
+    """Largest ``a`` in ``(0, 1]`` with ``v + a dv >= 0``, per row, from ``-v`` and ``dv`` ``(B, k)``: ``(B, 1)``."""
+    ratio = torch.where(dv < 0, neg_v / dv, torch.inf)  # the other entries are never used
+    return ratio.amin(-1, keepdim=True).clamp(max=1.0) if ratio.shape[-1] else torch.ones_like(dv[..., :1])
 
 
 def _amax(t: Tensor) -> Tensor:
@@ -201,17 +201,21 @@ def _solve(kkt: KKTSystem, x0: Tensor, z0: Tensor, settings: IPMSettings) -> IPM
     s0 = (kkt.h - kkt.g_mul(x0)).clamp_min(st.min_slack)
     # the iterate (x, s, z) as one tensor (B, n + 2m): fewer operations per iteration on small problems
     v = torch.cat((x0, s0, z0), -1)
-    out = v.clone()  # the returned iterate of each problem, written when it stops
+    # per problem: the returned iterate, converged, Newton steps attempted, passes that count (written at its stop)
+    out = v.clone()
     converged = torch.zeros(b, dtype=torch.bool, device=dev)
     iters = torch.zeros(b, dtype=torch.int64, device=dev)
-    passes = torch.zeros((), dtype=torch.int64, device=dev)
+    counted = torch.zeros(b, dtype=torch.int64, device=dev)
     tols = torch.tensor([feas_tol, feas_tol, st.tol], dtype=dtype, device=dev)
-    # the working set, compacted as problems stop
+    # the working set: a problem that stops is frozen (it no longer moves; what it returns is recorded), and the
+    # frozen problems are dropped once they are a quarter of the set (fewer gathers than dropping them at once)
     idx = torch.arange(b, device=dev)
     w = kkt
     best = torch.full((b,), torch.inf, dtype=dtype, device=dev)
     bv = v
     broken = torch.zeros(b, dtype=torch.bool, device=dev)
+    frozen = torch.zeros(b, dtype=torch.bool, device=dev)
+    conv_w, iters_w, counted_w = converged, iters, counted
     for k in range(st.max_iter + 1 if b else 0):
         x, s, z = v.split((n, m, m), -1)
         gx, px, gz = w.g_mul(x), w.p_mul(x), w.gt_mul(z)
@@ -222,10 +226,12 @@ def _solve(kkt: KKTSystem, x0: Tensor, z0: Tensor, settings: IPMSettings) -> IPM
         dual_scale = w.dual_scale
         if st.dual_relative:
             dual_scale = torch.maximum(dual_scale, _amax(torch.cat((px, gz), -1).abs()))
-        e_d = _amax(r_d.abs()) / dual_scale
-        e_p = _amax((gx - w.h).clamp_min(0.0) if st.primal_violation else r_p.abs()) / w.primal_scale
-        e_c = mu[:, 0] / w.dual_scale if st.gap_relative else mu[:, 0]
-        err = torch.stack((e_d, e_p, e_c), -1)  # (B, 3): dual, primal, gap
+        e_p = (gx - w.h).clamp_min(0.0) if st.primal_violation else r_p.abs()
+        num = torch.stack((_amax(r_d.abs()), _amax(e_p), mu[:, 0]), -1)
+        den = torch.stack(
+            (dual_scale, w.primal_scale, w.dual_scale if st.gap_relative else torch.ones_like(mu[:, 0])), -1
+        )
+        err = num / den  # (B, 3): dual, primal, gap
         done = (err <= tols).all(-1) & ~broken
         ok = done
         if st.best_iterate:
@@ -239,43 +245,46 @@ def _solve(kkt: KKTSystem, x0: Tensor, z0: Tensor, settings: IPMSettings) -> IPM
                 ok = done | (err <= st.loose_tol).all(-1)
         # a problem stops when it has converged, after a breakdown (flagged at the previous pass and not moved
         # since: it counts up to that pass), or after max_iter steps; it has then attempted k steps
-        stop = done | broken
-        if k == st.max_iter:
-            stop = torch.ones_like(stop)
-        keep = (~stop).nonzero()[:, 0]
-        if keep.numel() < idx.numel():  # (a shape test after the synchronization above: no extra one)
-            gone = stop.nonzero()[:, 0]
+        stop = done | broken | frozen if k < st.max_iter else torch.ones_like(done)
+        new = stop & ~frozen
+        conv_w = torch.where(new, ok, conv_w)
+        iters_w = torch.where(new, k, iters_w)
+        counted_w = torch.where(new, k + 1 - broken.long(), counted_w)
+        frozen = stop
+        num_frozen = int(frozen.sum())  # (the one synchronization per iteration)
+        if 4 * num_frozen >= idx.numel():  # record and drop the frozen problems
+            gone = frozen.nonzero()[:, 0]
             sel = idx[gone]
-            out[sel], converged[sel], iters[sel] = bv[gone], ok[gone], k
-            passes = torch.maximum(passes, (k + 1 - broken[gone].long()).amax())
-            if keep.numel() == 0:
+            out[sel], converged[sel], iters[sel], counted[sel] = bv[gone], conv_w[gone], iters_w[gone], counted_w[gone]
+            if num_frozen == idx.numel():
                 break
-            idx = idx[keep]
-            w = w.take(keep)
+            keep = (~frozen).nonzero()[:, 0]
+            idx, w = idx[keep], w.take(keep)
             v, bv, best, sz, r_d, r_p, mu = v[keep], bv[keep], best[keep], sz[keep], r_d[keep], r_p[keep], mu[keep]
+            conv_w, iters_w, counted_w, frozen = conv_w[keep], iters_w[keep], counted_w[keep], frozen[keep]
             x, s, z = v.split((n, m, m), -1)
 
         sys_, factored = w.newton(s, z, r_d, r_p)
-        s_z = v[:, n:]
+        neg_sz = -v[:, n:]  # -(s, z)
         # predictor (affine scaling)
         _, ds, dz = sys_.direction(-sz)
-        alpha = max_step(s_z, torch.cat((ds, dz), -1))
+        alpha = _max_step(neg_sz, torch.cat((ds, dz), -1))
         mu_aff = ((s + alpha * ds) * (z + alpha * dz)).sum(-1, keepdim=True) / mm
         sigma = (mu_aff / mu.clamp_min(floor)).clamp(0.0, st.sigma_max) ** 3
         # corrector
         d = torch.cat(sys_.direction(sigma * mu - sz - ds * dz), -1)
-        alpha = 0.99 * max_step(s_z, d[:, n:])
+        alpha = 0.99 * _max_step(neg_sz, d[:, n:])
+        vn = v + alpha * d
+        vn[:, n:].clamp_min_(floor)  # (never binds from positive (s, z): a step keeps 1% of each)
         if st.safeguard:  # a centred step where the corrected one reduces mean(s z) too little
-            _, ds, dz = d.split((n, m, m), -1)
-            mu_new = ((s + alpha * ds) * (z + alpha * dz)).sum(-1, keepdim=True) / mm
-            weak = mu_new > (1.0 - 0.1 * alpha) * mu
+            mu_new = (vn[:, n : n + m] * vn[:, n + m :]).sum(-1, keepdim=True) / mm
+            weak = (mu_new > (1.0 - 0.1 * alpha) * mu) & ~frozen[:, None]
             if bool(weak.any()):  # (only then: the work is skipped, the results are the same)
                 c = torch.cat(sys_.direction(sigma.clamp(min=0.1) * mu - sz), -1)
-                d = torch.where(weak, c, d)
-                alpha = torch.where(weak, 0.99 * max_step(s_z, c[:, n:]), alpha)
-        vn = v + alpha * d
-        vn[:, n:].clamp_min_(floor)
+                vc = v + 0.99 * _max_step(neg_sz, c[:, n:]) * c
+                vc[:, n:].clamp_min_(floor)
+                vn = torch.where(weak, vc, vn)
         broken = ~(factored & torch.isfinite(vn.sum(-1)))  # (a non-finite entry makes the sum non-finite)
-        v = torch.where(broken[:, None], v, vn)
+        v = torch.where((broken | frozen)[:, None], v, vn)
     x, s, z = out.split((n, m, m), -1)
-    return IPMResult(x, s, z, converged, iters, passes)
+    return IPMResult(x, s, z, converged, iters, counted.amax() if b else counted.new_zeros(()))

@@ -177,7 +177,7 @@ def solve_ipm(kkt: KKTSystem, x0: Tensor, z0: Tensor, settings: IPMSettings = IP
 
     Mehrotra predictor-corrector: the affine direction ``rc = -s z`` gives the step ``alpha_aff`` and
     ``sigma = (mu_aff / mu)^3``; the corrected direction ``rc = sigma mu - s z - ds_aff dz_aff`` is taken with
-    ``0.99`` of the largest step that keeps ``s, z >= 0`` (floored at ``max(1e-300, tiny)``). A problem whose
+    ``0.99`` of the largest step that keeps ``s, z >= 0`` (floored at ``1e-300``). A problem whose
     next iterate has a non-finite entry (seen through the sum of its entries) keeps its current one and stops.
     """
     if x0.dtype != torch.float64 or kkt.h.dtype != torch.float64:
@@ -275,8 +275,8 @@ def _solve(kkt: KKTSystem, x0: Tensor, z0: Tensor, settings: IPMSettings) -> IPM
         d = torch.cat(sys_.direction(sigma * mu - sz - ds * dz), -1)
         alpha = 0.99 * _max_step(neg_sz, d[:, n:])
         vn = v + alpha * d
-        vn[:, n:].clamp_min_(floor)  # (never binds from positive (s, z): a step keeps 1% of each)
-        if st.safeguard:  # a centred step where the corrected one reduces mean(s z) too little
+        vn[:, n:].clamp_min_(floor)  # (a step keeps 1% of each positive entry: this only lifts exact zeros)
+        if st.safeguard:  # a centred step where the corrected one reduces mean(s z) too little (z0 > 0 here)
             mu_new = (vn[:, n : n + m] * vn[:, n + m :]).sum(-1, keepdim=True) / mm
             weak = (mu_new > (1.0 - 0.1 * alpha) * mu) & ~frozen[:, None]
             if bool(weak.any()):  # (only then: the work is skipped, the results are the same)

@@ -9,7 +9,7 @@ reported, with the number of CBF rows, the steps whose QP needed slack and the f
 Solver comparison (centralized QP): on ``--snapshots`` states of the cCBF-QP rollout, the same assembled sparse QP
 is solved by every installed solver (PIQP, ProxQP sparse, OSQP, Clarabel; native Python APIs, same tolerance
 1e-7, no warm start) and the median solve time (setup + solve) is reported, with the largest distance to PIQP's
-solution. The per-agent QPs are solved by the vectorized interior-point method and by proxsuite's
+solution. The per-agent QPs are solved by the batched interior-point method (torch, on the CPU) and by proxsuite's
 ``dense.BatchQP`` + ``solve_in_parallel`` on the same states.
 
     .venv/bin/python benchmarks/qp_scaling.py                 # writes docs/benchmarks.md (a few minutes, 2 cores)
@@ -34,14 +34,8 @@ import torch
 
 from egcbf.control.barriers import build_constraints, split_for_agents
 from egcbf.control.cbf_qp import CentralizedCBFQP, DecentralizedCBFQP
-from egcbf.control.qp import (
-    SOLVERS,
-    assemble_centralized,
-    assemble_decentralized,
-    solve_dense_batch,
-    solve_dense_batch_ipm,
-    solve_sparse,
-)
+from egcbf.control.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
+from egcbf.control.qp import SOLVERS, assemble_centralized, solve_sparse
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.report import replace_section
 

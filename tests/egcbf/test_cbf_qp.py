@@ -26,16 +26,14 @@ from egcbf.control.cbf_qp import (
     track_acceleration,
 )
 from egcbf.control.controllers import NominalController, make_controller
+from egcbf.control.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
 from egcbf.control.nominal import nominal_control
 from egcbf.control.qp import (
     INF,
     SOLVERS,
     SlackPenalty,
     assemble_centralized,
-    assemble_decentralized,
     dense_reference,
-    solve_dense_batch,
-    solve_dense_batch_ipm,
     solve_sparse,
 )
 from egcbf.dynamics import quadrotor as dyn

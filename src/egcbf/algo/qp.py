@@ -15,10 +15,11 @@ edge reads its own copy of its sender's state, so the gradient of ``sum_i h_i`` 
 separates into every ``dh_i/dx_j`` (:func:`cbf_jacobian`). Entries for agents outside ``i``'s neighbourhood are
 exactly zero. GCBF+'s constants: ``alpha`` = 0.1 times the loss's class-K slope, ``w1 = 1e3``, ``w2 = 10``.
 
-The QP is always feasible (the slack absorbs conflicts; the box contains the clipped reference). It is solved by a
-primal-dual interior-point method (Mehrotra predictor-corrector) batched over environments, in float64, that uses
-the problem's structure (one ``kN x kN`` Cholesky per iteration; ``_solve_structured``). It runs on the device of
-the data (CPU or GPU), with no host round trip; checked against proxsuite in the tests.
+The QP is always feasible (the slack absorbs conflicts; the box contains the clipped reference). It is solved by
+the batched primal-dual interior-point method of :mod:`egcbf.control.ipm` (Mehrotra predictor-corrector; the
+environments of a chunk advance together), in float64, with the Newton linear algebra of :class:`CBFQPKKT`, which
+uses the problem's structure (one ``kN x kN`` Cholesky per environment and iteration). It runs on the device of the
+data (CPU or GPU); checked against proxsuite in the tests.
 """
 
 from __future__ import annotations
@@ -29,15 +30,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from ..control.ipm import IPMSettings, solve_ipm
 from ..graph import SwarmGraph, with_agent_states
 
-__all__ = ["CBFQPResult", "cbf_jacobian", "solve_cbf_qp"]
-
-
-def _max_step(v: Tensor, dv: Tensor) -> Tensor:
-    """Largest ``a`` in ``(0, 1]`` with ``v + a dv >= 0`` per batch row."""
-    ratio = torch.where(dv < 0, -v / torch.where(dv < 0, dv, -torch.ones_like(dv)), torch.full_like(v, torch.inf))
-    return ratio.amin(-1).clamp(max=1.0)
+__all__ = ["CBFQPKKT", "CBFQPResult", "cbf_jacobian", "solve_cbf_qp"]
 
 
 # ------------------------------------------------------------------------------------------ the CBF Jacobian
@@ -66,88 +62,75 @@ def cbf_jacobian(cbf: nn.Module, graph: SwarmGraph, x: Tensor) -> tuple[Tensor, 
 
 
 # ------------------------------------------------------------------------------------------ the learned CBF-QP
-def _solve_structured(
-    a: Tensor, b: Tensor, u_ref: Tensor, lo: Tensor, hi: Tensor, w1: float, w2: float, tol: float, max_iter: int
-) -> tuple[Tensor, Tensor, Tensor, int]:
-    """Interior point for ``min 1/2 ||u - u_ref||^2 + 1/2 w2 ||s||^2 + w1 1's``
-    s.t. ``a u + s >= -b``, ``s >= 0``, ``lo <= u <= hi``; ``a`` ``(B, n, nu)``, ``b`` ``(B, n)``.
+@dataclass
+class CBFQPKKT:
+    """The learned-CBF QPs of ``B`` environments as a :class:`egcbf.control.ipm.KKTSystem`, variables
+    ``x = (u (nu), s (n))``::
 
-    Primal-dual Mehrotra predictor-corrector, with the Newton system solved through its structure: the slack
-    block is diagonal and is eliminated, leaving ``K_u = D_u + a' W a`` (``D_u`` diagonal: the Hessian and the box
-    rows; ``W`` diagonal, written without forming the CBF rows' weights or their inverses alone, which span ~30
-    orders of magnitude near convergence), one ``nu x nu`` Cholesky per problem and iteration. Each iteration works
-    on the problems not yet converged only, and each problem returns its best iterate by the merit
-    ``max(dual residual / (1 + max(|u_ref|, w1)), primal residual / (1 + |h|), mean complementarity)``; converged
-    means merit ``<= tol``. Returns ``(u, s, converged, iterations)``.
+        min 1/2 ||u - u_ref||^2 + 1/2 w2 ||s||^2 + w1 1's   s.t.  a u + s >= -b,  s >= 0,  lo <= u <= hi
+
+    with ``a`` ``(B, n, nu)``, ``b`` ``(B, n)``, ``u_ref`` ``(B, nu)``, ``lo, hi`` ``(nu,)`` or ``(B, nu)``; the
+    rows of ``G x <= h`` are stacked as (CBF ``(n)``, ``s >= 0`` ``(n)``, ``u <= hi`` ``(nu)``, ``-u <= -lo``
+    ``(nu)``). The Newton system is solved through its structure: the slack block is diagonal and is eliminated,
+    leaving ``K_u = D_u + a' W a`` (``D_u`` diagonal: the Hessian and the box rows; ``W`` diagonal, written without
+    forming the CBF rows' weights or their inverses alone, which span ~30 orders of magnitude near convergence),
+    one ``nu x nu`` Cholesky per problem and iteration. ``dual_scale = 1 + max(|u_ref|_inf, w1, 1)``,
+    ``primal_scale = 1 + |h|_inf``.
     """
-    bsz, n, nu = a.shape
-    lo_b, hi_b = lo.expand(bsz, nu), hi.expand(bsz, nu)
-    hvec = torch.cat((b, torch.zeros_like(b), hi_b, -lo_b), -1)
-    m = hvec.shape[-1]
-    # start near the reference control (inside the box), with a small slack priced at its multiplier w1
-    mid = (lo_b + hi_b) / 2
-    u = mid + 0.9 * (u_ref - mid)
-    s = torch.full_like(b, 0.1)
-    t = (hvec - _g_mul(a, u, s)).clamp_min(0.1)
-    y = torch.ones_like(hvec)
-    y[:, n : 2 * n] = w1
-    qn = 1 + torch.maximum(u_ref.abs().amax(-1), torch.full_like(b[:, 0], max(w1, 1.0)))
-    hn = 1 + hvec.abs().amax(-1)
-    done = torch.zeros(bsz, dtype=torch.bool, device=a.device)
-    failed = torch.zeros_like(done)
-    best = torch.full_like(b[:, 0], torch.inf)
-    best_u, best_s = u.clone(), s.clone()
-    it = 0
-    for it in range(1, max_iter + 1):  # noqa: B007
-        idx = (~done & ~failed).nonzero()[:, 0]
-        if idx.numel() == 0:
-            break
-        a_, ur_, hv_ = a[idx], u_ref[idx], hvec[idx]
-        u_, s_, t_, y_ = u[idx], s[idx], t[idx], y[idx]
-        at_ = a_.transpose(-1, -2)
-        gu, gs = _gt_mul(at_, y_, n, nu)
-        rdu = u_ - ur_ + gu
-        rds = w2 * s_ + w1 + gs
-        rp = _g_mul(a_, u_, s_) + t_ - hv_
-        mu = (t_ * y_).sum(-1) / m
-        rd_max = torch.maximum(rdu.abs().amax(-1), rds.abs().amax(-1))
-        merit = torch.maximum(torch.maximum(rd_max / qn[idx], rp.abs().amax(-1) / hn[idx]), mu)
-        ok = merit <= tol
-        done[idx] = ok
-        better = merit < best[idx]  # keep the best iterate: near convergence rounding can make the iteration drift
-        best[idx] = torch.where(better, merit, best[idx])
-        best_u[idx] = torch.where(better[:, None], u_, best_u[idx])
-        best_s[idx] = torch.where(better[:, None], s_, best_s[idx])
-        w = y_ / t_
+
+    a: Tensor
+    q: Tensor
+    h: Tensor
+    dual_scale: Tensor
+    primal_scale: Tensor
+    w2: float
+
+    @classmethod
+    def build(cls, a: Tensor, b: Tensor, u_ref: Tensor, lo: Tensor, hi: Tensor, w1: float, w2: float) -> CBFQPKKT:
+        bsz, _, nu = a.shape
+        hvec = torch.cat((b, torch.zeros_like(b), hi.expand(bsz, nu), -lo.expand(bsz, nu)), -1)
+        q = torch.cat((-u_ref, torch.full_like(b, w1)), -1)
+        qn = 1 + torch.maximum(u_ref.abs().amax(-1), torch.full_like(b[:, 0], max(w1, 1.0)))
+        return cls(a, q, hvec, qn, 1 + hvec.abs().amax(-1), w2)
+
+    def take(self, idx: Tensor) -> CBFQPKKT:
+        a, q, h, dual, primal = (t[idx] for t in (self.a, self.q, self.h, self.dual_scale, self.primal_scale))
+        return CBFQPKKT(a, q, h, dual, primal, self.w2)
+
+    def _split(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        return x.split((self.a.shape[-1], self.a.shape[-2]), -1)
+
+    def p_mul(self, x: Tensor) -> Tensor:
+        u, s = self._split(x)
+        return torch.cat((u, self.w2 * s), -1)
+
+    def g_mul(self, x: Tensor) -> Tensor:
+        return _g_mul(self.a, *self._split(x))
+
+    def gt_mul(self, z: Tensor) -> Tensor:
+        n, nu = self.a.shape[-2:]
+        return torch.cat(_gt_mul(self.a.transpose(-1, -2), z, n, nu), -1)
+
+    def newton(self, t: Tensor, y: Tensor, r_d: Tensor, r_p: Tensor) -> tuple[_Newton, Tensor]:
+        """Factor ``K_u`` at the slacks ``t`` and multipliers ``y`` ``(B, 2n + 2nu)``."""
+        a = self.a
+        n, nu = a.shape[-2:]
+        at = a.transpose(-1, -2)
+        w = y / t
         _, w2v, w3v, w4v = w.split((n, n, nu, nu), -1)
-        w1_inv = t_[:, :n] / y_[:, :n]  # 1 / W1
+        w1_inv = t[:, :n] / y[:, :n]  # 1 / W1
         du_diag = 1 + w3v + w4v  # Hessian + box rows: diagonal in u
-        ds_diag = w2 + w2v  # Hessian + (s >= 0) rows: diagonal in s
+        ds_diag = self.w2 + w2v  # Hessian + (s >= 0) rows: diagonal in s
         # eliminate s (its block is diagonal): K_u = D_u + a' diag(W1 D_s / (D_s + W1)) a, written so that neither
         # W1 nor 1/W1 is ever formed alone (they span ~30 orders of magnitude near convergence)
         w_tilde = 1 / (w1_inv + 1 / ds_diag)
         frac = 1 / (1 + ds_diag * w1_inv)  # W1 / (D_s + W1)
-        k_u = at_ @ (w_tilde[..., None] * a_) + torch.diag_embed(du_diag)
+        k_u = at @ (w_tilde[..., None] * a) + torch.diag_embed(du_diag)
         chol, info = torch.linalg.cholesky_ex(k_u)
-        bad = (info != 0) | ~torch.isfinite(k_u).flatten(1).all(-1)
-        if bool(bad.any()):  # numerical breakdown: stop iterating these problems (their best iterate is kept)
-            failed[idx[bad & ~ok]] = True
-            chol = torch.where(bad[:, None, None], torch.eye(nu, dtype=a.dtype, device=a.device), chol)
-
-        sys_ = _Newton(a_, at_, chol, frac, w1_inv, rdu, rds, rp, t_, y_)
-        du, ds, dt_, dy = sys_.direction(-t_ * y_)  # affine (predictor) direction
-        step = torch.minimum(_max_step(t_, dt_), _max_step(y_, dy))[:, None]
-        mu_aff = ((t_ + step * dt_) * (y_ + step * dy)).sum(-1) / m
-        sigma = (mu_aff / mu.clamp_min(1e-300)).clamp(0, 1) ** 3
-        du, ds, dt_, dy = sys_.direction(sigma[:, None] * mu[:, None] - t_ * y_ - dt_ * dy)  # corrector
-        step = (0.99 * torch.minimum(_max_step(t_, dt_), _max_step(y_, dy))).clamp(max=1.0)
-        move = (~ok & ~failed[idx] & torch.isfinite(step))[:, None]
-        step = torch.where(move, step[:, None], torch.zeros_like(step[:, None]))
-        u[idx] = torch.where(move, u_ + step * du, u_)
-        s[idx] = torch.where(move, s_ + step * ds, s_)
-        t[idx] = torch.where(move, (t_ + step * dt_).clamp_min(1e-200), t_)
-        y[idx] = torch.where(move, (y_ + step * dy).clamp_min(1e-200), y_)
-    return best_u, best_s, best <= tol, it
+        ok = (info == 0) & torch.isfinite(k_u).flatten(1).all(-1)
+        chol = torch.where(ok[:, None, None], chol, torch.eye(nu, dtype=a.dtype, device=a.device))
+        rdu, rds = self._split(r_d)
+        return _Newton(a, at, chol, frac, w1_inv, rdu, rds, r_p, t, y), ok
 
 
 class _Newton(NamedTuple):
@@ -170,25 +153,47 @@ class _Newton(NamedTuple):
         zs = self.frac * (rs * self.w1_inv - (self.a @ zu[..., None])[..., 0])  # (rs - W1 a zu) / (D_s + W1)
         return zu, zs
 
-    def direction(self, rc: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """The step ``(du, ds, dt, dy)`` for the complementarity target ``rc``."""
+    def direction(self, rc: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The step ``((du, ds), dt, dy)`` for the complementarity target ``rc`` ``(B, m)`` (``ds``: the QP's
+        slacks, ``dt``: the inequality slacks, ``dy``: the multipliers)."""
         n = self.rds.shape[-1]
         gu, gs = _gt_mul(self.at, (rc + self.y * self.rp) / self.t, n, self.at.shape[-2])
         du, ds = self.ksolve(-self.rdu - gu, -self.rds - gs)
         dt = -self.rp - _g_mul(self.a, du, ds)
         dy = (rc - self.y * dt) / self.t
-        return du, ds, dt, dy
+        return torch.cat((du, ds), -1), dt, dy
 
 
 def _g_mul(a: Tensor, u: Tensor, s: Tensor) -> Tensor:
-    """``G z`` for the stacked inequality rows (CBF, ``s >= 0``, ``u <= hi``, ``-u <= -lo``)."""
+    """``G z`` for the stacked inequality rows (CBF, ``s >= 0``, ``u <= hi``, ``-u <= -lo``): ``u`` ``(B, nu)``,
+    ``s`` ``(B, n)`` -> ``(B, 2n + 2nu)``."""
     return torch.cat((-(a @ u[..., None])[..., 0] - s, -s, u, -u), -1)
 
 
 def _gt_mul(at: Tensor, y: Tensor, n: int, nu: int) -> tuple[Tensor, Tensor]:
-    """``G' y`` split into its ``u`` and ``s`` parts."""
+    """``G' y`` split into its ``u`` and ``s`` parts: ``y`` ``(B, 2n + 2nu)`` -> ``(B, nu), (B, n)``."""
     y1, y2, y3, y4 = y.split((n, n, nu, nu), -1)
     return -(at @ y1[..., None])[..., 0] + y3 - y4, -y1 - y2
+
+
+def _solve(
+    a: Tensor, b: Tensor, u_ref: Tensor, lo: Tensor, hi: Tensor, w1: float, w2: float, tol: float, max_iter: int
+) -> tuple[Tensor, Tensor, Tensor, int]:
+    """:func:`egcbf.control.ipm.solve_ipm` on the QPs of :class:`CBFQPKKT`, from the reference control pulled
+    towards the box's centre (``u = mid + 0.9 (u_ref - mid)``), a small slack ``0.1`` priced at its multiplier
+    ``w1``, inequality slacks ``max(h - G x, 0.1)`` and multipliers 1. Returns ``u`` ``(B, nu)``, ``s`` ``(B, n)``,
+    ``converged`` ``(B,)`` and the number of passes of the solver's loop plus one, capped at ``max_iter`` (what
+    this solver has always reported as its iterations)."""
+    bsz, n, nu = a.shape
+    kkt = CBFQPKKT.build(a, b, u_ref, lo, hi, w1, w2)
+    mid = (lo + hi).expand(bsz, nu) / 2
+    x0 = torch.cat((mid + 0.9 * (u_ref - mid), torch.full_like(b, 0.1)), -1)
+    y0 = torch.ones_like(kkt.h)
+    y0[:, n : 2 * n] = w1
+    settings = IPMSettings(tol=tol, max_iter=max_iter - 1, min_slack=0.1, sigma_max=1.0, best_iterate=True)
+    res = solve_ipm(kkt, x0, y0, settings)
+    u, s = res.x.split((nu, n), -1)
+    return u, s, res.converged, min(max_iter, int(res.passes) + 1)
 
 
 @dataclass
@@ -247,8 +252,14 @@ def solve_cbf_qp(
         lo, hi: ``(k,)`` the box.
         alpha: slope of the linear class-K function in the constraint.
         slack_linear, slack_quadratic: ``w1`` and ``w2`` of the slack cost.
+        tol: an environment's QP has converged when its merit ``max(dual residual / (1 + max(|u_ref|, w1, 1)),
+            primal residual / (1 + |rhs, bounds|), mean complementarity) <= tol``; its best iterate by that merit
+            is returned.
+        max_iter: residual evaluations per environment (``max_iter - 1`` Newton steps), at least 1.
         chunk: environments per batched solve.
     """
+    if max_iter < 1:
+        raise ValueError(f"max_iter must be >= 1, got {max_iter}")
     b, n = h.shape
     k = lg.shape[-1]
     f64 = torch.float64
@@ -260,9 +271,7 @@ def solve_cbf_qp(
     us, ss, conv, iters = [], [], [], 0
     for c in range(0, b, chunk):
         sl = slice(c, min(c + chunk, b))
-        u, s, ok, it = _solve_structured(
-            a[sl], rhs[sl], u_ref[sl], lo_v, hi_v, slack_linear, slack_quadratic, tol, max_iter
-        )
+        u, s, ok, it = _solve(a[sl], rhs[sl], u_ref[sl], lo_v, hi_v, slack_linear, slack_quadratic, tol, max_iter)
         us.append(u.clamp(lo_v, hi_v))
         ss.append(s.clamp_min(0.0))
         conv.append(ok)

@@ -41,6 +41,7 @@ from .barriers import (
     build_constraints,
     split_for_agents,
 )
+from .dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
 from .nominal import (
     DEFAULT_GAINS,
     DEFAULT_MAX_POSITION_ERROR,
@@ -48,16 +49,7 @@ from .nominal import (
     nominal_acceleration,
     track_acceleration,
 )
-from .qp import (
-    SlackPenalty,
-    assemble_centralized,
-    assemble_decentralized,
-    polish_sparse,
-    require_solver,
-    solve_dense_batch,
-    solve_dense_batch_ipm,
-    solve_sparse,
-)
+from .qp import SlackPenalty, assemble_centralized, polish_sparse, require_solver, solve_sparse
 
 __all__ = [
     "CBFQPConfig",
@@ -107,8 +99,8 @@ class CBFQPConfig:
         penalty: slack cost ``1/2 w2 s^2 + w1 s`` (s in m/s^2).
         solver: centralized sparse solver: ``"piqp"`` (default, fastest measured), ``"proxsuite"``, ``"osqp"``,
             ``"clarabel"``. ``fallback_solver`` is tried when it fails.
-        dcbf_solver: per-agent QPs: ``"ipm"`` (vectorized interior point + polishing, default, fastest measured) or
-            ``"proxsuite"`` (``dense.BatchQP`` + ``solve_in_parallel``).
+        dcbf_solver: per-agent QPs: ``"ipm"`` (batched interior point + polishing, on the state's device; default,
+            fastest measured at N = 512) or ``"proxsuite"`` (``dense.BatchQP`` + ``solve_in_parallel``).
         eps_abs: absolute primal/dual tolerance (m/s^2). ``max_iter``: iteration cap per solve.
         slack_tol: a QP "needs slack" when some slack exceeds this (m/s^2); also the feasibility check tolerance.
         gains, max_position_error: the nominal controller's (position loop and attitude loop).
@@ -374,8 +366,8 @@ class CentralizedCBFQP(_CBFQPBase):
 class DecentralizedCBFQP(_CBFQPBase):
     """dCBF-QP: one QP per agent in ``(a_i, s_i)``; agent ``i`` enforces ``n . a_i >= b / 2`` for each neighbour
     (the other half is its neighbour's) and the whole obstacle rows. All ``B N`` QPs are solved in one batch by a
-    vectorized interior-point method (:func:`egcbf.control.qp.solve_dense_batch_ipm`; or proxsuite's
-    ``dense.BatchQP`` + ``solve_in_parallel`` with ``dcbf_solver="proxsuite"``).
+    batched interior-point method (:func:`egcbf.control.dense_qp.solve_dense_batch_ipm`, on the device of
+    ``state.x``; or proxsuite's ``dense.BatchQP`` + ``solve_in_parallel`` with ``dcbf_solver="proxsuite"``).
 
     ``info`` as :class:`CentralizedCBFQP`, counting per-agent QPs: ``num_slack`` agents whose slack exceeds
     ``slack_tol``, ``num_failed`` agents given the fallback; ``max_rows`` the padded row count.
@@ -405,7 +397,7 @@ class DecentralizedCBFQP(_CBFQPBase):
         blo, bhi = prep.blo.reshape(m, -1), prep.bhi.reshape(m, -1)
         qps = assemble_decentralized(prep.a_nom.reshape(m, 3), owner, normal, rhs, bC, blo, bhi, cfg.penalty)
         if cfg.dcbf_solver == "ipm":
-            z, ok, _ = solve_dense_batch_ipm(qps)
+            z, ok, _ = solve_dense_batch_ipm(qps, device=prep.x.device)
         elif cfg.dcbf_solver == "proxsuite":
             z, ok, _ = solve_dense_batch(qps, eps_abs=cfg.eps_abs, max_iter=max(cfg.max_iter, 1000))
         else:

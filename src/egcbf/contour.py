@@ -33,9 +33,10 @@ import torch
 from torch import Tensor
 
 from .dynamics import quadrotor as dyn
+from .env.config import EnvConfig
 from .env.lidar import LidarScan
 from .env.obstacles import Obstacles
-from .env.swarm import EnvConfig, SwarmEnv, SwarmState, cast_lidar
+from .env.swarm import SwarmEnv, SwarmState, cast_lidar
 from .graph import build_graph
 from .nn import CBFNet
 

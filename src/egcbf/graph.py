@@ -47,8 +47,9 @@ from groupcanon import FieldType
 from groupcanon.features import Vector
 from groupcanon.groups import SE2xR
 
+from .env.config import EnvConfig
 from .env.lidar import LidarScan
-from .env.swarm import EnvConfig, SwarmState, cast_lidar
+from .env.swarm import SwarmState, cast_lidar
 from .neighbors import radius_neighbors
 from .robots import Robot, make_robot
 

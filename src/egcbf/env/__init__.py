@@ -1,9 +1,10 @@
 """The swarm environment: config, batched state, reset/step, safety masks, obstacles, LiDAR, sampling."""
 
+from .config import EnvConfig
 from .lidar import LidarScan, lidar_scan, ray_directions
 from .obstacles import Obstacles, sample_obstacles
 from .sampling import sample_separated_points
-from .swarm import EnvConfig, NonFiniteStateError, StepInfo, SwarmEnv, SwarmState, cast_lidar, safety_masks
+from .swarm import NonFiniteStateError, StepInfo, SwarmEnv, SwarmState, cast_lidar, safety_masks
 
 __all__ = [
     "EnvConfig",

@@ -250,3 +250,16 @@ def test_control_interface_matches_the_dynamics():
     assert (fd - hdot).abs().max() < 1e-3 * max(1.0, float(hdot.abs().max()))
     with pytest.raises(ValueError, match="unicycle"):
         make_interface("accel", cfg.make_robot())
+
+
+def test_hand_crafted_qps_refuse_another_robot():
+    from egcbf.control.controllers import make_controller
+
+    cfg = EnvConfig.for_robot("unicycle", num_agents=3, area_size=1.0, num_obstacles=0)
+    state = SwarmEnv(cfg).reset(0)
+    for name in ("ccbf", "dcbf"):
+        with pytest.raises(ValueError, match="quadrotor, not a unicycle"):
+            make_controller(name)(state, cfg)
+    u, _ = make_controller("nominal")(state, cfg)  # the nominal controller is the robot's own
+    assert torch.equal(u, cfg.make_robot().nominal_control(state.x, state.goals))
+

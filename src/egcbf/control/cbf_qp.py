@@ -170,6 +170,8 @@ class _CBFQPBase:
         self.config = cfg
 
     def _prepare(self, state, env_config) -> _Prepared:
+        if env_config.robot != "quadrotor":  # the barriers and bounds are the quadrotor's acceleration command's
+            raise ValueError(f"the hand-crafted CBF-QPs are written for the quadrotor, not a {env_config.robot}")
         if state.t == 0:  # a state entering the QP (a reset or a hand-built one): finite, rotations, radii > 0
             state.validate()
         cfg = self.config

@@ -25,14 +25,24 @@ def _np(a) -> np.ndarray | None:
     return np.asarray(a, dtype=float)
 
 
+def _lift(a: np.ndarray | None) -> np.ndarray | None:
+    """Planar points ``(..., 2)`` at height 0, ``(..., 3)``; 3-D points unchanged."""
+    if a is None or a.shape[-1] != 2:
+        return a
+    return np.concatenate((a, np.zeros((*a.shape[:-1], 1))), -1)
+
+
 def _validate(trajectory, goals, centers, radii, collided):
+    """Arrays of a 3-D or planar episode (planar points drawn at height 0)."""
     traj = _np(trajectory)
-    if traj is None or traj.ndim != 3 or traj.shape[-1] != 3:
-        raise ValueError(f"trajectory must be (T, N, 3), got {None if traj is None else traj.shape}")
+    if traj is None or traj.ndim != 3 or traj.shape[-1] not in (2, 3):
+        raise ValueError(f"trajectory must be (T, N, 3) or (T, N, 2), got {None if traj is None else traj.shape}")
+    d = traj.shape[-1]
     goals = _np(goals)
     if goals is not None and goals.shape != traj.shape[1:]:
-        raise ValueError(f"goals must be (N, 3) = {traj.shape[1:]}, got {goals.shape}")
-    centers = np.zeros((0, 3)) if centers is None else _np(centers).reshape(-1, 3)
+        raise ValueError(f"goals must be (N, {d}) = {traj.shape[1:]}, got {goals.shape}")
+    traj, goals = _lift(traj), _lift(goals)
+    centers = np.zeros((0, 3)) if centers is None else _lift(_np(centers).reshape(-1, d))
     radii = np.zeros((0,)) if radii is None else _np(radii).reshape(-1)
     if centers.shape[0] != radii.shape[0]:
         raise ValueError(f"{centers.shape[0]} obstacle centres but {radii.shape[0]} radii")

@@ -263,3 +263,16 @@ def test_hand_crafted_qps_refuse_another_robot():
     u, _ = make_controller("nominal")(state, cfg)  # the nominal controller is the robot's own
     assert torch.equal(u, cfg.make_robot().nominal_control(state.x, state.goals))
 
+
+def test_planar_episodes_render(tmp_path):
+    from egcbf.render import render_comparison_gif, render_gif, render_topdown
+
+    traj = torch.rand(5, 3, 2) * 2
+    goals, centers, radii = torch.rand(3, 2), torch.rand(2, 2), torch.full((2,), 0.1)
+    coll = torch.zeros(5, 3, dtype=torch.bool)
+    render_gif(tmp_path / "a.gif", traj, goals, centers, radii, coll, area_size=2.0, max_frames=3)
+    render_topdown(tmp_path / "a.png", traj, goals, centers, radii, coll, area_size=2.0)
+    render_comparison_gif(tmp_path / "b.gif", {"x": (traj, coll)}, goals, centers, radii, area_size=2.0, max_frames=3)
+    assert all((tmp_path / n).stat().st_size > 0 for n in ("a.gif", "a.png", "b.gif"))
+    with pytest.raises(ValueError, match=r"goals must be \(N, 2\)"):
+        render_topdown(tmp_path / "c.png", traj, torch.rand(3, 3), area_size=2.0)

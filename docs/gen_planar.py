@@ -33,7 +33,12 @@ ROWS = {
     "egcbf+": ["--checkpoint", "checkpoints/unicycle/egcbf+"],
     "gcbf+": ["--checkpoint", "checkpoints/unicycle/gcbf+"],
     "nominal": ["--robot", "unicycle", "--controller", "nominal"],
+    # further training seeds (checkpoints/unicycle/seeds/), evaluated at N = 512 only
+    "egcbf+-s1": ["--checkpoint", "checkpoints/unicycle/seeds/egcbf+-s1"],
+    "gcbf+-s1": ["--checkpoint", "checkpoints/unicycle/seeds/gcbf+-s1"],
 }
+#: rows of the main tables (seed 0 and the nominal controller); the others appear in the seeds table
+MAIN_ROWS = ("egcbf+", "gcbf+", "nominal")
 LABELS = {"egcbf+": "EGCBF+ (ours)", "gcbf+": "GCBF+ (ours)", "nominal": "nominal controller"}
 #: case -> (area, obstacles, sizes, max steps)
 CASES = {
@@ -61,7 +66,7 @@ def evaluate_missing(rows: list[str]) -> None:
     for case, (area, obstacles, sizes, steps) in CASES.items():
         for row in rows:
             source = ROWS[row]
-            for n in sizes:
+            for n in sizes if row in MAIN_ROWS else sizes[-1:]:
                 out = cell_dir(row, case, n)
                 run = out / "run.json"
                 if run.exists() and json.loads(run.read_text()).get("complete"):
@@ -107,7 +112,7 @@ def table() -> str:
             "| controller | safe % | reach % | success % |",
             "|---|---|---|---|",
         ]
-        for row in ROWS:
+        for row in MAIN_ROWS:
             if row not in rows:
                 continue
 
@@ -116,7 +121,44 @@ def table() -> str:
 
             lines.append(f"| {LABELS[row]} | {col('safe_rate')} | {col('reach_rate')} | {col('success_rate')} |")
         lines.append("")
+    lines += seeds_table(data)
     return "\n".join(lines)
+
+
+def seeds_table(data: dict) -> list[str]:
+    """Safe % and reach % at N = 512 of every training seed of each method, with the mean (min-max)."""
+    cases = list(CASES)
+    lines = [
+        "**Training seeds** (N = 512; safe % / reach %; the seed-0 rows above are seed 0):",
+        "",
+        "| method | "
+        + " | ".join(CAPTIONS[c].split(",")[0] + (", obstacles" if "obs" in c else "") for c in cases)
+        + " |",
+        "|---|" + "---|" * len(cases),
+    ]
+    for algo in ("egcbf+", "gcbf+"):
+        seeds = sorted(r for r in ROWS if r == algo or r.startswith(algo + "-s"))
+        per_case = {c: [data.get(c, {}).get(r, {}).get(512) for r in seeds] for c in cases}
+        for r in seeds:
+            cells = []
+            for c in cases:
+                m = data.get(c, {}).get(r, {}).get(512)
+                cells.append("-" if m is None else f"{100 * m['safe_rate']:.1f} / {100 * m['reach_rate']:.1f}")
+            seed = 0 if r == algo else int(r.rsplit("-s", 1)[1])
+            lines.append(f"| {LABELS[algo]}, seed {seed} | " + " | ".join(cells) + " |")
+        cells = []
+        for c in cases:
+            ms = [m for m in per_case[c] if m is not None]
+            if len(ms) < 2:
+                cells.append("-")
+                continue
+            safe = [100 * m["safe_rate"] for m in ms]
+            reach = [100 * m["reach_rate"] for m in ms]
+            cells.append(
+                f"{sum(safe) / len(safe):.1f} ({min(safe):.1f}-{max(safe):.1f}) / {sum(reach) / len(reach):.1f}"
+            )
+        lines.append(f"| **{LABELS[algo]}, mean (min-max) over seeds** | " + " | ".join(cells) + " |")
+    return [*lines, ""]
 
 
 def gif() -> Path:

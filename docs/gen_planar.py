@@ -129,7 +129,7 @@ def seeds_table(data: dict) -> list[str]:
     """Safe % and reach % at N = 512 of every training seed of each method, with the mean (min-max)."""
     cases = list(CASES)
     lines = [
-        "**Training seeds** (N = 512; safe % / reach %; the seed-0 rows above are seed 0):",
+        "**Training seeds** (N = 512; safe % / reach %; the tables above are seed 0):",
         "",
         "| method | "
         + " | ".join(CAPTIONS[c].split(",")[0] + (", obstacles" if "obs" in c else "") for c in cases)

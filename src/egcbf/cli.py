@@ -274,6 +274,11 @@ def demo(
     for ckpt in sources.values():  # every checkpoint loads and fits in memory, before the first method runs
         if ckpt is not None:
             _, _, train_cfg = load_policy(ckpt, dev, torch.float32, "--checkpoints")
+            require(
+                train_cfg.robot == "quadrotor",
+                f"--checkpoints: {ckpt} drives a {train_cfg.robot}; the demo compares quadrotor controllers (for "
+                f"another robot: `egcbf eval --checkpoint {ckpt}`, or docs/gen_planar.py --gif for the unicycle)",
+            )
             configs = check_env_flags([num_agents], area, obstacles, max_steps, train_cfg.env_overrides)
             check_policy_memory(configs, episodes, None, train_cfg.model.hidden, dev)
     prepare_out(out, overwrite, ("demo.json", "summary.md", f"compare_N{num_agents}.gif"))

@@ -276,3 +276,17 @@ def test_planar_episodes_render(tmp_path):
     assert all((tmp_path / n).stat().st_size > 0 for n in ("a.gif", "a.png", "b.gif"))
     with pytest.raises(ValueError, match=r"goals must be \(N, 2\)"):
         render_topdown(tmp_path / "c.png", traj, torch.rand(3, 3), area_size=2.0)
+
+
+def test_demo_refuses_a_planar_checkpoint(tmp_path):
+    """The demo compares quadrotor controllers: a unicycle checkpoint is a usage error, never a mixed comparison."""
+    from typer.testing import CliRunner
+
+    from egcbf.cli import app
+
+    from pathlib import Path
+
+    planar = Path(__file__).resolve().parents[2] / "checkpoints" / "unicycle"
+    res = CliRunner().invoke(app, ["demo", "--checkpoints", str(planar), "--compare", "nominal", "--out",
+                                   str(tmp_path / "demo")])  # fmt: skip
+    assert res.exit_code == 2 and "drives a unicycle" in res.output

@@ -280,11 +280,11 @@ def test_planar_episodes_render(tmp_path):
 
 def test_demo_refuses_a_planar_checkpoint(tmp_path):
     """The demo compares quadrotor controllers: a unicycle checkpoint is a usage error, never a mixed comparison."""
+    from pathlib import Path
+
     from typer.testing import CliRunner
 
     from egcbf.cli import app
-
-    from pathlib import Path
 
     planar = Path(__file__).resolve().parents[2] / "checkpoints" / "unicycle"
     res = CliRunner().invoke(app, ["demo", "--checkpoints", str(planar), "--compare", "nominal", "--out",

@@ -3,7 +3,6 @@ the robot (:mod:`egcbf.robots`), validated when made, with a JSON round trip."""
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, fields, replace
 from typing import Any
@@ -128,7 +127,7 @@ class EnvConfig:
 
     def make_robot(self) -> Robot:
         """The :class:`egcbf.robots.Robot` of this config (cached: equal configs share one)."""
-        return _robot(self.robot, self.params)
+        return make_robot(self.robot, self.params)
 
     @property
     def dim(self) -> int:
@@ -157,8 +156,3 @@ class EnvConfig:
         if isinstance(d.get("params"), dict):
             d["params"] = type(make_robot(d.get("robot", "quadrotor")).params)(**d["params"])
         return cls(**d)
-
-
-@functools.lru_cache(maxsize=64)
-def _robot(name: str, params) -> Robot:
-    return make_robot(name, params)

@@ -32,8 +32,8 @@ from torch import Tensor
 
 from ..dynamics import quadrotor as dyn
 from ..neighbors import radius_neighbors
-from ..robots import Robot
-from .config import EnvConfig, _is_int, _robot
+from ..robots import Robot, make_robot
+from .config import EnvConfig, _is_int
 from .lidar import LidarScan, lidar_scan
 from .obstacles import Obstacles, sample_obstacles
 from .sampling import sample_separated_points
@@ -79,7 +79,7 @@ class SwarmState:
 
     def __post_init__(self) -> None:
         if self.robot is None:
-            self.robot = _robot("quadrotor", None)
+            self.robot = make_robot("quadrotor")
         s, d = self.robot.state_dim, self.robot.dim
         if self.x.dim() != 3 or self.x.shape[-1] != s:
             raise ValueError(f"{self.robot.name} state x must be (B, N, {s}), got {tuple(self.x.shape)}")

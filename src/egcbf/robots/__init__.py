@@ -6,6 +6,8 @@ environment (``EnvConfig.robot``), the learner and the CLI (``--robot``) read. S
 
 from __future__ import annotations
 
+import functools
+
 from .base import Robot, rk4_step
 from .quadrotor import Quadrotor
 from .unicycle import Unicycle, UnicycleParams
@@ -21,13 +23,29 @@ def register_robot(cls: type[Robot]) -> type[Robot]:
     if not (isinstance(cls, type) and issubclass(cls, Robot)) or not cls.name:
         raise TypeError(f"register_robot needs a Robot subclass with a name, got {cls!r}")
     ROBOTS[cls.name] = cls
+    _shared.cache_clear()
     return cls
 
 
 def make_robot(name: str, params=None) -> Robot:
-    """The robot called ``name`` with ``params`` (``None``: its defaults)."""
+    """The robot called ``name`` with ``params`` (``None``: its defaults). Robots are immutable: equal
+    ``(name, params)`` (hashable params, e.g. frozen dataclasses) share one instance, so that the networks,
+    the environment and the learner can ask for the robot on every step at no cost."""
+    try:
+        hash(params)
+    except TypeError:
+        return _build(name, params)
+    return _shared(name, params)
+
+
+def _build(name: str, params) -> Robot:
     try:
         cls = ROBOTS[name]
     except KeyError:
         raise ValueError(f"unknown robot {name!r}; choose one of {sorted(ROBOTS)}") from None
     return cls() if params is None else cls(params)
+
+
+@functools.lru_cache(maxsize=64)
+def _shared(name: str, params) -> Robot:
+    return _build(name, params)

@@ -9,21 +9,11 @@ from hypothesis import strategies as st
 from torch import Tensor
 
 from egcbf.algo.qp import CBFQPKKT, solve_cbf_qp
-from egcbf.control.dense_ipm import DenseKKT, polish_dense, solve_dense_ipm
+from egcbf.control.dense_ipm import DenseKKT, dense_settings, polish_dense, solve_dense_ipm
 from egcbf.control.ipm import IPMSettings, solve_ipm
 
 F64 = torch.float64
-DENSE = IPMSettings(  # the settings solve_dense_ipm uses (the decentralized CBF-QP's)
-    tol=1e-12,
-    feas_tol=1e-9,
-    max_iter=60,
-    dual_relative=True,
-    primal_violation=True,
-    gap_relative=True,
-    safeguard=True,
-    best_iterate=False,
-    loose_tol=1e-7,
-)
+DENSE = dense_settings()  # the settings solve_dense_ipm uses (the decentralized CBF-QP's)
 
 
 def random_qps(seed: int, batch: int, n: int, m: int, dtype=F64):

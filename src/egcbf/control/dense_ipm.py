@@ -18,7 +18,7 @@ from torch import Tensor
 
 from .ipm import INF, IPMSettings, solve_ipm
 
-__all__ = ["LOOSE_TOL", "DenseKKT", "polish_dense", "solve_dense_ipm"]
+__all__ = ["LOOSE_TOL", "DenseKKT", "dense_settings", "polish_dense", "solve_dense_ipm"]
 
 LOOSE_TOL = 1e-7  # tolerance accepted when double precision breaks down before ``tol`` is reached
 
@@ -143,6 +143,22 @@ def polish_dense(
     return torch.where(good[:, None], xp, x), good
 
 
+def dense_settings(tol: float = 1e-12, feas_tol: float = 1e-9, max_iter: int = 60) -> IPMSettings:
+    """The interior-point settings of :func:`solve_dense_ipm` (the decentralized CBF-QP's per-agent QPs)."""
+    return IPMSettings(
+        tol=tol,
+        feas_tol=feas_tol,
+        max_iter=max_iter,
+        min_slack=1.0,
+        dual_relative=True,
+        primal_violation=True,
+        gap_relative=True,
+        safeguard=True,
+        best_iterate=False,
+        loose_tol=LOOSE_TOL,
+    )
+
+
 def solve_dense_ipm(
     P: Tensor,
     q: Tensor,
@@ -170,18 +186,7 @@ def solve_dense_ipm(
     m_, m = h.shape
     x0 = torch.zeros_like(q) if x0 is None else x0.to(q)
     kkt = DenseKKT.build(P, q, G, h)
-    settings = IPMSettings(
-        tol=tol,
-        feas_tol=feas_tol,
-        max_iter=max_iter,
-        min_slack=1.0,
-        dual_relative=True,
-        primal_violation=True,
-        gap_relative=True,
-        safeguard=True,
-        best_iterate=False,
-        loose_tol=LOOSE_TOL,
-    )
+    settings = dense_settings(tol, feas_tol, max_iter)
     res = solve_ipm(kkt, x0, torch.ones(m_, m, dtype=q.dtype, device=q.device), settings)
     x = res.x
     if polish:  # the accepted QPs only (the others are not used); a polished solution replaces its iterate

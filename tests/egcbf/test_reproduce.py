@@ -123,6 +123,30 @@ def test_resume_recomputes_nothing_then_only_changed_cells(first, monkeypatch):
     assert calls[0].num_agents == 3  # largest N first
 
 
+def test_invocation_is_recorded_after_every_cell_and_when_stopped(first, tmp_path, monkeypatch):
+    """A sweep killed mid-way still counts in sweep.json up to its last finished cell; an exception marks it
+    interrupted."""
+    cfg, records = first
+    out = tmp_path / "stopped"
+    stopped = SweepConfig(**{**cfg.__dict__, "episodes": 3, "workers": 1, "out": out})
+    seen = []
+
+    def fake(task):
+        log = json.loads((out / "sweep.json").read_text())
+        seen.append((log[-1]["status"], log[-1]["computed"]))
+        if len(seen) == 2:
+            raise RuntimeError("stop")
+        return {"row": records[task.cell]["row"], "wall_s": 0.0, "machine": {}}
+
+    monkeypatch.setattr(rp.runner, "run_cell", fake)
+    with pytest.raises(RuntimeError, match="stop"):
+        rp.sweep(stopped, progress=False, log=lambda s: None)
+    assert seen == [("running", 0), ("running", 1)]
+    log = json.loads((out / "sweep.json").read_text())
+    assert len(log) == 1 and log[0]["status"] == "interrupted" and log[0]["computed"] == 1
+    assert "1 stopped before the end" in rp.provenance_markdown(stopped, rp.load_cells(stopped))
+
+
 def test_baseline_import(checkpoints, tmp_path):
     base = tmp_path / "baselines" / "dcbf"
     base.mkdir(parents=True)

@@ -437,10 +437,19 @@ def provenance_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
         )
     total = sum(float(i.get("wall_s") or 0.0) for i in invocations)
     last = invocations[-1] if invocations else {}
-    lines.append(
-        f"- Sweep wall time: {_duration(total)} over {len(invocations)} invocation(s) (last: {last.get('workers')} "
-        f"worker(s), backend {last.get('backend')}); paused time, if any, is included."
-    )
+    status = [i.get("status", "finished") for i in invocations]
+    killed = status.count("running") + status.count("interrupted")
+    cut = f", {killed} stopped before the end (counted to their last finished cell)" if killed else ""
+    computed = [r for r in records.values() if not r["meta"].get("imported_from")]
+    cell_wall = sum(float(r["meta"].get("wall_s") or 0.0) for r in computed)
+    lines += [
+        f"- Sweep wall time: {_duration(total)} over {len(invocations)} recorded invocation(s){cut}; last: "
+        f"{last.get('workers')} worker(s), backend {last.get('backend')}; paused time, if any, is included.",
+        f"- The {len(computed)} computed cells' own wall times sum to {_duration(cell_wall)}; with "
+        f"{last.get('workers') or 1} cell(s) at a time that is {_duration(cell_wall / (last.get('workers') or 1))} "
+        "of the machine (this counts every cell, including those of invocations killed before they recorded "
+        "themselves).",
+    ]
     lines += ["", "| run | cells computed | cells imported | sum of cell wall times | checkpoint | step | "
               "train seed |", "|---|---|---|---|---|---|---|"]  # fmt: skip
     by_run: dict[tuple[str, int | None], list[dict]] = {}

@@ -319,10 +319,18 @@ def read_invocations(out: str | Path) -> list[dict]:
     return log if isinstance(log, list) else []
 
 
-def _append_invocation(out: Path, entry: dict) -> None:
+def _record_invocation(out: Path, entry: dict, index: int | None = None) -> int:
+    """Append ``entry`` to ``OUT/sweep.json`` (``index=None``) or overwrite the entry at ``index``; returns its
+    index. The sweep rewrites its entry after every cell, so a killed invocation still counts up to its last
+    finished cell."""
     log = read_invocations(out)
-    log.append(entry)
+    if index is None or index >= len(log):
+        log.append(entry)
+        index = len(log) - 1
+    else:
+        log[index] = entry
     _write_json_atomic(out / "sweep.json", log)
+    return index
 
 
 def sweep(
@@ -333,7 +341,9 @@ def sweep(
     log: Callable[[str], None] | None = None,
 ) -> dict[Cell, dict]:
     """Run every cell of ``cfg`` that has no up-to-date result in ``cfg.out`` (module doc); returns every cell's
-    record ``{"key", "row", "meta"}``. Appends this invocation (command, wall time, counts) to ``OUT/sweep.json``."""
+    record ``{"key", "row", "meta"}``. Records this invocation (command, wall time, counts, ``status``) in
+    ``OUT/sweep.json``: ``"running"`` and updated after every cell, then ``"finished"`` or ``"interrupted"``
+    (an exception or Ctrl-C; a killed process stays ``"running"`` with the wall time of its last cell)."""
     log = log or tqdm.write
     t0 = time.perf_counter()
     started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
@@ -368,7 +378,23 @@ def sweep(
         )
         for c in _schedule(todo)
     ]
+
+    def entry(status: str) -> dict:
+        return {
+            "command": command,
+            "started": started,
+            "wall_s": round(time.perf_counter() - t0, 1),
+            "status": status,
+            "backend": cfg.backend,
+            "workers": cfg.workers,
+            "threads_per_cell": cfg.threads,
+            **counts,
+            "machine": machine_info(),
+        }
+
+    index = _record_invocation(Path(cfg.out), entry("running"))
     bar = tqdm(total=len(tasks), desc="reproduce", unit="cell", disable=not progress)
+    finished = False
     try:
         for task, res in _execute(tasks, cfg.backend, cfg.workers):
             cell = task.cell
@@ -379,19 +405,11 @@ def sweep(
             records[cell], counts["computed"] = rec, counts["computed"] + 1
             bar.update(1)
             _log_cell(log, rec)
+            _record_invocation(Path(cfg.out), entry("running"), index)
+        finished = True
     finally:
         bar.close()
-        entry = {
-            "command": command,
-            "started": started,
-            "wall_s": round(time.perf_counter() - t0, 1),
-            "backend": cfg.backend,
-            "workers": cfg.workers,
-            "threads_per_cell": cfg.threads,
-            **counts,
-            "machine": machine_info(),
-        }
-        _append_invocation(Path(cfg.out), entry)
+        _record_invocation(Path(cfg.out), entry("finished" if finished else "interrupted"), index)
     return {c: records[c] for c in cfg.cells() if c in records}
 
 

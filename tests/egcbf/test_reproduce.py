@@ -144,7 +144,7 @@ def test_invocation_is_recorded_after_every_cell_and_when_stopped(first, tmp_pat
     assert seen == [("running", 0), ("running", 1)]
     log = json.loads((out / "sweep.json").read_text())
     assert len(log) == 1 and log[0]["status"] == "interrupted" and log[0]["computed"] == 1
-    assert "1 stopped before the end" in rp.provenance_markdown(stopped, rp.load_cells(stopped))
+    assert "1 not recorded as finished" in rp.provenance_markdown(stopped, rp.load_cells(stopped))
 
 
 def test_baseline_import(checkpoints, tmp_path):
@@ -301,6 +301,10 @@ def test_training_seeds_and_scalability_cells(checkpoints, tmp_path):
     assert cell_text in text
     if safe[0] != safe[1]:
         assert f"({100 * min(safe):.1f}-{100 * max(safe):.1f})" in cell_text
+    # the summary follows each method from N = scale_reference (Table I) to the largest fixed-density N
+    nominal_2 = rp.report.Stat([records[Cell("nominal", 0, 2)]["row"]["safe_rate"]]).text()
+    nominal_4 = rp.report.Stat([records[Cell("nominal", 0, 4, None, l4)]["row"]["safe_rate"]]).text()
+    assert f"nominal (no CBF) {nominal_2} % at N = 2 to {nominal_4} % at N = 4" in text
 
 
 def test_stat_text():

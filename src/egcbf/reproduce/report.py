@@ -240,15 +240,33 @@ def summary_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
         if pts:
             worst = min(pts, key=lambda p: p[1]["safe_rate"])
             succ = min(pts, key=lambda p: p[1]["success_rate"])
+            lowest = "" if worst[1]["safe_rate"] == 1 else f"; lowest at N = {worst[0]}"
             qps.append(
                 f"{LABELS[m]} is at least {_pct(worst[1]['safe_rate'])} % safe at every N it ran (up to "
-                f"{max(n for n, _ in pts)}; lowest at N = {worst[0]}), success at least "
+                f"{max(n for n, _ in pts)}{lowest}), success at least "
                 f"{_pct(succ[1]['success_rate'])} % (lowest at N = {succ[0]})"
             )
     nominal = _at(records, cfg, "nominal", big)
     if qps:
         nom = f"; the nominal controller alone is {nominal.text()} % safe at N = {big}" if nominal else ""
         lines.append("- **The hand-crafted CBF-QPs:** " + "; ".join(qps) + nom + ".")
+    # the scalability study: from Table I's largest N to the largest N at the same density
+    if cfg.scale_sizes:
+        moves = []
+        for m in (m for m in METHODS if m in cfg.methods and m in cfg.scale_methods):
+            sized = [(int(n), _at(records, cfg, m, int(n), scale=True)) for n in cfg.scale_sizes]
+            sized = [(n, st) for n, st in sized if st is not None]
+            if not sized:
+                continue
+            n, st = max(sized, key=lambda p: p[0])
+            ref = _at(records, cfg, m, cfg.scale_reference)
+            start = f"{ref.text()} % at N = {cfg.scale_reference} to " if ref is not None else ""
+            moves.append(f"{LABELS[m]} {start}{st.text()} % at N = {n}{_so_far(st, cfg, m)}")
+        if moves:
+            lines.append(
+                f"- **At fixed density** (the density of N = {cfg.scale_reference} at l = {cfg.area:g} m, no "
+                "obstacles), safe rate: " + "; ".join(moves) + "."
+            )
     # what equivariance buys: E-method minus plain method, per N, with the seed ranges
     for plain, equi in (("gcbf+", "egcbf+"), ("gcbf", "egcbf")):
         diffs = []
@@ -439,7 +457,11 @@ def provenance_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
     last = invocations[-1] if invocations else {}
     status = [i.get("status", "finished") for i in invocations]
     killed = status.count("running") + status.count("interrupted")
-    cut = f", {killed} stopped before the end (counted to their last finished cell)" if killed else ""
+    cut = (
+        f", {killed} not recorded as finished (still running, or stopped: counted to their last finished cell)"
+        if killed
+        else ""
+    )
     computed = [r for r in records.values() if not r["meta"].get("imported_from")]
     cell_wall = sum(float(r["meta"].get("wall_s") or 0.0) for r in computed)
     lines += [

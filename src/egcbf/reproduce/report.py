@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import statistics
+from collections import Counter
 from pathlib import Path
 
 from ..dynamics.quadrotor import DEFAULT_DT
@@ -444,13 +445,14 @@ def provenance_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
         f"{1e3 * DEFAULT_DT:g} ms; l = {cfg.area:g} m; obstacle setting: {cfg.obstacles} obstacles; scalability: "
         f"{cfg.scale_text()}.",
     ]
-    machines = {
+    machines = Counter(
         json.dumps(r["meta"].get("machine"), sort_keys=True) for r in records.values() if r["meta"].get("machine")
-    }
-    for m in sorted(machines):
+    )
+    for m, count in sorted(machines.items()):
         d = json.loads(m)
+        cores = f"{d['cores']} cores" if d.get("cores") else "core count not recorded"
         lines.append(
-            f"- Machine: {d.get('cpu')}, {d.get('cores', '?')} cores, torch {d.get('torch')}, python "
+            f"- Machine of {count} cell(s): {d.get('cpu')}, {cores}, torch {d.get('torch')}, python "
             f"{d.get('python')}, {d.get('threads')} torch thread(s) per cell."
         )
     total = sum(float(i.get("wall_s") or 0.0) for i in invocations)

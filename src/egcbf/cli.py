@@ -14,6 +14,8 @@ checked before any work starts, and ``eval`` writes each swarm size's results as
 from __future__ import annotations
 
 import json
+import re
+import shlex
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -443,7 +445,8 @@ def reproduce(
     ] = "gcbf,gcbf+,egcbf,egcbf+,nominal",
     episodes: Annotated[int, typer.Option(help="episodes per cell (method, obstacles, N)")] = 50,
     baseline_episodes: Annotated[
-        int | None, typer.Option(help="episodes per cell of the CBF-QP baselines (default: --episodes)")
+        int | None,
+        typer.Option(help="episodes per cell of the hand-crafted controllers (CBF-QPs, nominal; default: --episodes)"),
     ] = None,
     train_seeds: Annotated[
         str, typer.Option("--train-seeds", help="training seeds of the SEED-METHODS (comma list)")
@@ -486,6 +489,9 @@ def reproduce(
     report_only: Annotated[
         bool, typer.Option("--report-only", help="regenerate the report from the existing cells")
     ] = False,
+    recompute: Annotated[
+        bool, typer.Option("--recompute", help="replace stored cells made with other settings (else refused)")
+    ] = False,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
 ) -> None:
     """Reproduce the paper's Table I and a scalability study past it: evaluate every method at every N (without
@@ -493,10 +499,20 @@ def reproduce(
     SCALE-SIZES at fixed density, resumably (finished cells are kept; stop and rerun the same command), and write
     REPORT."""
     from .checkpoint import read_config
-    from .reproduce import SweepConfig, load_cells, sweep, validate, write_report
+    from .reproduce import (
+        CellsFailed,
+        SweepConfig,
+        describe_mismatch,
+        load_cells,
+        mismatched_cells,
+        sweep,
+        validate,
+        write_report,
+    )
+    from .reproduce.store import pending_cells
 
     try:
-        cfg = SweepConfig(
+        sweep_cfg = dict(
             methods=_parse_methods(methods, "--methods"),
             num_agents=tuple(parse_sizes(num_agents)),
             area=area,
@@ -520,6 +536,13 @@ def reproduce(
             workers=workers,
             backend=backend.value,
         )
+    except ValueError as err:
+        usage_error(str(err), err)
+    try:
+        cfg = SweepConfig(**sweep_cfg)
+    except ValueError as err:
+        usage_error(_sweep_flags(str(err)), err)
+    try:
         if not report_only:
             parse_device(device)
             check_env_flags(cfg.num_agents, area, obstacles, max_steps)
@@ -527,7 +550,9 @@ def reproduce(
                 check_env_flags([n], cfg.scale_area(n), 0, max_steps)
             ckpts = validate(cfg)
             learned = [
-                (c.num_agents, cfg.area_for(c), cfg.episodes_for(c)) for c in cfg.cells() if c.train_seed is not None
+                (c.num_agents, cfg.area_for(c), cfg.episodes_for(c))
+                for c in pending_cells(cfg, ckpts)
+                if c.train_seed is not None
             ]
             hidden = max((read_config(ck.path).model.hidden for ck in ckpts.values()), default=64)
             comm = check_env_flags([8], area, 0, None)[0].comm_radius
@@ -535,14 +560,56 @@ def reproduce(
     except (ValueError, FileNotFoundError, ImportError) as err:
         usage_error(str(err), err)
     if not report_only:
-        prepare_out(out, True, ())  # writable (finished cells in it are reused, never overwritten)
+        prepare_out(out, True, ())  # writable (finished cells in it are reused; other settings are refused)
     prepare_out(report.parent, True, (), flag="--report")
     if report_only:
         records = load_cells(cfg)
+        stale = mismatched_cells(cfg)
+        if stale and not records:
+            usage_error(describe_mismatch(cfg, stale) + "; pass the flags of the sweep that made them")
+        if stale:
+            typer.echo(f"Warning: {describe_mismatch(cfg, stale)}; they show as pending", err=True)
     else:
-        records = sweep(cfg, command=" ".join(["egcbf", *sys.argv[1:]]), progress=progress, log=typer.echo)
+        try:
+            records = sweep(
+                cfg, command=shlex.join(["egcbf", *sys.argv[1:]]), progress=progress, log=typer.echo,
+                recompute=recompute,
+            )  # fmt: skip
+        except ValueError as err:  # stored cells of other settings
+            usage_error(str(err), err)
+        except RuntimeError as err:  # another sweep holds the lock; CellsFailed is reported below
+            if isinstance(err, CellsFailed):
+                typer.echo(f"Error: {err}; the finished cells are kept, rerun the command to retry", err=True)
+                records = load_cells(cfg)
+                write_report(cfg, records, report)
+                raise typer.Exit(1) from None
+            usage_error(str(err), err)
     path = write_report(cfg, records, report)
     typer.echo(f"{len(records)} of {len(cfg.cells())} cells; wrote {path}")
+
+
+#: SweepConfig's field names as the reproduce command's flags, for its error messages
+_SWEEP_FLAGS = {
+    "methods": "--methods",
+    "num_agents": "--num-agents",
+    "obstacle_methods": "--obstacle-methods",
+    "baseline_episodes": "--baseline-episodes",
+    "train_seeds": "--train-seeds",
+    "seed_methods": "--seed-methods",
+    "scale_sizes": "--scale-sizes",
+    "scale_methods": "--scale-methods",
+    "scale_agent_episodes": "--scale-agent-episodes",
+    "max_steps": "--max-steps",
+    "episodes": "--episodes",
+    "obstacles": "--obstacles",
+    "workers": "--workers",
+    "area": "--area",
+}
+
+
+def _sweep_flags(message: str) -> str:
+    """``message`` with SweepConfig's field names written as the flags that set them."""
+    return re.sub(r"(?<![-\w])(" + "|".join(_SWEEP_FLAGS) + r")\b", lambda m: _SWEEP_FLAGS[m.group(1)], message)
 
 
 def main(argv: list[str] | None = None) -> None:

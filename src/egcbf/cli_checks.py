@@ -167,12 +167,14 @@ def _size(num_bytes: float) -> str:
 def check_policy_memory(configs: Sequence, episodes: int, batch: int | None, hidden: int, device: torch.device) -> None:
     """Refuse (usage error, with the numbers) a learned-policy evaluation whose estimated step memory
     (:func:`policy_memory`) exceeds :func:`available_memory`, before anything is allocated."""
+    from .evaluate import episode_batch
+
     free = available_memory(device)
     if free is None:
         return
     for cfg in configs:
         n = cfg.num_agents
-        envs = batch or max(1, min(episodes, 4096 // n))  # as egcbf.evaluate.evaluate batches episodes
+        envs = batch or episode_batch(n, episodes)
         need, edges = policy_memory(n, cfg.area_size, cfg.comm_radius, envs, hidden)
         if need > free:
             usage_error(
@@ -191,14 +193,13 @@ def check_sweep_memory(cells: Sequence[tuple[int, float, int]], workers: int, hi
     """Refuse (usage error, with the numbers) a sweep whose largest learned cells, ``workers`` of them at once,
     would not fit: ``cells`` are ``(num_agents, area, episodes)`` of the learned cells (:func:`policy_memory` of
     each, episodes batched as :func:`egcbf.evaluate.evaluate` batches them)."""
+    from .evaluate import episode_batch
+
     free = available_memory(device)
     if free is None or not cells:
         return
     needs = sorted(
-        (
-            (policy_memory(n, area, comm_radius, max(1, min(eps, 4096 // n)), hidden)[0], n, area)
-            for n, area, eps in cells
-        ),
+        ((policy_memory(n, area, comm_radius, episode_batch(n, eps), hidden)[0], n, area) for n, area, eps in cells),
         reverse=True,
     )
     parallel = needs[: max(1, min(workers, len(needs)))]

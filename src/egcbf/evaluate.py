@@ -25,9 +25,26 @@ from .env import EnvConfig, SwarmEnv, SwarmState
 from .env.obstacles import Obstacles
 from .metrics import EpisodeStats, summarize
 
-__all__ = ["EpisodeRecord", "concat_states", "episode_seed", "evaluate", "run_episodes"]
+__all__ = [
+    "MAX_AGENTS_PER_BATCH",
+    "EpisodeRecord",
+    "concat_states",
+    "episode_batch",
+    "episode_seed",
+    "evaluate",
+    "run_episodes",
+]
 
 Controller = Callable[[SwarmState, EnvConfig], tuple[Tensor, dict]]
+
+
+#: episodes of one swarm size are simulated together, up to this many agents in all (``batch`` unset)
+MAX_AGENTS_PER_BATCH = 4096
+
+
+def episode_batch(num_agents: int, episodes: int, max_agents_per_batch: int = MAX_AGENTS_PER_BATCH) -> int:
+    """How many of ``episodes`` episodes of ``num_agents`` agents :func:`evaluate` simulates together."""
+    return max(1, min(episodes, max_agents_per_batch // num_agents))
 
 
 def episode_seed(seed: int, num_agents: int, episode: int) -> int:
@@ -109,7 +126,7 @@ def evaluate(
     episodes: int = 50,
     seed: int = 0,
     batch: int | None = None,
-    max_agents_per_batch: int = 4096,
+    max_agents_per_batch: int = MAX_AGENTS_PER_BATCH,
     max_steps: int | None = None,
     device: str | torch.device = "cpu",
     dtype: torch.dtype = torch.float32,
@@ -137,7 +154,7 @@ def evaluate(
             overrides["max_steps"] = max_steps
         config = EnvConfig.for_robot(robot, num_agents=n, area_size=area_size, num_obstacles=num_obstacles, **overrides)
         controller = make_controller(config)
-        b = batch or max(1, min(episodes, max_agents_per_batch // n))
+        b = batch or episode_batch(n, episodes, max_agents_per_batch)
         seeds = [episode_seed(seed, n, e) for e in range(episodes)]
         per_episode, timing = [], {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0}
         bar = tqdm(

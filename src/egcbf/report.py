@@ -13,7 +13,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["cpu_name", "load_run", "machine_info", "metrics_markdown", "replace_section"]
+__all__ = ["code_version", "cpu_name", "load_run", "machine_info", "metrics_markdown", "replace_section"]
 
 
 def cpu_name() -> str:
@@ -39,6 +39,27 @@ def machine_info() -> dict:
         "python": sys.version.split()[0],
         "host": platform.node(),
     }
+
+
+def code_version() -> str:
+    """The package version, plus ``git describe --always --dirty`` of the source tree when it is a git checkout
+    (e.g. ``0.4.0+g1a2b3c4-dirty``), for provenance records; never raises."""
+    import subprocess
+
+    from ._version import __version__
+
+    try:
+        desc = subprocess.run(
+            ["git", "describe", "--always", "--dirty", "--exclude", "*"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return __version__
+    return f"{__version__}+g{desc}" if desc else __version__
 
 
 def load_run(directory: str | Path) -> tuple[list[dict], dict]:

@@ -1,5 +1,6 @@
 """`egcbf reproduce`: cells, resuming, baseline import, backends, report (tiny swarms, short episodes)."""
 
+import dataclasses
 import json
 import pickle
 import shutil
@@ -103,7 +104,7 @@ def test_resume_recomputes_nothing_then_only_changed_cells(first, monkeypatch):
     def boom(task):
         raise AssertionError(f"recomputed {task.cell}")
 
-    monkeypatch.setattr(rp.runner, "run_cell", boom)
+    monkeypatch.setattr(rp.workers, "run_cell", boom)
     again = rp.sweep(cfg, progress=False, log=lambda s: None)
     assert again == records
     log = json.loads((cfg.out / "sweep.json").read_text())
@@ -115,36 +116,87 @@ def test_resume_recomputes_nothing_then_only_changed_cells(first, monkeypatch):
         calls.append(task.cell)
         return {"row": records[task.cell]["row"], "wall_s": 0.0, "machine": {}}
 
-    monkeypatch.setattr(rp.runner, "run_cell", fake)
-    other = SweepConfig(**{**cfg.__dict__, "episodes": 3, "out": cfg.out.parent / "other"})
+    monkeypatch.setattr(rp.workers, "run_cell", fake)
+    other = dataclasses.replace(cfg, episodes=3, out=cfg.out.parent / "other")
     shutil.copytree(cfg.out, other.out)
-    rp.sweep(other, progress=False, log=lambda s: None)
+    with pytest.raises(ValueError, match=r"made with other settings.*episodes 2 \(stored\) vs 3 \(asked\)"):
+        rp.sweep(other, progress=False, log=lambda s: None)  # never overwritten unasked
+    assert calls == []
+    rp.sweep(other, progress=False, log=lambda s: None, recompute=True)
     assert sorted(calls) == sorted(cfg.cells())
     assert calls[0].num_agents == 3  # largest N first
 
 
-def test_invocation_is_recorded_after_every_cell_and_when_stopped(first, tmp_path, monkeypatch):
-    """A sweep killed mid-way still counts in sweep.json up to its last finished cell; an exception marks it
-    interrupted."""
+def test_a_failing_cell_keeps_the_others_and_the_invocation_is_recorded(first, tmp_path, monkeypatch):
+    """Every finished cell is kept when another raises; sweep.json is updated after every cell, so a killed sweep
+    still counts up to its last finished cell; the status says how it ended."""
     cfg, records = first
     out = tmp_path / "stopped"
-    stopped = SweepConfig(**{**cfg.__dict__, "episodes": 3, "workers": 1, "out": out})
+    stopped = dataclasses.replace(cfg, episodes=3, out=out)
     seen = []
 
     def fake(task):
         log = json.loads((out / "sweep.json").read_text())
         seen.append((log[-1]["status"], log[-1]["computed"]))
         if len(seen) == 2:
-            raise RuntimeError("stop")
+            raise RuntimeError("cell broke")
         return {"row": records[task.cell]["row"], "wall_s": 0.0, "machine": {}}
 
-    monkeypatch.setattr(rp.runner, "run_cell", fake)
-    with pytest.raises(RuntimeError, match="stop"):
-        rp.sweep(stopped, progress=False, log=lambda s: None)
-    assert seen == [("running", 0), ("running", 1)]
+    monkeypatch.setattr(rp.workers, "run_cell", fake)
+    messages = []
+    with pytest.raises(rp.CellsFailed, match=r"1 cell\(s\) failed.*RuntimeError: cell broke") as failed:
+        rp.sweep(stopped, progress=False, log=messages.append)
+    n = len(stopped.cells())
+    assert seen[:2] == [("running", 0), ("running", 1)] and len(seen) == n
+    assert len(failed.value.failures) == 1 and any("FAILED" in m and "cell broke" in m for m in messages)
+    assert len(rp.load_cells(stopped)) == n - 1  # the others were written
     log = json.loads((out / "sweep.json").read_text())
-    assert len(log) == 1 and log[0]["status"] == "interrupted" and log[0]["computed"] == 1
+    assert len(log) == 1 and log[0]["status"] == "failed" and (log[0]["computed"], log[0]["failed"]) == (n - 1, 1)
+    assert "code" in log[0]
+
+    def interrupt(task):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rp.workers, "run_cell", interrupt)
+    with pytest.raises(KeyboardInterrupt):  # the failed cell is retried, and Ctrl-C stops the sweep
+        rp.sweep(stopped, progress=False, log=lambda s: None)
+    log = json.loads((out / "sweep.json").read_text())
+    assert log[-1]["status"] == "interrupted" and log[-1]["reused"] == n - 1
     assert "1 not recorded as finished" in rp.provenance_markdown(stopped, rp.load_cells(stopped))
+
+
+def test_a_second_sweep_into_the_same_directory_is_refused(first, tmp_path):
+    cfg, _ = first
+    with rp.runner._SweepLock(cfg.out):
+        with pytest.raises(RuntimeError, match=r"another sweep \(pid \d+\) is writing into"):
+            with rp.runner._SweepLock(cfg.out):
+                pass
+    with rp.runner._SweepLock(cfg.out):  # released
+        pass
+
+
+def test_sigterm_stops_a_sweep_like_ctrl_c():
+    import os
+    import signal
+    import time
+
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt, match="signal"):
+        with rp.runner._TermAsInterrupt():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # the handler interrupts this at once
+    assert signal.getsignal(signal.SIGTERM) == before
+
+
+def test_process_pool_yields_finished_cells_and_failures(first):
+    """The process backend (spawned workers) returns each cell's outcome, a failing one as its traceback."""
+    cfg, records = first
+    cells = list(records)[:2]
+    tasks = [rp.CellTask(cell=c, area=cfg.area_for(c), episodes=1, seed=3, max_steps=2, device="cpu") for c in cells]
+    broken = dataclasses.replace(tasks[0], device="no-such-device")
+    got = {t.cell: (res, err) for t, res, err in rp.workers.execute([broken, tasks[1]], "process", 2)}
+    assert got[cells[0]][0] is None and "no-such-device" in got[cells[0]][1]
+    assert got[cells[1]][1] is None and 0 <= got[cells[1]][0]["row"]["safe_rate"] <= 1
 
 
 def test_baseline_import(checkpoints, tmp_path):
@@ -164,7 +216,13 @@ def test_baseline_import(checkpoints, tmp_path):
     assert rp.import_baseline(cfg.baselines, Cell("dcbf", 0, 3), key | {"num_agents": 3}) is None  # no such row
     assert rp.import_baseline(cfg.baselines, cell, key | {"episodes": 5}) is None
     assert rp.import_baseline(cfg.baselines, cell, key | {"max_steps": 5}) is None
-    (base / "run.json").write_text(json.dumps(run | {"command": run["command"] + " --max-steps 9"}))
+    for extra in (" --max-steps 9", " --device=cuda", " --device cuda:0", " --robot unicycle", " --batch 2", " --x"):
+        (base / "run.json").write_text(json.dumps(run | {"command": run["command"] + extra}))
+        assert rp.import_baseline(cfg.baselines, cell, key) is None, extra
+    for extra in (" --device cpu", " --dtype=float32", " --no-progress", " --out o --overwrite"):
+        (base / "run.json").write_text(json.dumps(run | {"command": run["command"] + extra}))
+        assert rp.import_baseline(cfg.baselines, cell, key) is not None, extra
+    (base / "run.json").write_text(json.dumps(run | {"area": None}))
     assert rp.import_baseline(cfg.baselines, cell, key) is None
 
 
@@ -264,6 +322,12 @@ def test_reproduce_command(first, tmp_path):
     assert f"{len(records)} of {len(records)} cells" in res.output and "EGCBF+" in report.read_text()
     res = CliRunner().invoke(app, [*args, "--report-only"])
     assert res.exit_code == 0, res.output
+    # the report of other settings than the stored cells' is refused, not written as all-pending
+    other = [a if a != "2" else "9" for a in args]  # --episodes 9
+    res = CliRunner().invoke(app, [*other, "--report-only"])
+    assert res.exit_code == 2 and "were made with other settings" in res.output and "episodes 2 (stored)" in res.output
+    res = CliRunner().invoke(app, other)  # and the sweep refuses to overwrite them
+    assert res.exit_code == 2 and "--recompute" in res.output
 
 
 def test_training_seeds_and_scalability_cells(checkpoints, tmp_path):
@@ -324,7 +388,11 @@ def test_checkpoint_of_the_wrong_seed_is_refused(checkpoints, tmp_path):
     res = CliRunner().invoke(app, ["reproduce", "--methods", "egcbf+", "--train-seeds", "0,x"])
     assert res.exit_code == 2 and "--train-seeds" in res.output
     res = CliRunner().invoke(app, ["reproduce", "--methods", "egcbf+", "--seed-methods", "dcbf"])
-    assert res.exit_code == 2 and "seed_methods" in res.output
+    assert res.exit_code == 2 and "Error: --seed-methods must be among the learned" in res.output
+    res = CliRunner().invoke(app, ["reproduce", "--methods", "egcbf+", "--area", "-1"])
+    assert res.exit_code == 2 and "Error: --area must be > 0, got -1.0" in res.output
+    res = CliRunner().invoke(app, ["reproduce", "--methods", "egcbf+", "--scale-agent-episodes", "0"])
+    assert res.exit_code == 2 and "Error: --scale-agent-episodes must be >= 1" in res.output
 
 
 def test_default_outputs_stay_out_of_the_users_docs(tmp_path, monkeypatch):

@@ -8,29 +8,31 @@
 The sweep evaluates every method (GCBF, GCBF+, dCBF-QP, cCBF-QP, EGCBF, EGCBF+, and the nominal controller alone)
 at every swarm size of Table I in an arena ``[0, l]^3`` without obstacles and (the methods of ``obstacle_methods``)
 with sphere obstacles; EGCBF+ and GCBF+ once per training seed; and, past the paper, at N = 1024 ... 4096 at the
-density of N = 512. Four modules, one job each:
+density of N = 512. Six modules, one job each:
 
 * :mod:`~egcbf.reproduce.paper`: the paper's Table I and the method names;
 * :mod:`~egcbf.reproduce.plan`: :class:`SweepConfig`, its cells and what a cell's result depends on;
-* :mod:`~egcbf.reproduce.runner`: checkpoints, evaluating cells on processes or Ray, resuming;
+* :mod:`~egcbf.reproduce.store`: what is kept on disk: checkpoints, cell files, imported baselines, invocations;
+* :mod:`~egcbf.reproduce.workers`: evaluating one cell, and many on local processes or Ray;
+* :mod:`~egcbf.reproduce.runner`: the sweep: order, resuming, failures, interruptions, the lock;
 * :mod:`~egcbf.reproduce.report`: the markdown report and its figures.
 """
 
 from .paper import BASELINES, DEFAULT_SIZES, LABELS, LEARNED, METHODS, PAPER_TABLE_I, SCALE_SIZES
 from .plan import Cell, SweepConfig, cell_key
 from .report import provenance_markdown, scalability_figure, summary_markdown, table_markdown, write_report
-from .runner import (
-    CellTask,
+from .runner import CellsFailed, sweep, validate
+from .store import (
     CheckpointInfo,
     checkpoint_dir,
+    describe_mismatch,
     find_method_checkpoint,
     import_baseline,
     load_cells,
-    require_ray,
-    run_cell,
-    sweep,
-    validate,
+    mismatched_cells,
+    read_invocations,
 )
+from .workers import CellTask, require_ray, run_cell
 
 __all__ = [
     "BASELINES",
@@ -42,14 +44,18 @@ __all__ = [
     "SCALE_SIZES",
     "Cell",
     "CellTask",
+    "CellsFailed",
     "CheckpointInfo",
     "SweepConfig",
     "cell_key",
     "checkpoint_dir",
+    "describe_mismatch",
     "find_method_checkpoint",
     "import_baseline",
     "load_cells",
+    "mismatched_cells",
     "provenance_markdown",
+    "read_invocations",
     "require_ray",
     "run_cell",
     "scalability_figure",

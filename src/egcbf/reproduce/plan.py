@@ -103,7 +103,7 @@ class SweepConfig:
                 raise ValueError(f"unknown method(s) {bad} in {name}; choose from {list(METHODS)}")
         bad = [m for m in self.seed_methods if m not in LEARNED]
         if bad:
-            raise ValueError(f"seed_methods must be learned methods {list(LEARNED)}, got {bad}")
+            raise ValueError(f"seed_methods must be among the learned {list(LEARNED)}, got {bad}")
         if not self.methods:
             raise ValueError("methods is empty")
         if not self.num_agents:
@@ -119,8 +119,10 @@ class SweepConfig:
         for name in ("episodes", "workers", "threads", "scale_reference", "scale_agent_episodes"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.obstacles < 0 or self.area <= 0:
-            raise ValueError(f"need obstacles >= 0 and area > 0, got {self.obstacles}, {self.area}")
+        if self.obstacles < 0:
+            raise ValueError(f"obstacles must be >= 0, got {self.obstacles}")
+        if self.area <= 0:
+            raise ValueError(f"area must be > 0, got {self.area}")
         if self.max_steps is not None and self.max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
         if self.backend not in BACKENDS:
@@ -180,10 +182,10 @@ class SweepConfig:
         return float(self.area if cell.area is None else cell.area)
 
     def episodes_text(self) -> str:
-        """``"50 episodes per cell"`` or ``"10 episodes per cell (CBF-QP baselines: 50)"``."""
+        """``"50 episodes per cell"`` or ``"10 episodes per cell (hand-crafted controllers: 50)"``."""
         text = f"{self.episodes} episodes per cell"
         if self.baseline_episodes is not None and self.baseline_episodes != self.episodes:
-            text += f" (CBF-QP baselines: {self.baseline_episodes})"
+            text += f" (hand-crafted controllers: {self.baseline_episodes})"
         return text
 
     def scale_text(self) -> str:

@@ -1,6 +1,6 @@
 """The report of ``egcbf reproduce``: Table I beside the paper, the scalability study, figures, provenance.
 
-Every number in the report is read from the sweep's cell records (:mod:`egcbf.reproduce.runner`); a method evaluated
+Every number in the report is read from the sweep's cell records (:mod:`egcbf.reproduce.store`); a method evaluated
 over several training seeds shows their mean with the min and max over the seeds (``92.7 (90.6-95.3)``), in the
 tables, the summary and the figures (a band) alike. The report's sections live between ``<!-- name:begin/end -->``
 markers of the markdown file, so text written around them survives a regeneration.
@@ -17,7 +17,7 @@ from pathlib import Path
 from ..dynamics.quadrotor import DEFAULT_DT
 from .paper import LABELS, LEARNED, METHODS, PAPER_TABLE_I, PaperRow
 from .plan import Cell, SweepConfig
-from .runner import find_method_checkpoint, read_invocations
+from .store import find_method_checkpoint, read_invocations
 
 __all__ = [
     "Stat",

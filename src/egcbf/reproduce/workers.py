@@ -1,0 +1,167 @@
+"""Evaluate one cell of ``egcbf reproduce``, and many at once on local processes or Ray.
+
+One cell runs :func:`egcbf.evaluate.evaluate` for a single ``N`` (the same function, seeds and batching as
+``egcbf eval``, so a cell's metrics equal those of ``egcbf eval`` at that ``N``). A backend takes the cells' tasks in
+order (largest ``N`` first) and yields ``(task, result, error)`` as each finishes: ``backend="process"`` over
+``workers`` spawned processes with ``threads`` torch threads each, or Ray tasks (``backend="ray"``, the optional
+``ray`` extra, for a cluster: a task carries the checkpoint's bytes, not its path, so the nodes need no shared file
+system). Either way, the same cell gives the same numbers. A cell that raises yields its traceback text instead of
+stopping the others; closing the backend's iterator (an interruption) stops its workers at once.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+import tempfile
+import time
+import traceback
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from ..report import code_version, machine_info
+from .plan import Cell
+
+__all__ = ["CellTask", "Outcome", "execute", "require_ray", "run_cell"]
+
+
+# ---------------------------------------------------------------------------------------------------- one cell
+@dataclass(frozen=True)
+class CellTask:
+    """Everything a worker needs to evaluate one cell (picklable; a learned method carries its checkpoint files)."""
+
+    cell: Cell
+    area: float
+    episodes: int
+    seed: int
+    max_steps: int | None
+    device: str
+    threads: int = 1
+    checkpoint_files: dict[str, bytes] | None = None
+    progress: bool = False
+
+
+def _evaluate_cell(task: CellTask) -> dict:
+    from ..control.controllers import make_controller
+    from ..evaluate import evaluate
+
+    learned, env_overrides = None, None
+    with tempfile.TemporaryDirectory(prefix="egcbf-ckpt-") as tmp:
+        if task.checkpoint_files is not None:  # the same loading as `egcbf eval --checkpoint`
+            from ..checkpoint import load_controller
+
+            for name, data in task.checkpoint_files.items():
+                (Path(tmp) / name).write_bytes(data)
+            learned, train_cfg = load_controller(tmp, device=task.device, dtype=torch.float32)
+            env_overrides = dict(train_cfg.env_overrides)
+    rows, _ = evaluate(
+        (lambda cfg: learned) if learned is not None else (lambda cfg: make_controller(task.cell.method)),
+        [task.cell.num_agents],
+        area_size=task.area,
+        num_obstacles=task.cell.obstacles,
+        episodes=task.episodes,
+        seed=task.seed,
+        max_steps=task.max_steps,
+        device=task.device,
+        dtype=torch.float32,
+        show_progress=task.progress,
+        env_overrides=env_overrides,
+    )
+    return rows[0]
+
+
+def run_cell(task: CellTask) -> dict:
+    """Evaluate one cell with ``task.threads`` torch threads: ``{"row": metrics row, "wall_s": s, "machine": ...}``."""
+    saved = torch.get_num_threads()
+    torch.set_num_threads(task.threads)
+    try:
+        t0 = time.perf_counter()
+        row = _evaluate_cell(task)
+        wall = time.perf_counter() - t0
+        return {"row": row, "wall_s": round(wall, 2), "machine": machine_info(), "code": code_version()}
+    finally:
+        torch.set_num_threads(saved)
+
+
+# ---------------------------------------------------------------------------------------------------- backends
+def require_ray():
+    """The ``ray`` module, or an ImportError saying how to install it."""
+    try:
+        import ray
+    except ImportError:
+        raise ImportError(
+            "--backend ray needs Ray, an optional extra: pip install -e '.[ray]' (or pip install 'ray>=2.9')"
+        ) from None
+    return ray
+
+
+def _init_worker(threads: int) -> None:
+    torch.set_num_threads(threads)
+    try:  # Linux: a worker dies with the sweep (even `kill -9` of the sweep) instead of finishing its cell alone
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+#: what a backend yields per cell: the task, then its result (``run_cell``'s dict) or ``None`` and the error text
+Outcome = tuple[CellTask, dict | None, str | None]
+
+
+def _run_cell_caught(task: CellTask) -> Outcome:
+    try:
+        return task, run_cell(task), None
+    except Exception:  # reported by the sweep, which goes on with the other cells
+        return task, None, traceback.format_exc()
+
+
+def _run_local(tasks: Sequence[CellTask]) -> Iterator[Outcome]:
+    for task in tasks:
+        yield _run_cell_caught(task)
+
+
+def _run_processes(tasks: Sequence[CellTask], workers: int) -> Iterator[Outcome]:
+    ctx = multiprocessing.get_context("spawn")  # never fork a process whose torch thread pools are running
+    threads = tasks[0].threads if tasks else 1
+    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(threads,))
+    try:
+        # dispatched in order (largest N starts first), yielded as they finish
+        yield from pool.imap_unordered(_run_cell_caught, tasks, chunksize=1)
+        pool.close()
+    finally:
+        pool.terminate()  # on an interruption the cells in progress are dropped at once, not awaited
+        pool.join()
+
+
+def _run_ray(tasks: Sequence[CellTask]) -> Iterator[Outcome]:
+    ray = require_ray()
+    if not ray.is_initialized():
+        ray.init()  # RAY_ADDRESS selects a cluster; otherwise a local one
+    remote = ray.remote(num_cpus=tasks[0].threads if tasks else 1)(_run_cell_caught)
+    pending = {remote.remote(t): t for t in tasks}
+    try:
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                task = pending.pop(ref)
+                try:
+                    yield ray.get(ref)
+                except Exception:  # the task itself died (worker lost, out of memory)
+                    yield task, None, traceback.format_exc()
+    finally:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+
+
+def execute(tasks: Sequence[CellTask], backend: str, workers: int) -> Iterator[Outcome]:
+    """Run ``tasks`` on ``backend`` (``"process"``: ``workers`` processes, in this process if one suffices;
+    ``"ray"``); yields an :data:`Outcome` per task as it finishes."""
+    if backend == "ray":
+        return _run_ray(tasks)
+    if workers <= 1 or len(tasks) <= 1:
+        return _run_local(tasks)
+    return _run_processes(tasks, min(workers, len(tasks)))

@@ -281,13 +281,18 @@ def no_checkpoint(out: str | Path) -> FileNotFoundError:
     return FileNotFoundError(f"no checkpoint in {out} (expected {out}/{CHECKPOINTS_DIR}/step_*/model.safetensors)")
 
 
-def find_checkpoint(path: str | Path) -> Path:
-    """A checkpoint directory: ``path`` itself if it holds one, else the newest checkpoint of the run ``path``."""
+def find_checkpoint(path: str | Path, prefer_best: bool = False) -> Path:
+    """A checkpoint directory: ``path`` itself if it holds one, else, of the run ``path``, its ``best/`` (the
+    checkpoint selected on validation episodes) if ``prefer_best`` and it exists, else its newest checkpoint
+    (what resuming needs)."""
     p = recover_dir(Path(path))
     if (p / "model.safetensors").exists() and (p / "config.json").exists():
         return p
     if p.exists() and not p.is_dir():
         raise FileNotFoundError(f"{p} is a file; pass a checkpoint directory (config.json + model.safetensors)")
+    best = recover_dir(p / "best")
+    if prefer_best and (best / "model.safetensors").exists() and (best / "config.json").exists():
+        return best
     found = list_checkpoints(p)
     if not found:
         raise no_checkpoint(p)

@@ -210,7 +210,7 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
 
     path = checkpoints / name
     try:
-        return find_checkpoint(path)
+        return find_checkpoint(path, prefer_best=True)
     except FileNotFoundError as err:
         usage_error(
             f"--checkpoints: no {name} checkpoint at {path} (config.json + model.safetensors); train one with "

@@ -68,14 +68,18 @@ def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path
 
 
 def load_policy(checkpoint: Path, dev: torch.device, dtype: torch.dtype, flag: str = "--checkpoint"):
-    """``(checkpoint directory, controller, training config)`` of ``checkpoint``, or a usage error naming it."""
+    """``(checkpoint directory, controller, training config)`` of ``checkpoint`` (of a run directory, its ``best/``
+    if it has one, else its newest checkpoint; said on stderr), or a usage error naming it."""
     from .checkpoint import CheckpointError, find_checkpoint, load_controller
 
     try:
-        ckpt = find_checkpoint(checkpoint)
+        ckpt = find_checkpoint(checkpoint, prefer_best=True)
         learned, train_cfg = load_controller(ckpt, device=dev, dtype=dtype)
     except (FileNotFoundError, CheckpointError) as err:
         usage_error(f"{flag} {checkpoint}: {err}", err)
+    if ckpt.resolve() != Path(checkpoint).resolve():
+        why = "its best/ (selected on validation episodes)" if ckpt.name == "best" else "its newest checkpoint"
+        typer.echo(f"{flag} {checkpoint}: a run directory; evaluating {why}, {ckpt}", err=True)
     return ckpt, learned, train_cfg
 
 

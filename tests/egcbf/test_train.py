@@ -174,6 +174,15 @@ def test_best_policy_is_the_best_evaluated_one(tmp_path):
     ctrl, cfg2 = load_controller(tmp_path / "best")
     assert ctrl.model_config == cfg.model  # a best/ directory is a checkpoint for evaluation
     assert cfg2 == cfg
+    # a run directory: evaluation takes its best/, resuming its newest checkpoint
+    assert find_checkpoint(tmp_path, prefer_best=True) == tmp_path / "best"
+    assert find_checkpoint(tmp_path).name == "step_000004"
+    out = tmp_path / "eval"
+    r = CliRunner().invoke(app, ["eval", "--checkpoint", str(tmp_path), "--num-agents", "2", "--episodes", "1",
+                                 "--max-steps", "3", "--out", str(out), "--no-progress"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert "evaluating its best/" in r.output
+    assert json.loads((out / "run.json").read_text())["checkpoint"].endswith("best")
 
 
 def test_max_wall_minutes_stops_with_a_final_evaluation_and_checkpoint(tmp_path):

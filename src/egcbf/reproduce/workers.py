@@ -74,14 +74,18 @@ def _evaluate_cell(task: CellTask) -> dict:
 
 
 def run_cell(task: CellTask) -> dict:
-    """Evaluate one cell with ``task.threads`` torch threads: ``{"row": metrics row, "wall_s": s, "machine": ...}``."""
+    """Evaluate one cell with ``task.threads`` torch threads: ``{"row": metrics row, "wall_s": s, "machine": ...,
+    "code": version}`` (the machine names the GPU on a CUDA device)."""
     saved = torch.get_num_threads()
     torch.set_num_threads(task.threads)
     try:
         t0 = time.perf_counter()
         row = _evaluate_cell(task)
         wall = time.perf_counter() - t0
-        return {"row": row, "wall_s": round(wall, 2), "machine": machine_info(), "code": code_version()}
+        machine = machine_info()
+        if torch.device(task.device).type == "cuda":
+            machine["gpu"] = torch.cuda.get_device_name(torch.device(task.device))
+        return {"row": row, "wall_s": round(wall, 2), "machine": machine, "code": code_version()}
     finally:
         torch.set_num_threads(saved)
 

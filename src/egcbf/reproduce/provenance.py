@@ -86,9 +86,12 @@ def _machine(machine: dict | None) -> str:
     return f"{machine.get('cpu') or 'an unrecorded machine'}{cores}"
 
 
-def _threads(machine: dict | None) -> str:
+def _threads(machine: dict | None, each: str = "") -> str:
+    """``1 torch thread`` (plus `` per cell`` with ``each``), or that the count was not recorded."""
     threads = (machine or {}).get("threads")
-    return "torch threads not recorded" if threads is None else f"{threads} torch thread{'s' * (threads != 1)}"
+    if threads is None:
+        return "torch threads not recorded"
+    return f"{threads} torch thread{'s' * (threads != 1)}{each}"
 
 
 # ---------------------------------------------------------------------------------------------------- timing
@@ -108,7 +111,7 @@ def timing_text(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
         owner = owners.get(cell)
         device = meta.get("device") or "cpu"
         where = _machine(machine) + ("" if device == "cpu" else f", device {device}")
-        computed[f"{where}, {_threads(machine)} per cell, "
+        computed[f"{where}, {_threads(machine, ' per cell')}, "
                  f"{_at_a_time(None if owner is None else invocations[owner])}"] += 1  # fmt: skip
     parts = []
     if computed:

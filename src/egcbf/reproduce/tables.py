@@ -70,7 +70,7 @@ def _glance(cfg: SweepConfig, records: dict[Cell, dict], metric: str) -> str:
     the paper's row below ours where Table I has the method."""
     sizes = [(int(n), False) for n in cfg.num_agents] + [(int(n), True) for n in cfg.scale_sizes]
     sizes = [(n, s) for n, s in sizes if any(c.num_agents == n and c.scale == s for c in cfg.cells())]
-    head = ["method"] + [f"N = {n}" + (f" (l = {cfg.scale_area(n):g})" if s else "") for n, s in sizes]
+    head = ["method"] + [f"N = {n}" + (f" (l = {cfg.scale_area(n):g} m)" if s else "") for n, s in sizes]
     index = {"safe_rate": 0, "success_rate": 2}[metric]
     rows = []
     for m in (m for m in METHODS if m in cfg.methods):

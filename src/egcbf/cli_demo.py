@@ -17,7 +17,7 @@ import typer
 
 from .atomic import write_json_atomic, write_text_atomic
 from .cli_eval import run_eval
-from .report import machine_info
+from .report import machine_info, number, pct
 
 __all__ = ["DESCRIPTIONS", "demo_table", "run_demo"]
 
@@ -39,8 +39,8 @@ def demo_table(rows: dict[str, dict], header: str) -> str:
     lines = [header, "", head, "-" * len(head)]
     for name, r in rows.items():
         lines.append(
-            f"{DESCRIPTIONS.get(name, name):32s} {100 * r['safe_rate']:7.1f} {100 * r['reach_rate']:8.1f} "
-            f"{100 * r['success_rate']:10.1f} {r['cost']:11.3f} {r['step_ms_median']:8.2f}"
+            f"{DESCRIPTIONS.get(name, name):32s} {pct(r['safe_rate']):>7} {pct(r['reach_rate']):>8} "
+            f"{pct(r['success_rate']):>10} {number(r['cost']):>11} {r['step_ms_median']:8.2f}"
         )
     lines += [
         "",

@@ -21,7 +21,7 @@ from .cli_checks import (
     require,
     usage_error,
 )
-from .report import machine_info
+from .report import machine_info, number, pct
 
 __all__ = ["DTYPES", "EVAL_RESULTS", "format_table", "load_policy", "render_records", "run_eval"]
 
@@ -31,17 +31,18 @@ EVAL_RESULTS = ("metrics.json", "run.json", "*_N*.gif", "*_N*_topdown.png")
 
 
 def format_table(rows: list[dict], title: str = "") -> str:
-    """A fixed-width table of metric rows (rates in %)."""
+    """A fixed-width table of metric rows (rates in % and costs as :func:`egcbf.report.pct` and
+    :func:`egcbf.report.number` print them)."""
     head = f"{'N':>5} {'Safe%':>7} {'Reach%':>7} {'Succ%':>7} {'Cost (min/max)':>20} {'Reward':>10} {'step ms':>8}"
     has_qp = any("qp_ms_median" in r for r in rows)
     if has_qp:
         head += f" {'QP ms':>7} {'slack':>6}"
     lines = [title, head, "-" * len(head)] if title else [head, "-" * len(head)]
     for r in rows:
-        cost = f"{r['cost']:.3f} ({r['cost_min']:.2f}/{r['cost_max']:.2f})"
+        cost = f"{number(r['cost'])} ({number(r['cost_min'], 2)}/{number(r['cost_max'], 2)})"
         line = (
-            f"{r['num_agents']:>5} {100 * r['safe_rate']:>7.1f} {100 * r['reach_rate']:>7.1f} "
-            f"{100 * r['success_rate']:>7.1f} {cost:>20} {r['reward']:>10.2f} {r['step_ms_median']:>8.2f}"
+            f"{r['num_agents']:>5} {pct(r['safe_rate']):>7} {pct(r['reach_rate']):>7} "
+            f"{pct(r['success_rate']):>7} {cost:>20} {r['reward']:>10.2f} {r['step_ms_median']:>8.2f}"
         )
         if has_qp:
             line += f" {r.get('qp_ms_median', float('nan')):>7.2f} {r.get('qp_slack_steps', 0):>6}"

@@ -13,7 +13,21 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["code_version", "cpu_name", "load_run", "machine_info", "metrics_markdown", "replace_section"]
+from .atomic import write_text_atomic
+
+__all__ = [
+    "code_version",
+    "cpu_name",
+    "load_run",
+    "machine_info",
+    "md_table",
+    "metrics_markdown",
+    "number",
+    "pct",
+    "replace_block",
+    "replace_section",
+    "section_block",
+]
 
 
 def cpu_name() -> str:
@@ -73,8 +87,35 @@ def load_run(directory: str | Path) -> tuple[list[dict], dict]:
     return rows, meta
 
 
-def _pct(x: float) -> str:
-    return f"{100 * x:.1f}"
+# ---------------------------------------------------------------------------------------------------- formats
+def pct(rate: float, digits: int = 1) -> str:
+    """A rate in ``[0, 1]`` in % with ``digits`` decimals, or with as many more (up to six) as keep a rate below 1
+    from reading 100 and a rate above 0 from reading 0: ``pct(0.999765625) == "99.98"``, ``pct(1.0) == "100.0"``.
+    The one rate format of every report of the package."""
+    d = digits
+
+    def hidden(d: int) -> bool:
+        shown = round(100 * rate, d)
+        return (rate < 1 and shown >= 100) or (rate > 0 and shown <= 0)
+
+    while d < 6 and hidden(d):
+        d += 1
+    return f"{100 * rate:.{d}f}"
+
+
+def number(x: float, decimals: int = 3) -> str:
+    """``x`` with ``decimals`` decimals, except that a value that is not 0 but would print as 0 shows two
+    significant digits instead: ``number(0.000234375) == "0.00023"``, ``number(0.0) == "0.000"``."""
+    if x != 0 and round(x, decimals) == 0:
+        return f"{x:.2g}"
+    return f"{x:.{decimals}f}"
+
+
+def md_table(head: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A markdown table: a header row, then one line per row."""
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
 
 
 def metrics_markdown(rows: Sequence[dict], *, label: str | None = None, timing: bool = True) -> str:
@@ -87,14 +128,14 @@ def metrics_markdown(rows: Sequence[dict], *, label: str | None = None, timing: 
         head.append("step ms")
     if has_qp:
         head += ["QP ms", "QP steps with slack"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    table = []
     for r in rows:
         cells = [
             str(r["num_agents"]),
-            _pct(r["safe_rate"]),
-            _pct(r["reach_rate"]),
-            _pct(r["success_rate"]),
-            f"{r['cost']:.3f} ({r['cost_min']:.2f}/{r['cost_max']:.2f})",
+            pct(r["safe_rate"]),
+            pct(r["reach_rate"]),
+            pct(r["success_rate"]),
+            f"{number(r['cost'])} ({number(r['cost_min'], 2)}/{number(r['cost_max'], 2)})",
             f"{r['reward']:.3f}",
         ]
         if label is not None:
@@ -103,25 +144,33 @@ def metrics_markdown(rows: Sequence[dict], *, label: str | None = None, timing: 
             cells.append(f"{r['step_ms_median']:.1f}")
         if has_qp:
             cells += [f"{r.get('qp_ms_median', float('nan')):.1f}", str(r.get("qp_slack_steps", 0))]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        table.append(cells)
+    return md_table(head, table)
 
 
-def replace_section(path: str | Path, name: str, body: str, heading: str | None = None) -> None:
-    """Replace (or append) the block between ``<!-- name:begin -->`` and ``<!-- name:end -->`` in ``path``.
+# ---------------------------------------------------------------------------------------------------- sections
+def section_block(name: str, body: str) -> str:
+    """``body`` between the markers ``<!-- name:begin -->`` and ``<!-- name:end -->``."""
+    return f"<!-- {name}:begin -->\n{body.rstrip()}\n<!-- {name}:end -->"
 
-    ``heading`` (e.g. ``"## Environment scaling"``) is written above the block only when it is appended.
-    """
-    path = Path(path)
+
+def replace_block(text: str, name: str, body: str, heading: str | None = None) -> str:
+    """``text`` with the block ``name`` (:func:`section_block`) replaced by ``body``, or appended (below
+    ``heading``, e.g. ``"## Environment scaling"``, if given) when ``text`` has no such block."""
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
-    text = path.read_text() if path.exists() else ""
-    block = f"{begin}\n{body.rstrip()}\n{end}"
+    block = section_block(name, body)
     if begin in text and end in text:
         pre, rest = text.split(begin, 1)
         _, post = rest.split(end, 1)
-        text = pre + block + post
-    else:
-        top = f"{heading}\n\n" if heading else ""
-        text = text.rstrip() + ("\n\n" if text else "") + top + block + "\n"
+        return pre + block + post
+    top = f"{heading}\n\n" if heading else ""
+    return text.rstrip() + ("\n\n" if text else "") + top + block + "\n"
+
+
+def replace_section(path: str | Path, name: str, body: str, heading: str | None = None) -> None:
+    """Replace (or append) the block between ``<!-- name:begin -->`` and ``<!-- name:end -->`` in ``path``
+    (:func:`replace_block`); the file is replaced atomically (:func:`egcbf.atomic.write_text_atomic`)."""
+    path = Path(path)
+    text = path.read_text() if path.exists() else ""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    write_text_atomic(path, replace_block(text, name, body, heading))

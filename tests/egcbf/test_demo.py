@@ -8,6 +8,7 @@ from typer.testing import CliRunner
 
 from egcbf.cli import app
 from egcbf.config import TrainConfig
+from egcbf.report import number, pct
 from egcbf.train import train
 
 SMALL = ["--num-agents", "3", "--area", "1.5", "--obstacles", "1", "--episodes", "1", "--max-steps", "8"]
@@ -45,8 +46,8 @@ def test_demo_compares_four_controllers_on_the_same_episodes(checkpoints, tmp_pa
         assert label in table and label in res.output
     line = next(ln for ln in table.splitlines() if ln.startswith("nominal"))
     nominal = summary["metrics"]["nominal"]
-    assert line.split()[-5:] == [f"{100 * nominal[k]:.1f}" for k in ("safe_rate", "reach_rate", "success_rate")] + [
-        f"{nominal['cost']:.3f}", f"{nominal['step_ms_median']:.2f}"]  # fmt: skip
+    assert line.split()[-5:] == [pct(nominal[k]) for k in ("safe_rate", "reach_rate", "success_rate")] + [
+        number(nominal["cost"]), f"{nominal['step_ms_median']:.2f}"]  # fmt: skip
 
 
 def test_comparison_gif_marks_agents_that_collided(tmp_path):

@@ -16,7 +16,9 @@ from egcbf.cli import app
 from egcbf.config import TrainConfig
 from egcbf.control.controllers import make_controller
 from egcbf.evaluate import evaluate
+from egcbf.report import number, pct
 from egcbf.reproduce import Cell, SweepConfig
+from egcbf.reproduce.stats import Stat
 from egcbf.train import train
 
 TIMING = ("step_ms_median", "qp_ms_median")
@@ -361,21 +363,32 @@ def test_training_seeds_and_scalability_cells(checkpoints, tmp_path):
     text = report.read_text()
     assert "EGCBF+ (2 seeds)" in text and "Scalability past Table I" in text and f"l = {l4:g}" in text
     safe = [records[Cell("egcbf+", 0, 3, s)]["row"]["safe_rate"] for s in (0, 1)]
-    cell_text = rp.report.Stat(safe).text()
+    cell_text = Stat(safe).text()
     assert cell_text in text
     if safe[0] != safe[1]:
-        assert f"({100 * min(safe):.1f}-{100 * max(safe):.1f})" in cell_text
+        assert f"({pct(min(safe))}-{pct(max(safe))})" in cell_text
     # the summary follows each method from N = scale_reference (Table I) to the largest fixed-density N
-    nominal_2 = rp.report.Stat([records[Cell("nominal", 0, 2)]["row"]["safe_rate"]]).text()
-    nominal_4 = rp.report.Stat([records[Cell("nominal", 0, 4, None, l4)]["row"]["safe_rate"]]).text()
-    assert f"nominal (no CBF) {nominal_2} % at N = 2 to {nominal_4} % at N = 4" in text
+    nominal_2 = Stat([records[Cell("nominal", 0, 2)]["row"]["safe_rate"]]).text()
+    nominal_4 = Stat([records[Cell("nominal", 0, 4, None, l4)]["row"]["safe_rate"]]).text()
+    assert f"nominal (no CBF) {nominal_2} % at N = 2 to {nominal_4} % at N = 4 (l = {l4:g} m)" in text
 
 
 def test_stat_text():
-    assert rp.report.Stat([0.5]).text() == "50.0"
-    assert rp.report.Stat([0.9, 0.95, 1.0]).text() == "95.0 (90.0-100.0)"
+    assert Stat([0.5]).text() == "50.0"
+    assert Stat([0.9, 0.95, 1.0]).text() == "95.0 (90.0-100.0)"
     with pytest.raises(ValueError):
-        rp.report.Stat([])
+        Stat([])
+
+
+def test_rates_near_100_and_small_costs_keep_their_digits():
+    """A rate below 1 never prints as 100.0 (dCBF-QP at N = 512: 0.999765625), one above 0 never as 0.0, and a
+    cost above 0 never as 0.000."""
+    assert pct(0.999765625) == "99.98" and pct(1.0) == "100.0" and pct(0.0) == "0.0"
+    assert pct(0.99999) == "99.999" and pct(0.99949) == "99.9" and pct(1e-5) == "0.001"
+    assert Stat([0.999765625]).text() == "99.98"
+    assert Stat([0.9996, 1.0]).text() == "99.98 (99.96-100.0)"
+    assert number(0.000234375) == "0.00023" and number(0.0) == "0.000" and number(0.0039, 2) == "0.0039"
+    assert number(1.2014) == "1.201"
 
 
 def test_checkpoint_of_the_wrong_seed_is_refused(checkpoints, tmp_path):
@@ -424,3 +437,165 @@ def test_real_ray_backend_matches_the_process_backend(first):
     assert {c.method for c in remote} == {"egcbf+", "nominal"}
     log = json.loads((ray_cfg.out / "sweep.json").read_text())
     assert log[-1]["backend"] == "ray" and log[-1]["computed"] == len(remote)
+
+
+# ------------------------------------------------------------------------------------------------ report, synthetic
+def _row(n: int, safe: float, **kw) -> dict:
+    row = dict(num_agents=n, safe_rate=safe, reach_rate=1.0, success_rate=safe, cost=1 - safe, cost_min=0.0)
+    row.update(cost_max=2 * (1 - safe), reward=-1.0, collision_steps=3 * (1 - safe), step_ms_median=1.0)
+    return row | kw
+
+
+def _rec(cell: Cell, row: dict, **meta) -> dict:
+    """A cell record as the sweep writes it (no files needed: the report reads only these)."""
+    base = dict(train_seed=cell.train_seed, wall_s=10.0, finished="2026-01-01T00:10:00+00:00", device="cpu")
+    base["machine"] = {"cpu": "Test CPU", "cores": 4, "threads": 1}
+    key = {"method": cell.method, "num_agents": cell.num_agents, "checkpoint_sha256": meta.pop("sha", None)}
+    return {"key": key, "row": row, "meta": base | meta}
+
+
+def _synthetic_cfg(tmp_path, **kw) -> SweepConfig:
+    base = dict(methods=("egcbf+",), num_agents=(8,), obstacles=0, train_seeds=(2, 0, 1), seed_methods=("egcbf+",))
+    base.update(scale_sizes=(), checkpoints=tmp_path / "no-checkpoints", out=tmp_path / "cells", baselines=None)
+    return SweepConfig(**(base | kw))
+
+
+def test_seed_labels_follow_their_own_seeds(tmp_path):
+    """Seeds 0 and 2 done, seed 1 pending, train_seeds unsorted: each value keeps its own seed's label, and rows
+    made of some of the seeds say so."""
+    cfg = _synthetic_cfg(tmp_path)
+    records = {Cell("egcbf+", 0, 8, s): _rec(Cell("egcbf+", 0, 8, s), _row(8, v)) for s, v in ((0, 0.9), (2, 0.8))}
+    summary = rp.summary_markdown(cfg, records)
+    assert "seed 0 90.0 %, seed 2 80.0 % (spread 10.0 points) (2 of 3 seeds of EGCBF+ so far)" in summary
+    assert "seed 1" not in summary
+    rows = rp.stats.seed_rows(records, "egcbf+", 0, 8, False)
+    assert [r.train_seed for r in rows] == [0, 2] and [r.row["safe_rate"] for r in rows] == [0.9, 0.8]
+    table = rp.table_markdown(cfg, records)
+    assert "| EGCBF+ (2 of 3 seeds) | 85.0 (80.0-90.0) |" in table  # the per-N table's row label
+    assert "85.0 (80.0-90.0) [2 of 3 seeds]" in table  # the glance tables' value
+
+
+def test_summary_wording_qps_differences_and_partial_scale_rows(tmp_path):
+    """The QP bullet covers Table I only ("100 % safe at every N" when it is); the E-method difference is
+    "EGCBF+ minus GCBF+", says which side has one training seed, and gives fixed-density N their l; the scalability
+    table marks partial seed averages and shows the QP slack / failed counts and collision steps."""
+    cfg = _synthetic_cfg(
+        tmp_path,
+        methods=("gcbf+", "dcbf", "ccbf", "egcbf+"),
+        num_agents=(8, 512),
+        train_seeds=(0, 1),
+        seed_methods=("gcbf+",),
+        scale_sizes=(1024,),
+    )
+    l1024 = cfg.scale_area(1024)
+    records = {}
+    for n, area in ((8, None), (512, None), (1024, l1024)):
+        for m, safe in (("dcbf", 0.999765625 if n == 1024 else 1.0), ("ccbf", 1.0)):
+            qp = {"qp_slack_steps": 7, "qp_failed": 1} if m == "dcbf" else {"qp_slack_steps": 0, "qp_failed": 0}
+            cell = Cell(m, 0, n, None, area)
+            records[cell] = _rec(cell, _row(n, safe, **qp))
+        for s, safe in ((0, 0.8), (1, 0.9)):
+            cell = Cell("gcbf+", 0, n, s, area)
+            if not (n == 1024 and s == 1):  # GCBF+ seed 1 pending at N = 1024
+                records[cell] = _rec(cell, _row(n, safe))
+        cell = Cell("egcbf+", 0, n, 0, area)
+        records[cell] = _rec(cell, _row(n, 0.95))
+    summary = rp.summary_markdown(cfg, records)
+    assert "dCBF-QP over Table I's N = 8 to 512: 100 % safe at every N, 100 % successful at every N" in summary
+    assert "cCBF-QP over Table I's N = 8 to 512: 100 % safe at every N" in summary
+    assert "99.98 % at N = 1024 (l = " in summary  # the fixed-density cell has its own bullet
+    assert "What equivariance buys" not in summary
+    line = next(x for x in summary.splitlines() if "**EGCBF+ minus GCBF+**" in x)
+    assert "N = 512: +10.0 (EGCBF+: one training seed, outside GCBF+'s seed range 80.0-90.0)" in line
+    assert f"N = 1024 (l = {l1024:g} m): +15.0" in line and "(1 of 2 seeds of GCBF+ so far)" in line
+    table = rp.table_markdown(cfg, records)
+    scale = table.split("### Scalability past Table I")[1]
+    assert f"| 1024 (l = {l1024:g} m) | GCBF+ (1 of 2 seeds) | 80.0 |" in scale
+    assert "| QP slack / failed |" in scale and "| 7 / 1 |" in scale and "| 0 / 0 |" in scale
+    assert "coll. steps" in scale
+    assert "| 99.98 |" in scale and "0.00023 (" in scale  # never 100.0 nor 0.000 for what is not
+    n512 = table.split("**N = 512**")[1].split("**N =")[0]
+    assert "| GCBF+ (2 seeds) | 85.0 (80.0-90.0) |" in n512 and "| 7 / 1 |" in n512
+
+
+def test_table_intro_timings_come_from_the_cells_and_invocations(tmp_path):
+    """The step-ms note is built from the cells' machines and the recorded invocations; imported cells' timings
+    are marked with a dagger; nothing about the machine is typed in."""
+    cfg = _synthetic_cfg(tmp_path, methods=("egcbf+", "nominal"), num_agents=(8, 16), train_seeds=(0,))
+    cfg.out.mkdir(parents=True)
+    invocation = {"command": "egcbf reproduce --workers 3", "started": "2026-01-01T00:00:00+00:00", "wall_s": 900.0,
+                  "status": "finished", "backend": "process", "workers": 3, "threads_per_cell": 1}  # fmt: skip
+    (cfg.out / "sweep.json").write_text(json.dumps([invocation]))
+    records = {}
+    for n in (8, 16):
+        cell = Cell("egcbf+", 0, n, 0)
+        late = {"finished": "2026-01-02T00:00:00+00:00"} if n == 16 else {}  # no recorded invocation spans it
+        records[cell] = _rec(cell, _row(n, 0.9), sha="a" * 64, checkpoint="ck/egcbf+", checkpoint_step=5, **late)
+        cell = Cell("nominal", 0, n)
+        machine = {"cpu": "Other CPU", "threads": 1}
+        records[cell] = _rec(cell, _row(n, 0.5), imported_from="baselines/nominal", wall_s=None, machine=machine)
+    table = rp.table_markdown(cfg, records)
+    assert "two cells at once" not in table and "2-core" not in table
+    assert "1 on Test CPU (4 cores), 1 torch thread per cell, up to 3 cells at a time" in table
+    assert "1 on Test CPU (4 cores), 1 torch thread per cell, cells at a time not recorded" in table
+    assert "† imported cells" in table and "2 on Other CPU, 1 torch thread" in table
+    assert "| 1.00† |" in table and "| 1.00 |" in table
+    prov = rp.provenance_markdown(cfg, records)
+    assert "`egcbf reproduce --workers 3`" in prov and "up to 3 cells at a time" in prov
+    assert "1 in invocations not in `sweep.json`" in prov
+    assert "No readable checkpoint under" in prov and "aaaaaaaaaaaa (2)" in prov  # report-only without checkpoints
+
+
+def test_empty_settings_are_worded_not_printed_empty(tmp_path):
+    """No obstacle method, no scale sizes and no obstacles: no empty obstacle table, no empty size list, no
+    "with 0 obstacles"."""
+    cfg = _synthetic_cfg(tmp_path, methods=("dcbf",), num_agents=(8,), obstacles=8, obstacle_methods=("egcbf+",))
+    records = {Cell("dcbf", 0, 8): _rec(Cell("dcbf", 0, 8), _row(8, 1.0))}
+    table = rp.table_markdown(cfg, records)
+    assert "obstacles (not in Table I)" not in table
+    assert "Scalability past Table I: not run" in table and "()" not in table
+    assert "obstacle setting: none" in rp.provenance_markdown(SweepConfig(**{**cfg.__dict__, "obstacles": 0}), {})
+    text = rp.figures.scalability_section(SweepConfig(**{**cfg.__dict__, "obstacles": 0}), records,
+                                          tmp_path / "r.md", tmp_path / "fig")  # fmt: skip
+    assert "obstacles" not in text and "fixed density" not in text
+
+
+def test_report_intro_gives_the_command_for_this_report(tmp_path, monkeypatch):
+    """The intro names --out, --report and the non-default flags (a block of its own, placed below the title of
+    a report written before it existed), and the file is written once, atomically."""
+    cfg = _synthetic_cfg(tmp_path, methods=("dcbf",), num_agents=(8, 16), train_seeds=(0,), episodes=20)
+    assert rp.regenerate_command(cfg, "docs/r e.md") == (
+        f"egcbf reproduce --out {cfg.out} --report 'docs/r e.md' --methods dcbf --num-agents 8,16 --obstacles 0 "
+        f"--episodes 20 --train-seeds 0 --seed-methods egcbf+ --scale-sizes none --checkpoints {cfg.checkpoints} "
+        "--report-only"
+    )
+    report = tmp_path / "docs" / "r.md"
+    report.parent.mkdir()
+    report.write_text("# Reproducing Table I and the scalability study\n\nan old intro\n")
+    writes = []
+    real = rp.report.write_text_atomic
+    monkeypatch.setattr(rp.report, "write_text_atomic", lambda p, t: writes.append(p) or real(p, t))
+    monkeypatch.setattr(rp.report, "contour_section", lambda *a: "no contour")
+    monkeypatch.setattr(rp.report, "convergence_section", lambda *a: "no curves")
+    records = {Cell("dcbf", 0, 8): _rec(Cell("dcbf", 0, 8), _row(8, 1.0))}
+    rp.write_report(cfg, records, report)
+    rp.write_report(cfg, records, report)
+    text = report.read_text()
+    assert writes == [report, report]
+    assert text.startswith("# Reproducing Table I and the scalability study\n\n<!-- intro:begin -->")
+    assert text.count("<!-- intro:begin -->") == 1 and "an old intro" in text
+    assert f"    {rp.regenerate_command(cfg, report)}\n" in text
+    rp.write_report(cfg, records, report, regenerate_command="make reproduce-report")
+    assert "    make reproduce-report\n" in report.read_text()
+
+
+def test_provenance_flags_cells_of_another_checkpoint(first):
+    """Cells whose checkpoint sha256 differs from the checkpoint now in CHECKPOINTS are counted and flagged."""
+    cfg, records = first
+    changed = dict(records)
+    cell = next(c for c in records if c.method == "egcbf+")
+    changed[cell] = {**records[cell], "key": {**records[cell]["key"], "checkpoint_sha256": "f" * 64}}
+    prov = rp.provenance_markdown(cfg, changed)
+    assert "ffffffffffff (1) **not the current checkpoint**" in prov
+    assert "**1 cell(s) were computed with a checkpoint other than the one now in" in prov
+    assert "not the current checkpoint" not in rp.provenance_markdown(cfg, records)

@@ -8,19 +8,26 @@
 The sweep evaluates every method (GCBF, GCBF+, dCBF-QP, cCBF-QP, EGCBF, EGCBF+, and the nominal controller alone)
 at every swarm size of Table I in an arena ``[0, l]^3`` without obstacles and (the methods of ``obstacle_methods``)
 with sphere obstacles; EGCBF+ and GCBF+ once per training seed; and, past the paper, at N = 1024 ... 4096 at the
-density of N = 512. Six modules, one job each:
+density of N = 512. One job per module:
 
 * :mod:`~egcbf.reproduce.paper`: the paper's Table I and the method names;
 * :mod:`~egcbf.reproduce.plan`: :class:`SweepConfig`, its cells and what a cell's result depends on;
 * :mod:`~egcbf.reproduce.store`: what is kept on disk: checkpoints, cell files, imported baselines, invocations;
 * :mod:`~egcbf.reproduce.workers`: evaluating one cell, and many on local processes or Ray;
 * :mod:`~egcbf.reproduce.runner`: the sweep: order, resuming, failures, interruptions, the lock;
-* :mod:`~egcbf.reproduce.report`: the markdown report and its figures.
+* :mod:`~egcbf.reproduce.stats`: a setting's cells over training seeds, their mean and range, the words for the
+  settings;
+* :mod:`~egcbf.reproduce.tables`, :mod:`~egcbf.reproduce.summary`, :mod:`~egcbf.reproduce.figures`,
+  :mod:`~egcbf.reproduce.provenance`: the report's tables, summary sentences, figures, and provenance (with the
+  command that regenerates the report);
+* :mod:`~egcbf.reproduce.report`: :func:`write_report`, the markdown file assembled from those sections.
 """
 
+from .figures import scalability_figure
 from .paper import BASELINES, DEFAULT_SIZES, LABELS, LEARNED, METHODS, PAPER_TABLE_I, SCALE_SIZES
 from .plan import Cell, SweepConfig, cell_key
-from .report import provenance_markdown, scalability_figure, summary_markdown, table_markdown, write_report
+from .provenance import provenance_markdown, regenerate_command
+from .report import write_report
 from .runner import CellsFailed, sweep, validate
 from .store import (
     CheckpointInfo,
@@ -32,6 +39,8 @@ from .store import (
     mismatched_cells,
     read_invocations,
 )
+from .summary import summary_markdown
+from .tables import table_markdown
 from .workers import CellTask, require_ray, run_cell
 
 __all__ = [
@@ -56,6 +65,7 @@ __all__ = [
     "mismatched_cells",
     "provenance_markdown",
     "read_invocations",
+    "regenerate_command",
     "require_ray",
     "run_cell",
     "scalability_figure",

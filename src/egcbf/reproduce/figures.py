@@ -1,0 +1,158 @@
+"""The figures of the report of ``egcbf reproduce`` and the sections that show them: the rates against N
+(:func:`scalability_figure`), the training curves of the learned checkpoints and the CBF contour of EGCBF+ and
+GCBF+. A figure that cannot be drawn leaves a sentence saying why, never a lost report."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from .paper import LABELS, LEARNED, METHODS
+from .plan import Cell, SweepConfig
+from .stats import episodes_text, label, scale_text, seed_rows, stat
+from .store import find_method_checkpoint
+
+__all__ = ["contour_section", "convergence_section", "scalability_figure", "scalability_section"]
+
+
+def _panels(cfg: SweepConfig) -> list[tuple[int, str, str]]:
+    """``(obstacles, metric, title)`` of each panel: safety and success without obstacles, safety with obstacles
+    when the sweep has an obstacle setting."""
+    panels = [(0, "safe_rate", "safety rate, no obstacles"), (0, "success_rate", "success rate, no obstacles")]
+    if any(c.obstacles for c in cfg.table_cells()):
+        panels.append((cfg.obstacles, "safe_rate", f"safety rate, {cfg.obstacles} obstacles"))
+    return panels
+
+
+def _join(cfg: SweepConfig) -> int | None:
+    """The Table I N that the fixed-density line starts from: ``scale_reference`` (the same density), if Table I
+    has it."""
+    return cfg.scale_reference if cfg.scale_reference in {int(n) for n in cfg.num_agents} else None
+
+
+def scalability_figure(cfg: SweepConfig, records: dict[Cell, dict], out_png: str | Path) -> Path:
+    """Safety rate without obstacles, success rate without obstacles and (with an obstacle setting) safety rate
+    with obstacles, in %, against N (log2 axis); one colour per method, a band for the min-max over training seeds.
+    Table I's cells (l fixed, the density grows) are joined by solid lines; the scalability study's (fixed density)
+    by dotted lines from Table I's ``scale_reference`` N on (the same density). Returns ``out_png``."""
+    from matplotlib.figure import Figure
+
+    panels = _panels(cfg)
+    fig = Figure(figsize=(5 * len(panels), 4.4))
+    axes = fig.subplots(1, len(panels), sharey=True)
+    big, join = max(int(n) for n in cfg.num_agents), _join(cfg)
+    for ax, (k, metric, title) in zip(axes, panels):
+        for i, m in enumerate(METHODS):
+            color = "k" if m == "nominal" else f"C{i}"
+            for scale, style in ((False, "-o"), (True, ":o")):
+                sizes = cfg.scale_sizes if scale else cfg.num_agents
+                pts = [(int(n), stat(seed_rows(records, m, k, int(n), scale), metric)) for n in sizes]
+                pts = [(n, st) for n, st in pts if st is not None]
+                if scale and k == 0 and pts and join is not None:
+                    first = stat(seed_rows(records, m, 0, join, False), metric)
+                    pts = ([(join, first)] if first is not None else []) + pts
+                if not pts:
+                    continue
+                xs = [n for n, _ in pts]
+                name = None if scale else label(cfg, m)
+                ax.plot(xs, [100 * st.mean for _, st in pts], style, color=color, ms=4, lw=1.5, label=name)
+                if any(st.n > 1 for _, st in pts):
+                    ax.fill_between(xs, [100 * st.lo for _, st in pts], [100 * st.hi for _, st in pts],
+                                    color=color, alpha=0.15, lw=0)  # fmt: skip
+        ticks = sorted({int(n) for n in cfg.num_agents} | ({int(n) for n in cfg.scale_sizes} if k == 0 else set()))
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(ticks, [str(n) for n in ticks], fontsize=8)
+        if k == 0 and cfg.scale_sizes:
+            ax.axvline(big, color="0.6", lw=0.8, ls="--")
+        ax.set_xlabel("number of agents N")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("%")
+    axes[0].set_ylim(-3, 103)
+    handles, labels = axes[0].get_legend_handles_labels()  # the no-obstacle panel has every method
+    axes[-1].legend(handles, labels, fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    note = f"solid: l = {cfg.area:g} m ({episodes_text(cfg)}); bands: min-max over training seeds"
+    if cfg.scale_sizes:
+        start = f", from N = {join}" if join is not None else ""
+        note += f"\ndotted (Table I ends at the dashed line){start}: {scale_text(cfg)}"
+    fig.suptitle(note, fontsize=8)
+    fig.tight_layout()
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100, bbox_inches="tight")
+    return out
+
+
+def _rel(path: Path, report: Path) -> str:
+    return Path(os.path.relpath(path, report.parent)).as_posix()
+
+
+def scalability_section(cfg: SweepConfig, records: dict[Cell, dict], report: Path, figures: Path) -> str:
+    """The rates-against-N figure and its caption."""
+    if not records:
+        return "No cells computed yet."
+    png = scalability_figure(cfg, records, figures / "reproduction_scalability.png")
+    text = (
+        f"![safety and success rate against N]({_rel(png, report)})\n\nSafety and success rates against the number "
+        f"of agents: at l = {cfg.area:g} m up to N = {max(cfg.num_agents)} (the density grows with N, Table I)"
+    )
+    if cfg.scale_cells():
+        join = _join(cfg)
+        start = f" from N = {join}" if join is not None else ""
+        text += f", then at fixed density{start} to N = {max(cfg.scale_sizes)} (dotted)"
+    if len(_panels(cfg)) > 2:
+        text += f"; right: with {cfg.obstacles} obstacles"
+    return text + ". Lines are means over training seeds, bands their min-max."
+
+
+def convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
+    """The training curves of every learned checkpoint under ``cfg.checkpoints`` that has its ``metrics.csv``."""
+    from ..curves import training_curves
+
+    runs = {}
+    for m in LEARNED:
+        dirs = []
+        for s in cfg.seeds_for(m):
+            try:
+                path = find_method_checkpoint(cfg.checkpoints, m, s).path
+            except (FileNotFoundError, ValueError):
+                continue
+            if (path / "metrics.csv").exists():
+                dirs.append(path)
+        if dirs:
+            runs[LABELS[m]] = dirs  # training_curves says "mean of k seeds" itself
+    if not runs:
+        return f"Training curves: no `{cfg.checkpoints}/<method>/metrics.csv` (copy each run's metrics.csv there)."
+    try:
+        png = training_curves(runs, figures / "reproduction_convergence.png")
+    except Exception as err:  # a figure must not lose a finished sweep's report
+        return f"Training curves failed: `{type(err).__name__}: {err}`."
+    return (
+        f"![training curves]({_rel(png, report)})\n\nSafe, reach and success rates of the validation rollouts "
+        "during training, against update (top) and wall time (bottom); several training seeds are drawn as their "
+        "mean with a min-max band, a single run with a circle at the shipped checkpoint."
+    )
+
+
+def contour_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
+    """The learned CBF of EGCBF+ and GCBF+ (training seed 0) over a plane, in a scene and in its transformed copy."""
+    from ..contour import cbf_contour_figure
+
+    ckpts = {}
+    for m in ("egcbf+", "gcbf+"):
+        try:
+            ckpts[LABELS[m]] = find_method_checkpoint(cfg.checkpoints, m).path
+        except (FileNotFoundError, ValueError):
+            continue
+    if not ckpts:
+        return f"CBF contour figure: no EGCBF+ or GCBF+ checkpoint under `{cfg.checkpoints}`."
+    png = figures / "reproduction_contour.png"
+    try:
+        diffs = cbf_contour_figure(ckpts, png)
+    except Exception as err:  # a figure must not lose a finished sweep's report
+        return f"CBF contour figure failed: `{type(err).__name__}: {err}`."
+    gaps = ", ".join(f"{k}: {v:.2e}" for k, v in (diffs or {}).items())
+    return (
+        f"![CBF contour]({_rel(png, report)})\n\nThe learned CBF of one agent (training seed 0) over the horizontal "
+        f"plane in a scene G and in its transformed copy phi_g(G) (`egcbf.contour`); max |h(g . G) - h(G)|: {gaps}."
+    )

@@ -1,0 +1,138 @@
+"""What the report of ``egcbf reproduce`` says about one setting: the cells of a method over its training seeds, their
+mean and range, and the words for the sweep's settings.
+
+A *setting* is ``(method, obstacles, N, scale)``: one cell per training seed of the method (one cell for a
+hand-crafted controller). :func:`seed_rows` returns those cells with their training seed, :class:`Stat` a metric over
+them; rates print with :func:`egcbf.report.pct` (never ``100.0`` for a rate below 1), costs with
+:func:`egcbf.report.number` (a cost above 0 never prints as ``0.000``).
+"""
+
+from __future__ import annotations
+
+import statistics
+from typing import NamedTuple
+
+from ..report import pct
+from .paper import LABELS
+from .plan import Cell, SweepConfig
+
+__all__ = [
+    "SeedRow",
+    "Stat",
+    "episodes_text",
+    "label",
+    "partial",
+    "scale_text",
+    "seed_rows",
+    "setting_text",
+    "so_far",
+    "stat",
+]
+
+
+class SeedRow(NamedTuple):
+    """One cell of a setting: its training seed (``None`` for a hand-crafted controller), metrics row and meta."""
+
+    train_seed: int | None
+    row: dict
+    meta: dict
+
+    @property
+    def imported(self) -> bool:
+        """Whether the row was imported from an earlier ``egcbf eval`` output rather than computed by the sweep."""
+        return bool(self.meta.get("imported_from"))
+
+
+def seed_rows(records: dict[Cell, dict], method: str, obstacles: int, num_agents: int, scale: bool) -> list[SeedRow]:
+    """The cells of ``method`` at one setting, one per training seed present, in training-seed order; each value is
+    paired with its own training seed (a pending seed is absent, not shifted onto the next one)."""
+    cells = sorted(
+        (
+            c
+            for c in records
+            if (c.method, c.obstacles, c.num_agents, c.scale) == (method, obstacles, num_agents, scale)
+        ),
+        key=lambda c: -1 if c.train_seed is None else c.train_seed,
+    )
+    return [SeedRow(c.train_seed, records[c]["row"], records[c].get("meta", {})) for c in cells]
+
+
+class Stat:
+    """A metric over training seeds: ``mean``, ``lo`` and ``hi`` (min and max) of ``values``, ``n`` seeds, and
+    ``seeds``, the training seed of each value (``None`` where unknown)."""
+
+    def __init__(self, values: list[float], seeds: list[int | None] | None = None):
+        if not values:
+            raise ValueError("Stat needs at least one value")
+        if seeds is not None and len(seeds) != len(values):
+            raise ValueError(f"Stat got {len(values)} values but {len(seeds)} seeds")
+        self.values = list(values)
+        self.seeds = list(seeds) if seeds is not None else [None] * len(values)
+        self.n = len(values)
+        self.mean = statistics.fmean(values)
+        self.lo, self.hi = min(values), max(values)
+
+    def text(self) -> str:
+        """A rate in %: ``92.7`` (one seed) or ``92.7 (90.6-95.3)`` (mean, min-max over the seeds), each value
+        formatted by :func:`egcbf.report.pct`."""
+        if self.n == 1:
+            return pct(self.mean)
+        return f"{pct(self.mean)} ({pct(self.lo)}-{pct(self.hi)})"
+
+
+def stat(rows: list[SeedRow], metric: str) -> Stat | None:
+    """``metric`` over ``rows`` (with their training seeds); ``None`` if there are no rows or one of them lacks
+    ``metric`` (a column an older cell does not have)."""
+    if not rows or any(metric not in r.row for r in rows):
+        return None
+    return Stat([float(r.row[metric]) for r in rows], [r.train_seed for r in rows])
+
+
+# ---------------------------------------------------------------------------------------------------- words
+def label(cfg: SweepConfig, method: str, done: int | None = None) -> str:
+    """The method's row label: ``EGCBF+ (3 seeds)``, or ``EGCBF+ (2 of 3 seeds)`` when only ``done`` of its
+    training seeds are in the row (``done=None`` or ``0``: the row's seeds are not counted, e.g. a pending row)."""
+    planned = len(cfg.seeds_for(method))
+    if planned < 2:
+        return LABELS[method]
+    if done and done < planned:
+        return f"{LABELS[method]} ({done} of {planned} seeds)"
+    return f"{LABELS[method]} ({planned} seeds)"
+
+
+def partial(done: int, planned: int) -> str:
+    """`` [1 of 3 seeds]`` after a value made of only some of a method's training seeds, else ``""``."""
+    return f" [{done} of {planned} seeds]" if 0 < done < planned else ""
+
+
+def so_far(st: Stat, cfg: SweepConfig, method: str) -> str:
+    """`` (1 of 3 seeds of EGCBF+ so far)`` while some of ``method``'s training seeds are pending, else ``""``."""
+    planned = len(cfg.seeds_for(method))
+    return f" ({st.n} of {planned} seeds of {LABELS[method]} so far)" if st.n < planned else ""
+
+
+def setting_text(cfg: SweepConfig, num_agents: int, scale: bool) -> str:
+    """``N = 512`` (Table I) or ``N = 4096 (l = 8 m)`` (the scalability study)."""
+    return f"N = {num_agents}" + (f" (l = {cfg.scale_area(num_agents):g} m)" if scale else "")
+
+
+def episodes_text(cfg: SweepConfig) -> str:
+    """Table I's episodes: ``"50 episodes per cell"`` or ``"10 episodes per cell (CBF-QPs and the nominal
+    controller: 50)"`` (``baseline_episodes`` applies to every hand-crafted controller, the nominal one too)."""
+    text = f"{cfg.episodes} episodes per cell"
+    if cfg.baseline_episodes is not None and cfg.baseline_episodes != cfg.episodes:
+        text += f" (CBF-QPs and the nominal controller: {cfg.baseline_episodes})"
+    return text
+
+
+def scale_text(cfg: SweepConfig) -> str:
+    """How the scalability cells are set up, in words; ``"not run (no scale sizes)"`` without any."""
+    episodes = {c.num_agents: cfg.episodes_for(c) for c in cfg.scale_cells()}
+    if not episodes:
+        return "not run (no scale sizes or no scale method)"
+    sizes = ", ".join(f"N = {n}: l = {cfg.scale_area(n):g} m, {e} episodes" for n, e in sorted(episodes.items()))
+    return (
+        f"the density of N = {cfg.scale_reference} at l = {cfg.area:g} m "
+        f"({cfg.scale_reference / cfg.area**3:g} agents per m^3), at least {cfg.scale_agent_episodes} "
+        f"agent-episodes per cell ({sizes})"
+    )

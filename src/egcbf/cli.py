@@ -158,7 +158,9 @@ def eval_cmd(
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
     checkpoint: Annotated[
         Path | None,
-        typer.Option(help="evaluate a trained policy: a checkpoint directory or a run directory (newest checkpoint)"),
+        typer.Option(
+            help="evaluate a trained policy: a checkpoint directory or a run directory (its best/, else its newest)"
+        ),
     ] = None,
     threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
     overwrite: Annotated[

@@ -1,6 +1,7 @@
-"""Typed training configuration: one dataclass, two presets, JSON round trip.
+"""Typed training configuration: one dataclass, four presets (``cpu``, ``cpu-torque``, ``paper``, ``tiny``), JSON
+round trip.
 
-    cfg = TrainConfig.preset("egcbf+", "cpu")          # or "paper"
+    cfg = TrainConfig.preset("egcbf+", "cpu")          # or "cpu-torque", "paper", "tiny"
     cfg = TrainConfig.from_json(path)                   # what every checkpoint stores beside its weights
 
 The four methods are points of one grid (``LEARNED_METHODS``): the symmetry group of the networks times the reference
@@ -252,11 +253,17 @@ class TrainConfig:
     def preset(cls, algo: str, name: str = "cpu", robot: str = "quadrotor", **changes) -> TrainConfig:
         """The config of method ``algo`` under preset ``name``:
 
-        * ``"cpu"``: the default CPU recipe (8 agents, ``l = 2``, 5 obstacles; 4 environments x 128 steps per
-          update, 2 epochs of ~10 minibatches of 128 graphs; learning rates 3e-4 (CBF) / 1e-4 (policy), the paper's
-          loss constants; a CBF
-          that reads neither the body rates nor the goal and is mirror-symmetric in z, residual scales of 0.25 on
-          torque and 1 on thrust, ``eta_c = 0.1`` for GCBF / EGCBF, 1 for GCBF+ / EGCBF+);
+        * ``"cpu"``: the default CPU recipe on the acceleration command (ideal command model): 32 agents in arenas
+          of side 1.6 / 2.0 / 2.5 m in turn, 4 obstacles; 4 environments x 128 steps per update, 192 graphs plus
+          64 unsafe ones, 2 epochs of 8 minibatches of 32 graphs; a soft-min CBF head (``cbf_distance = 0.25``) on
+          relative positions and velocities, the edge-sum policy head; learning rates 3e-4 (CBF) / 1e-3 (policy),
+          the paper's loss constants, ``eta_c = 0.1`` for GCBF / EGCBF, 1 for GCBF+ / EGCBF+; validation on 4
+          episodes of 64 agents at ``l = 2``; 60 minutes of wall time;
+        * ``"cpu-torque"``: the previous CPU recipe on body torque and thrust (8 agents, ``l = 2``, 5 obstacles;
+          4 environments x 128 steps per update, 2 epochs of ~10 minibatches of 128 graphs; learning rates 3e-4
+          (CBF) / 1e-4 (policy), the paper's loss constants; a CBF that reads neither the body rates nor the goal
+          and is mirror-symmetric in z, residual scales of 0.25 on torque and 1 on thrust, ``eta_c = 0.1`` for
+          GCBF / EGCBF, 1 for GCBF+ / EGCBF+; 60 minutes of wall time);
         * ``"paper"``: GCBF+'s CrazyFlie settings, which the paper says it follows (16 environments x 256-step
           episodes per update, buffers of 512 trajectories and 256 unsafe graphs, 8 epochs x 48 minibatches of
           256 graphs, 1000 updates, ``eta_c = 3e-5``) with the paper's ``gamma = 0.02``, ``eta_d = 0.2``,
@@ -302,12 +309,12 @@ class TrainConfig:
                 base.update(eta_c=0.1)
         if name == "cpu-torque":
             # the previous CPU recipe on body torque and thrust (kept for the interface comparison)
-            # the CBF does not read the body rates and the torque residual is small (docs/learning.md, "CPU
+            # the CBF does not read the body rates and the torque residual is small (docs/learning.md, "cpu-torque
             # recipe"): with GCBF+'s choices (CBF on the full state, residual scale 2 on every channel) the QP and
             # the derivative term drive a state-independent torque bias that ruins goal reaching within 20 updates
-            # (docs/learning.md, "CPU recipe"); the CBF does not see the goal and the thrust residual scale is 1 (from
-            # hover, enough to reach either end of the thrust range): a thrust bias of ~0.04 box from the derivative
-            # term otherwise lowers every hover point below the reach radius
+            # (docs/learning.md, "cpu-torque recipe"); the CBF does not see the goal and the thrust residual scale is
+            # 1 (from hover, enough to reach either end of the thrust range): a thrust bias of ~0.04 box from the
+            # derivative term otherwise lowers every hover point below the reach radius
             # the CBF is mirror-symmetric in z (ModelConfig.cbf_z_symmetric): otherwise u_QP, which acts through thrust
             # only, pushes every approaching agent the same vertical way (u_QP - u_nom: -0.15 thrust box on average)
             model.update(

@@ -1,12 +1,15 @@
 """Measurements behind DEFAULT_DT, DEFAULT_SUBSTEPS, DEFAULT_METHOD and DEFAULT_MAX_STEPS (docs/dynamics.md).
 
-Run ``python -m egcbf.dynamics.calibrate [--quick]``. It prints markdown tables:
+Run ``python -m egcbf.dynamics.calibrate [SECTION ...] [--episodes N] [--horizon S] [--dts DT ...] [--device D]``
+(all sections by default; the invocations behind docs/dynamics.md are in its "Reproduce" section). It prints
+markdown tables:
 
-1. integrator accuracy: the nominal closed loop under a zero-order hold of period ``dt``, integrated with each
+1. ``accuracy``: the nominal closed loop under a zero-order hold of period ``dt``, integrated with each
    (method, substeps), against the same loop integrated with RK4 and 64 substeps (the "exact" ZOH solution);
-2. control rate: the ZOH closed loop at each ``dt`` against a quasi-continuous loop (controller at 1 kHz);
-3. cost: time per step for 512 agents;
-4. episode length: time to reach goals anywhere in [0, 4]^3 from rest, with the chosen defaults.
+2. ``openloop``: one ZOH step from random states (any attitude, fast body rates) under random controls;
+3. ``rate``: the ZOH closed loop at each ``dt`` against a quasi-continuous loop (controller at 1 kHz);
+4. ``timing``: time per step for 512 agents (and 8192 with a GPU ``--device``);
+5. ``episode``: time to reach goals anywhere in [0, 4]^3 from rest, with the chosen defaults.
 """
 
 from __future__ import annotations

@@ -114,23 +114,23 @@ class ModelConfig:
             for all four). The nominal attitude loop is stiff: a residual of ``1`` (one torque box) held against it
             tilts the drone by ``~1.3 rad`` and shifts its hover point by ``~1.9 m``, and the CBF's one-step
             derivative pushes torques hardest (they change the body rates ``w`` within one step), so a small
-            state-independent torque bias from the policy ruins goal reaching (docs/learning.md, "CPU recipe").
-            The ``cpu`` preset uses ``0.25``: still ``~0.3 rad`` of sustained tilt authority, far more than
+            state-independent torque bias from the policy ruins goal reaching (docs/learning.md, "cpu-torque recipe").
+            The ``cpu-torque`` preset uses ``0.25``: still ``~0.3 rad`` of sustained tilt authority, far more than
             collision avoidance needs.
         cbf_body_rates: whether the CBF reads the body rates ``w`` (the policy always does). ``w`` is a fast
             internal state of the attitude loop (torque changes it by ``~17`` rad/s per unit of normalized torque
             within one control step), so a CBF that reads it has a huge ``Lg h`` on the torques, and the derivative
-            term and the QP correct safety through torque (docs/learning.md, "CPU recipe").
+            term and the QP correct safety through torque (docs/learning.md, "cpu-torque recipe").
         cbf_goal_edges: whether the CBF sees the goal edge (the policy always does). Safety does not depend on
             where the goal is; a CBF that reads it can make ``h`` depend on the goal offset and the vertical
             velocity of an agent hovering alone at its goal, and the derivative term then pushes a thrust bias
-            that shifts every hover point (docs/learning.md, "CPU recipe"). GCBF+ feeds the goal to both.
+            that shifts every hover point (docs/learning.md, "cpu-torque recipe"). GCBF+ feeds the goal to both.
         cbf_z_symmetric: average the CBF over the mirror image of the scene in a horizontal plane,
             ``h = tanh((m(G) + m(sigma G)) / 2)`` (:meth:`egcbf.graph.SwarmGraph.reflect_z`). The safe set (distances)
             is mirror-symmetric; without this, an untrained CBF's ``dh/dv_z`` has one sign almost everywhere, and
             since the learned-CBF QP can only act through thrust within one step (the CBF has relative degree 2 in
             the torques), ``u_QP`` pushes every agent up (or every agent down) whenever anything approaches: a
-            global thrust bias that shifts hover points out of the goal radius (docs/learning.md, "CPU recipe").
+            global thrust bias that shifts hover points out of the goal radius (docs/learning.md, "cpu-torque recipe").
             Mirror symmetry makes ``dh/dv_z`` odd in the vertical arrangement (climb if the neighbour is below,
             descend if above) and zero for a level scene. Costs a second CBF evaluation.
         cbf_attitude: whether the CBF reads the attitude ``R`` (zeroed otherwise: the zero matrix is fixed by the

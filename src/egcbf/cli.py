@@ -212,13 +212,17 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
 
     path = checkpoints / name
     try:
-        return find_checkpoint(path, prefer_best=True)
+        found = find_checkpoint(path, prefer_best=True)
     except FileNotFoundError as err:
         usage_error(
             f"--checkpoints: no {name} checkpoint at {path} (config.json + model.safetensors); train one with "
             f"`egcbf train --algo {name} --out runs/{name}` and pass --checkpoints with a folder holding {name}/",
             err,
         )
+    if found != path:
+        why = "its best/ (selected on validation episodes)" if found.name == "best" else "its newest checkpoint"
+        typer.echo(f"--checkpoints: {path} is a run directory; using {why}, {found}", err=True)
+    return found
 
 
 _DEMO_COMPARE = ("gcbf+", "nominal", "dcbf")

@@ -181,23 +181,6 @@ class SweepConfig:
         """The side ``l`` of ``cell``'s arena."""
         return float(self.area if cell.area is None else cell.area)
 
-    def episodes_text(self) -> str:
-        """``"50 episodes per cell"`` or ``"10 episodes per cell (hand-crafted controllers: 50)"``."""
-        text = f"{self.episodes} episodes per cell"
-        if self.baseline_episodes is not None and self.baseline_episodes != self.episodes:
-            text += f" (hand-crafted controllers: {self.baseline_episodes})"
-        return text
-
-    def scale_text(self) -> str:
-        """How the scalability cells are set up, in words."""
-        sizes = ", ".join(f"N = {n}: l = {self.scale_area(n):g} m, {self.episodes_for(Cell('x', 0, n, area=1.0))} "
-                          "episodes" for n in self.scale_sizes)  # fmt: skip
-        return (
-            f"the density of N = {self.scale_reference} at l = {self.area:g} m "
-            f"({self.scale_reference / self.area**3:g} agents per m^3), at least {self.scale_agent_episodes} "
-            f"agent-episodes per cell ({sizes})"
-        )
-
 
 def cell_key(cfg: SweepConfig, cell: Cell, checkpoint_sha256: str | None) -> dict:
     """What a cell's result depends on; a stored cell with an equal key is reused."""

@@ -127,7 +127,7 @@ def metrics_markdown(rows: Sequence[dict], *, label: str | None = None, timing: 
     if timing:
         head.append("step ms")
     if has_qp:
-        head += ["QP ms", "QP steps with slack"]
+        head += ["QP ms", "QPs with slack"]
     table = []
     for r in rows:
         cells = [

@@ -40,7 +40,7 @@ from .cli_checks import (
     usage_error,
 )
 from .cli_choices import Backend, Controller, DemoMethod, Dtype, LearnedMethod, Preset, RobotName, choice_error
-from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval
+from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval, say_run_checkpoint
 from .threads import choose_threads
 
 __all__ = ["app", "format_table", "main"]
@@ -219,9 +219,7 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
             f"`egcbf train --algo {name} --out runs/{name}` and pass --checkpoints with a folder holding {name}/",
             err,
         )
-    if found != path:
-        why = "its best/ (selected on validation episodes)" if found.name == "best" else "its newest checkpoint"
-        typer.echo(f"--checkpoints: {path} is a run directory; using {why}, {found}", err=True)
+    say_run_checkpoint(path, found, "--checkpoints")
     return found
 
 
@@ -581,41 +579,27 @@ def reproduce(
                 cfg, command=shlex.join(["egcbf", *sys.argv[1:]]), progress=progress, log=typer.echo,
                 recompute=recompute,
             )  # fmt: skip
-        except ValueError as err:  # stored cells of other settings
-            usage_error(str(err), err)
-        except RuntimeError as err:  # another sweep holds the lock; CellsFailed is reported below
-            if isinstance(err, CellsFailed):
-                typer.echo(f"Error: {err}; the finished cells are kept, rerun the command to retry", err=True)
-                records = load_cells(cfg)
-                write_report(cfg, records, report)
-                raise typer.Exit(1) from None
+        except CellsFailed as err:
+            typer.echo(f"Error: {err}; the finished cells are kept, rerun the command to retry", err=True)
+            write_report(cfg, load_cells(cfg), report)
+            raise typer.Exit(1) from None
+        except (ValueError, RuntimeError) as err:  # stored cells of other settings; another sweep holds the lock
             usage_error(str(err), err)
     path = write_report(cfg, records, report)
     typer.echo(f"{len(records)} of {len(cfg.cells())} cells; wrote {path}")
 
 
-#: SweepConfig's field names as the reproduce command's flags, for its error messages
-_SWEEP_FLAGS = {
-    "methods": "--methods",
-    "num_agents": "--num-agents",
-    "obstacle_methods": "--obstacle-methods",
-    "baseline_episodes": "--baseline-episodes",
-    "train_seeds": "--train-seeds",
-    "seed_methods": "--seed-methods",
-    "scale_sizes": "--scale-sizes",
-    "scale_methods": "--scale-methods",
-    "scale_agent_episodes": "--scale-agent-episodes",
-    "max_steps": "--max-steps",
-    "episodes": "--episodes",
-    "obstacles": "--obstacles",
-    "workers": "--workers",
-    "area": "--area",
-}
+#: SweepConfig's fields set by the reproduce command's flags of the same name (``--num-agents`` for ``num_agents``)
+_SWEEP_FIELDS = (
+    "methods", "num_agents", "obstacle_methods", "baseline_episodes", "train_seeds", "seed_methods", "scale_sizes",
+    "scale_methods", "scale_agent_episodes", "max_steps", "episodes", "obstacles", "workers", "area",
+)  # fmt: skip
 
 
 def _sweep_flags(message: str) -> str:
     """``message`` with SweepConfig's field names written as the flags that set them."""
-    return re.sub(r"(?<![-\w])(" + "|".join(_SWEEP_FLAGS) + r")\b", lambda m: _SWEEP_FLAGS[m.group(1)], message)
+    fields = "|".join(_SWEEP_FIELDS)
+    return re.sub(rf"(?<![-\w])({fields})\b", lambda m: "--" + m.group(1).replace("_", "-"), message)
 
 
 def main(argv: list[str] | None = None) -> None:

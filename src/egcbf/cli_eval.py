@@ -23,7 +23,7 @@ from .cli_checks import (
 )
 from .report import machine_info, number, pct
 
-__all__ = ["DTYPES", "EVAL_RESULTS", "format_table", "load_policy", "render_records", "run_eval"]
+__all__ = ["DTYPES", "EVAL_RESULTS", "format_table", "load_policy", "render_records", "run_eval", "say_run_checkpoint"]
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 #: the files an evaluation writes into --out (a new run refuses a folder holding any of them without --overwrite)
@@ -78,10 +78,15 @@ def load_policy(checkpoint: Path, dev: torch.device, dtype: torch.dtype, flag: s
         learned, train_cfg = load_controller(ckpt, device=dev, dtype=dtype)
     except (FileNotFoundError, CheckpointError) as err:
         usage_error(f"{flag} {checkpoint}: {err}", err)
-    if ckpt.resolve() != Path(checkpoint).resolve():
-        why = "its best/ (selected on validation episodes)" if ckpt.name == "best" else "its newest checkpoint"
-        typer.echo(f"{flag} {checkpoint}: a run directory; evaluating {why}, {ckpt}", err=True)
+    say_run_checkpoint(checkpoint, ckpt, flag)
     return ckpt, learned, train_cfg
+
+
+def say_run_checkpoint(given: Path, found: Path, flag: str) -> None:
+    """On stderr, which checkpoint of the run directory ``given`` is used (nothing if ``given`` is one)."""
+    if Path(found).resolve() != Path(given).resolve():
+        why = "its best/ (selected on validation episodes)" if Path(found).name == "best" else "its newest checkpoint"
+        typer.echo(f"{flag} {given}: a run directory; evaluating {why}, {found}", err=True)
 
 
 def run_eval(

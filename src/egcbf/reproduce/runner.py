@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 
 from ..report import code_version, machine_info
 from .paper import LEARNED
-from .plan import Cell, SweepConfig, cell_key
+from .plan import Cell, SweepConfig
 from .store import (
     CheckpointInfo,
     describe_mismatch,
@@ -32,6 +32,7 @@ from .store import (
     mismatched_cells,
     read_json,
     record_invocation,
+    wanted_key,
     write_json,
 )
 from .workers import CellTask, execute, require_ray
@@ -171,8 +172,7 @@ def sweep(
         )
     records, todo, counts = {}, [], {"reused": 0, "imported": 0, "computed": 0, "failed": 0}
     for cell in cfg.cells():
-        ckpt = ckpts.get((cell.method, cell.train_seed))
-        key = cell_key(cfg, cell, None if ckpt is None else ckpt.sha256)
+        key = wanted_key(cfg, cell, ckpts)
         old = read_json(cell.path(cfg.out))
         if isinstance(old, dict) and old.get("key") == key:
             records[cell], counts["reused"] = old, counts["reused"] + 1
@@ -199,7 +199,7 @@ def sweep(
         )
         for c in _schedule(todo)
     ]
-    code = code_version()
+    code, machine = code_version(), machine_info()
 
     def entry(status: str) -> dict:
         return {
@@ -212,7 +212,7 @@ def sweep(
             "workers": cfg.workers,
             "threads_per_cell": cfg.threads,
             **counts,
-            "machine": machine_info(),
+            "machine": machine,
         }
 
     failures: dict[Cell, str] = {}
@@ -228,10 +228,9 @@ def sweep(
                     failures[cell], counts["failed"] = error, counts["failed"] + 1
                     log(f"FAILED {cell.run} obstacles {cell.obstacles} N {cell.num_agents}:\n{error.rstrip()}")
                 else:
-                    ckpt = ckpts.get((cell.method, cell.train_seed))
-                    key = cell_key(cfg, cell, None if ckpt is None else ckpt.sha256)
                     meta = {k: res[k] for k in ("wall_s", "machine", "code") if k in res}
-                    rec = make_record(cfg, cell, key, ckpt, res["row"], **meta)
+                    ckpt = ckpts.get((cell.method, cell.train_seed))
+                    rec = make_record(cfg, cell, wanted_key(cfg, cell, ckpts), ckpt, res["row"], **meta)
                     write_json(cell.path(cfg.out), rec)
                     records[cell], counts["computed"] = rec, counts["computed"] + 1
                     _log_cell(log, rec)

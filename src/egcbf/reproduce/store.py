@@ -35,6 +35,7 @@ __all__ = [
     "mismatched_cells",
     "pending_cells",
     "read_invocations",
+    "wanted_key",
 ]
 
 
@@ -212,6 +213,12 @@ def _settings_diff(stored: dict, wanted: dict) -> dict[str, tuple]:
     return {k: (stored.get(k), v) for k, v in wanted.items() if k != "checkpoint_sha256" and stored.get(k) != v}
 
 
+def wanted_key(cfg: SweepConfig, cell: Cell, ckpts: dict | None) -> dict:
+    """:func:`cell_key` of ``cell`` with the sha256 of its checkpoint among ``ckpts`` (``None`` if it has none)."""
+    ckpt = (ckpts or {}).get((cell.method, cell.train_seed))
+    return cell_key(cfg, cell, None if ckpt is None else ckpt.sha256)
+
+
 def mismatched_cells(cfg: SweepConfig, ckpts: dict | None = None) -> dict[Cell, dict[str, tuple]]:
     """The cells of ``cfg`` whose stored file was made with other settings (episodes, seed, area, episode length):
     ``{cell: {field: (stored, wanted)}}``. A cell whose checkpoint alone changed is not a mismatch (the sweep
@@ -221,8 +228,7 @@ def mismatched_cells(cfg: SweepConfig, ckpts: dict | None = None) -> dict[Cell, 
         rec = read_json(cell.path(cfg.out))
         if not isinstance(rec, dict) or not isinstance(rec.get("key"), dict):
             continue
-        ckpt = (ckpts or {}).get((cell.method, cell.train_seed))
-        diff = _settings_diff(rec["key"], cell_key(cfg, cell, None if ckpt is None else ckpt.sha256))
+        diff = _settings_diff(rec["key"], wanted_key(cfg, cell, ckpts))
         if diff:
             out[cell] = diff
     return out
@@ -233,9 +239,8 @@ def pending_cells(cfg: SweepConfig, ckpts: dict) -> list[Cell]:
     ``ckpts``: :func:`egcbf.reproduce.validate`'s checkpoints."""
     pending = []
     for cell in cfg.cells():
-        ckpt = ckpts.get((cell.method, cell.train_seed))
         rec = read_json(cell.path(cfg.out))
-        if not isinstance(rec, dict) or rec.get("key") != cell_key(cfg, cell, None if ckpt is None else ckpt.sha256):
+        if not isinstance(rec, dict) or rec.get("key") != wanted_key(cfg, cell, ckpts):
             pending.append(cell)
     return pending
 
@@ -258,7 +263,6 @@ def load_cells(cfg: SweepConfig) -> dict[Cell, dict]:
         rec = read_json(cell.path(cfg.out))
         if not isinstance(rec, dict) or "key" not in rec:
             continue
-        want = cell_key(cfg, cell, None)
-        if all(rec["key"].get(k) == v for k, v in want.items() if k != "checkpoint_sha256"):
+        if not _settings_diff(rec["key"], cell_key(cfg, cell, None)):
             out[cell] = rec
     return out

@@ -39,7 +39,17 @@ from .cli_checks import (
     require,
     usage_error,
 )
-from .cli_choices import Backend, Controller, DemoMethod, Dtype, LearnedMethod, Preset, RobotName, choice_error
+from .cli_choices import (
+    Backend,
+    Controller,
+    DemoMethod,
+    Dtype,
+    LearnedMethod,
+    Preset,
+    RobotName,
+    SafetyFilter,
+    choice_error,
+)
 from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval, say_run_checkpoint
 from .threads import choose_threads
 
@@ -170,6 +180,16 @@ def eval_cmd(
         RobotName | None,
         typer.Option(help="the robot of a --controller's swarm (default: quadrotor); a --checkpoint's is its own"),
     ] = None,
+    filter: Annotated[
+        SafetyFilter,
+        typer.Option(
+            help="run-time safety filter of the --checkpoint's commands (docs/safety_filters.md): none (the policy "
+            "alone), dcbf (hand-crafted pairwise barriers), cbf (the learned per-edge barriers), prior (the "
+            "untrained barrier)"
+        ),
+    ] = SafetyFilter.none,
+    filter_alpha: Annotated[float, typer.Option(help="class-K gain (1/s) of the cbf and prior filters")] = 1.0,
+    filter_margin: Annotated[float, typer.Option(help="barrier offset (m) of the cbf and prior filters")] = 0.0,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)
@@ -193,20 +213,27 @@ def eval_cmd(
             overwrite=overwrite,
             allocator=_ALLOCATOR,
             robot=None if robot is None else robot.value,
+            filter=filter.value,
+            filter_alpha=filter_alpha,
+            filter_margin=filter_margin,
         )
 
 
 def _demo_source(name: str, checkpoints: Path) -> Path | None:
     """The checkpoint directory of a learned method (``checkpoints/<name>``), or ``None`` for a hand-crafted
     controller name; a clear error naming the path and the training command if a learned method has none."""
+    from .algo.filtered import FILTERS
     from .config import LEARNED_METHODS
     from .control.controllers import CONTROLLERS
 
     if name in CONTROLLERS:
         return None
-    if name not in LEARNED_METHODS:
+    name, _, filt = name.partition(":")
+    if name not in LEARNED_METHODS or (filt and filt not in FILTERS):
         usage_error(
-            f"unknown method {name!r}: a learned method {sorted(LEARNED_METHODS)} or a controller {sorted(CONTROLLERS)}"
+            f"unknown method {name + (':' + filt if filt else '')!r}: a learned method {sorted(LEARNED_METHODS)}, "
+            f"one behind a run-time filter as METHOD:FILTER with FILTER in {list(FILTERS[1:])} (e.g. egcbf+:dcbf), "
+            f"or a controller {sorted(CONTROLLERS)}"
         )
     from .checkpoint import find_checkpoint
 
@@ -223,7 +250,8 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
     return found
 
 
-_DEMO_COMPARE = ("gcbf+", "nominal", "dcbf")
+#: what a learned --method is compared with by default ("{method}": the method itself behind a run-time filter)
+_DEMO_COMPARE = ("{method}:dcbf", "gcbf+", "nominal", "dcbf")
 
 
 @app.command()
@@ -239,8 +267,9 @@ def demo(
         typer.Option(
             "--compare",
             "--baseline",
-            help="controllers run on the same episodes, comma list; 'none' to skip (default: gcbf+,nominal,dcbf; "
-            "nominal for a hand-crafted --method)",
+            help="controllers run on the same episodes, comma list; METHOD:FILTER is a learned method behind a "
+            "run-time filter (--filter of eval); 'none' to skip (default: METHOD:dcbf,gcbf+,nominal,dcbf; nominal "
+            "for a hand-crafted --method)",
         ),
     ] = None,
     num_agents: Annotated[int, typer.Option("--num-agents")] = 128,
@@ -258,16 +287,17 @@ def demo(
         bool, typer.Option("--overwrite", help="replace the results already in OUT (default: refuse to mix runs)")
     ] = False,
 ) -> None:
-    """The main job: the learned EGCBF+ policy beside GCBF+, the nominal controller and the hand-crafted dCBF-QP on
-    the same episodes (128 agents, l = 4, 8 obstacles by default): one table, OUT/summary.md, a GIF of the first
+    """The main job: the learned EGCBF+ policy, alone and behind the dCBF run-time filter, beside GCBF+, the nominal
+    controller and the hand-crafted dCBF-QP on the same episodes (128 agents, l = 4, 8 obstacles by default): one table, OUT/summary.md, a GIF of the first
     episode of every controller side by side (OUT/compare_N<n>.gif), OUT/<controller>/metrics.json and
     OUT/demo.json."""
-    from .cli_demo import run_demo
+    from .cli_demo import out_dir, run_demo
 
     method = method.value
     if compare is None:  # a hand-crafted --method alone is compared with the nominal controller only
         learned = _demo_source(method, checkpoints) is not None
-        names = [method, *(c for c in (_DEMO_COMPARE if learned else ("nominal",)) if c != method)]
+        default = [c.format(method=method) for c in _DEMO_COMPARE] if learned else ["nominal"]
+        names = [method, *(c for c in default if c != method)]
     else:
         extra = [c for c in compare.replace(" ", "").split(",") if c and c.lower() != "none"]
         names = list(dict.fromkeys([method, *extra]))
@@ -289,7 +319,7 @@ def demo(
             check_policy_memory(configs, episodes, None, train_cfg.model.hidden, dev)
     prepare_out(out, overwrite, ("demo.json", "summary.md", f"compare_N{num_agents}.gif"))
     for name in names:
-        prepare_out(out / name, overwrite, EVAL_RESULTS)
+        prepare_out(out_dir(out, name), overwrite, EVAL_RESULTS)
     with _torch_threads(n_threads, reason):
         run_demo(
             sources,

@@ -13,7 +13,17 @@ from __future__ import annotations
 import re
 from enum import Enum
 
-__all__ = ["Backend", "Controller", "DemoMethod", "Dtype", "LearnedMethod", "Preset", "RobotName", "choice_error"]
+__all__ = [
+    "Backend",
+    "Controller",
+    "DemoMethod",
+    "Dtype",
+    "LearnedMethod",
+    "Preset",
+    "RobotName",
+    "SafetyFilter",
+    "choice_error",
+]
 
 
 class Controller(str, Enum):
@@ -21,6 +31,15 @@ class Controller(str, Enum):
 
     nominal = "nominal"
     ccbf = "ccbf"
+    dcbf = "dcbf"
+
+
+class SafetyFilter(str, Enum):
+    """A run-time safety filter of a learned policy (``egcbf.algo.filtered.FILTERS``): ``egcbf eval --filter``."""
+
+    none = "none"
+    cbf = "cbf"
+    prior = "prior"
     dcbf = "dcbf"
 
 

@@ -19,7 +19,7 @@ from .atomic import write_json_atomic, write_text_atomic
 from .cli_eval import run_eval
 from .report import machine_info, number, pct
 
-__all__ = ["DESCRIPTIONS", "demo_table", "run_demo"]
+__all__ = ["DESCRIPTIONS", "FILTER_DESCRIPTIONS", "demo_table", "describe", "out_dir", "run_demo"]
 
 #: what each controller is, for the demo's table
 DESCRIPTIONS = {
@@ -31,6 +31,21 @@ DESCRIPTIONS = {
     "dcbf": "dCBF-QP (hand-crafted)",
     "ccbf": "cCBF-QP (hand-crafted)",
 }
+#: a learned method behind a run-time filter, ``METHOD:FILTER``
+FILTER_DESCRIPTIONS = {"dcbf": "+ dCBF filter", "cbf": "+ learned-CBF filter", "prior": "+ prior-CBF filter"}
+
+
+def describe(name: str) -> str:
+    """The table's label of a controller name (``egcbf+``, ``dcbf``, ``egcbf+:dcbf``, ...)."""
+    method, _, filt = name.partition(":")
+    if not filt or filt == "none":
+        return DESCRIPTIONS.get(method, method)
+    return f"{DESCRIPTIONS.get(method, method).split(' (')[0]} {FILTER_DESCRIPTIONS.get(filt, filt)}"
+
+
+def out_dir(out: Path, name: str) -> Path:
+    """The folder of a controller's results (``METHOD:FILTER`` as ``METHOD_FILTER``: no colon in paths)."""
+    return out / name.replace(":", "_")
 
 
 def demo_table(rows: dict[str, dict], header: str) -> str:
@@ -39,7 +54,7 @@ def demo_table(rows: dict[str, dict], header: str) -> str:
     lines = [header, "", head, "-" * len(head)]
     for name, r in rows.items():
         lines.append(
-            f"{DESCRIPTIONS.get(name, name):32s} {pct(r['safe_rate']):>7} {pct(r['reach_rate']):>8} "
+            f"{describe(name):32s} {pct(r['safe_rate']):>7} {pct(r['reach_rate']):>8} "
             f"{pct(r['success_rate']):>10} {number(r['cost']):>11} {r['step_ms_median']:8.2f}"
         )
     lines += [
@@ -76,6 +91,7 @@ def run_demo(
     t0 = time.time()
     rows, episodes_seen = {}, {}
     for name, ckpt in sources.items():
+        filt = name.partition(":")[2] or "none"
         recorded = run_eval(
             controller=name if ckpt is None else None,
             num_agents=str(num_agents),
@@ -83,7 +99,7 @@ def run_demo(
             obstacles=obstacles,
             episodes=episodes,
             seed=seed,
-            out=out / name,
+            out=out_dir(out, name),
             render=False,
             max_steps=max_steps,
             batch=None,
@@ -95,8 +111,9 @@ def run_demo(
             overwrite=True,  # checked by the caller for every controller
             allocator=allocator,
             record=render,
+            filter=filt,
         )
-        rows[name] = _read_row(out / name)
+        rows[name] = _read_row(out_dir(out, name))
         if num_agents in recorded:
             episodes_seen[name] = recorded[num_agents]
     header = (
@@ -110,7 +127,7 @@ def run_demo(
     if episodes_seen:
         first = next(iter(episodes_seen.values()))
         panels = {
-            DESCRIPTIONS[n].split(" (")[0]: (torch.stack(e.positions), torch.stack(e.collided))
+            describe(n).split(" (")[0]: (torch.stack(e.positions), torch.stack(e.collided))
             for n, e in episodes_seen.items()
         }
         title = f"first episode, N = {num_agents}, l = {area:g} m, {obstacles} obstacles (red: colliding)"
@@ -120,8 +137,8 @@ def run_demo(
         )  # fmt: skip
         main, rec = next(iter(episodes_seen.items()))
         png = render_topdown(
-            out / f"{main}_N{num_agents}_topdown.png", torch.stack(rec.positions), rec.goals, rec.centers,
-            rec.radii, torch.stack(rec.collided), area_size=area, title=f"{DESCRIPTIONS[main]}, N = {num_agents}",
+            out_dir(out, f"{main}_N{num_agents}_topdown.png"), torch.stack(rec.positions), rec.goals, rec.centers,
+            rec.radii, torch.stack(rec.collided), area_size=area, title=f"{describe(main)}, N = {num_agents}",
         )  # fmt: skip
         written += [gif, png]
     names = list(sources)

@@ -37,6 +37,9 @@ def format_table(rows: list[dict], title: str = "") -> str:
     has_qp = any("qp_ms_median" in r for r in rows)
     if has_qp:
         head += f" {'QP ms':>7} {'slack':>6}"
+    has_filter = any("filter_active" in r for r in rows)
+    if has_filter:
+        head += f" {'failed':>6} {'filtered%':>9}"
     lines = [title, head, "-" * len(head)] if title else [head, "-" * len(head)]
     for r in rows:
         cost = f"{number(r['cost'])} ({number(r['cost_min'], 2)}/{number(r['cost_max'], 2)})"
@@ -46,6 +49,8 @@ def format_table(rows: list[dict], title: str = "") -> str:
         )
         if has_qp:
             line += f" {r.get('qp_ms_median', float('nan')):>7.2f} {r.get('qp_slack_steps', 0):>6}"
+        if has_filter:  # agent-steps whose QP fell back to braking, and the share the filter changed
+            line += f" {r.get('qp_failed', 0):>6} {pct(r.get('filter_active', 0.0)):>9}"
         lines.append(line)
     return "\n".join(lines)
 
@@ -82,6 +87,18 @@ def load_policy(checkpoint: Path, dev: torch.device, dtype: torch.dtype, flag: s
     return ckpt, learned, train_cfg
 
 
+def _filtered(ckpt, learned, train_cfg, config, dev, dtype, cls):
+    """The checkpoint's policy behind the run-time filter ``config`` (its CBF network for ``cbf``), or a usage
+    error saying why this checkpoint cannot be filtered."""
+    from .checkpoint import CheckpointError, load_network
+
+    try:
+        cbf = load_network(ckpt, "cbf", dev, dtype)[0] if config.kind == "cbf" else None
+        return cls(learned.policy, train_cfg.model, config, cbf)
+    except (CheckpointError, ValueError) as err:
+        usage_error(f"--filter {config.kind} on {ckpt}: {err}", err)
+
+
 def say_run_checkpoint(given: Path, found: Path, flag: str) -> None:
     """On stderr, which checkpoint of the run directory ``given`` is used (nothing if ``given`` is one)."""
     if Path(found).resolve() != Path(given).resolve():
@@ -109,6 +126,9 @@ def run_eval(
     allocator: str = "default (the CLI's entry point did not run)",
     record: bool = False,
     robot: str | None = None,
+    filter: str = "none",
+    filter_alpha: float = 1.0,
+    filter_margin: float = 0.0,
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -117,6 +137,7 @@ def run_eval(
     first episode of each swarm size ``{N: EpisodeRecord}`` if ``render`` or ``record``, else ``{}``. ``robot``: the
     robot of a hand-crafted controller's swarm (a checkpoint's robot is its own; a different ``robot`` is an error).
     """
+    from .algo.filtered import FILTERS, FilterConfig, FilteredController
     from .control.controllers import CONTROLLERS, make_controller
     from .evaluate import evaluate
     from .robots import ROBOTS
@@ -124,6 +145,19 @@ def run_eval(
     require(dtype in DTYPES, f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     require(batch is None or batch >= 1, f"--batch must be >= 1 (episodes simulated together), got {batch}")
+    require(filter in FILTERS, f"--filter must be one of {list(FILTERS)}, got {filter!r}")
+    require(
+        filter == "none" or checkpoint is not None,
+        f"--filter {filter} filters a learned policy's commands: give its --checkpoint (the hand-crafted "
+        "controllers are their own filters)",
+    )
+    filter_config = None
+    if filter != "none":
+        try:
+            filter_config = FilterConfig(kind=filter, alpha=filter_alpha, margin=filter_margin)
+        except ValueError as err:
+            usage_error(str(err).replace("FilterConfig.alpha", "--filter-alpha").replace("FilterConfig.margin",
+                        "--filter-margin"), err)  # fmt: skip
     sizes = parse_sizes(num_agents)
     dev = parse_device(device)
     env_overrides, ckpt = None, None
@@ -132,6 +166,9 @@ def run_eval(
             usage_error("--controller and --checkpoint exclude each other (the checkpoint's policy is the controller)")
         ckpt, learned, train_cfg = load_policy(checkpoint, dev, DTYPES[dtype])
         controller = train_cfg.algo
+        if filter_config is not None:
+            learned = _filtered(ckpt, learned, train_cfg, filter_config, dev, DTYPES[dtype], FilteredController)
+            controller = f"{train_cfg.algo}:{filter}"
         env_overrides = dict(train_cfg.env_overrides)  # the sensing the policy was trained with (radii, LiDAR)
         require(
             robot in (None, train_cfg.robot),
@@ -155,6 +192,8 @@ def run_eval(
         "controller": controller,
         "robot": robot,
         "checkpoint": None if ckpt is None else str(ckpt),
+        "filter": filter,
+        "filter_config": None if filter_config is None else {"alpha": filter_alpha, "margin": filter_margin},
         "num_agents": sizes,
         "finished": [],
         "complete": False,

@@ -5,8 +5,9 @@ not depend on how episodes are batched. Episodes are simulated ``batch`` at a ti
 environments and agents).
 
 A controller is any callable ``controller(state, config) -> (u, info)`` with ``u`` ``(B, N, 4)`` and ``info`` a
-dict that may hold ``qp_ms`` (solve time of this step, ms), ``num_slack`` / ``num_failed`` (QP counts) and ``u_ref``
-(the nominal control it started from; computed here if absent).
+dict that may hold ``qp_ms`` (solve time of this step, ms), ``num_slack`` / ``num_failed`` (QP counts), ``u_ref``
+(the nominal control it started from; computed here if absent), and for a run-time filter ``num_active`` /
+``num_agents`` (agents whose command it changed, of how many: the row's ``filter_active``).
 """
 
 from __future__ import annotations
@@ -88,7 +89,7 @@ def run_episodes(
     env = SwarmEnv(dataclasses.replace(config, num_envs=len(seeds)), device=device, dtype=dtype)
     robot = env.robot
     stats = EpisodeStats(len(seeds), config.num_agents, device=device)
-    timing = {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0}
+    timing = {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0, "num_active": 0, "num_filtered": 0}
     rec = None
     if record:
         rec = EpisodeRecord(
@@ -109,6 +110,8 @@ def run_episodes(
             timing["qp_ms"].append(float(info["qp_ms"]))
         timing["num_slack"] += int(info.get("num_slack", 0))
         timing["num_failed"] += int(info.get("num_failed", 0))
+        timing["num_active"] += int(info.get("num_active", 0))
+        timing["num_filtered"] += int(info.get("num_agents", 0))
         if rec is not None:
             rec.positions.append(state.positions[0].detach().cpu().clone())
             rec.collided.append(step_info.collision[0].detach().cpu().clone())
@@ -156,7 +159,8 @@ def evaluate(
         controller = make_controller(config)
         b = batch or episode_batch(n, episodes, max_agents_per_batch)
         seeds = [episode_seed(seed, n, e) for e in range(episodes)]
-        per_episode, timing = [], {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0}
+        per_episode = []
+        timing = {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0, "num_active": 0, "num_filtered": 0}
         bar = tqdm(
             total=episodes * config.max_steps, desc=f"N={n}", unit="step", disable=not show_progress, leave=False
         )
@@ -169,8 +173,8 @@ def evaluate(
             for key in ("step_ms", "qp_ms"):
                 # per-episode time: a batch step serves len(chunk) episodes at once
                 timing[key].extend(v / len(chunk) for v in t[key])
-            timing["num_slack"] += t["num_slack"]
-            timing["num_failed"] += t["num_failed"]
+            for key in ("num_slack", "num_failed", "num_active", "num_filtered"):
+                timing[key] += t[key]
             if rec is not None:
                 records[n] = rec
         bar.close()
@@ -181,6 +185,8 @@ def evaluate(
             row["qp_ms_median"] = statistics.median(timing["qp_ms"])
             row["qp_slack_steps"] = timing["num_slack"]
             row["qp_failed"] = timing["num_failed"]
+        if timing["num_filtered"]:  # a run-time filter: the fraction of agent-steps whose command it changed
+            row["filter_active"] = timing["num_active"] / timing["num_filtered"]
         rows.append(row)
         if on_size is not None:
             on_size(list(rows), records.get(n))

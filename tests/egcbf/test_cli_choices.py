@@ -7,7 +7,18 @@ import pytest
 from typer.testing import CliRunner
 
 from egcbf import cli
-from egcbf.cli_choices import Backend, Controller, DemoMethod, Dtype, LearnedMethod, Preset, RobotName, choice_error
+from egcbf.algo.filtered import FILTERS
+from egcbf.cli_choices import (
+    Backend,
+    Controller,
+    DemoMethod,
+    Dtype,
+    LearnedMethod,
+    Preset,
+    RobotName,
+    SafetyFilter,
+    choice_error,
+)
 from egcbf.cli_eval import DTYPES
 from egcbf.config import LEARNED_METHODS, PRESETS
 from egcbf.control.controllers import CONTROLLERS
@@ -17,6 +28,7 @@ from egcbf.robots import ROBOTS
 OPTIONS = [  # (command, flag, enum)
     ("eval", "--controller", Controller),
     ("eval", "--dtype", Dtype),
+    ("eval", "--filter", SafetyFilter),
     ("demo", "--method", DemoMethod),
     ("train", "--algo", LearnedMethod),
     ("train", "--preset", Preset),
@@ -36,7 +48,8 @@ def test_the_choices_are_the_library_registries():
     assert _values(Dtype) == list(DTYPES)
     assert _values(Backend) == list(BACKENDS)
     assert _values(RobotName) == list(ROBOTS)
-    for enum in (Controller, LearnedMethod, DemoMethod, Preset, Dtype, Backend, RobotName):
+    assert _values(SafetyFilter) == list(FILTERS)
+    for enum in (Controller, LearnedMethod, DemoMethod, Preset, Dtype, Backend, RobotName, SafetyFilter):
         assert all(isinstance(m, str) and json.dumps(m) == json.dumps(m.value) for m in enum)
 
 

@@ -26,23 +26,25 @@ def checkpoints(tmp_path_factory):
     return root
 
 
-def test_demo_compares_four_controllers_on_the_same_episodes(checkpoints, tmp_path):
+def test_demo_compares_five_controllers_on_the_same_episodes(checkpoints, tmp_path):
     out = tmp_path / "demo"
     res = _invoke(["--checkpoints", str(checkpoints), "--out", str(out), *SMALL])
     assert res.exit_code == 0, res.output
-    names = ("egcbf+", "gcbf+", "nominal", "dcbf")
+    names = ("egcbf+", "egcbf+:dcbf", "gcbf+", "nominal", "dcbf")
     for name in names:
-        rows = json.loads((out / name / "metrics.json").read_text())
+        rows = json.loads((out / name.replace(":", "_") / "metrics.json").read_text())
         assert [r["num_agents"] for r in rows] == [3] and rows[0]["num_episodes"] == 1
         assert not list((out / name).glob("*.gif"))  # one comparison GIF instead of one per controller
     gif = Image.open(out / "compare_N3.gif")
     assert gif.format == "GIF" and gif.n_frames == 9  # the start and every step of the 8-step episode
     assert (out / "egcbf+_N3_topdown.png").stat().st_size > 0
     summary = json.loads((out / "demo.json").read_text())
-    assert summary["method"] == "egcbf+" and summary["compared"] == ["gcbf+", "nominal", "dcbf"]
+    assert summary["method"] == "egcbf+" and summary["compared"] == ["egcbf+:dcbf", "gcbf+", "nominal", "dcbf"]
+    assert json.loads((out / "egcbf+_dcbf" / "run.json").read_text())["filter"] == "dcbf"
     assert list(summary["metrics"]) == list(names) and summary["num_agents"] == 3
     table = (out / "summary.md").read_text()
-    for label in ("EGCBF+ (learned, equivariant)", "GCBF+ (learned)", "nominal (no safety filter)", "dCBF-QP"):
+    for label in ("EGCBF+ (learned, equivariant)", "EGCBF+ + dCBF filter", "GCBF+ (learned)", "nominal (no safety",
+                  "dCBF-QP"):  # fmt: skip
         assert label in table and label in res.output
     line = next(ln for ln in table.splitlines() if ln.startswith("nominal"))
     nominal = summary["metrics"]["nominal"]

@@ -41,7 +41,7 @@ from .barriers import (
     build_constraints,
     split_for_agents,
 )
-from .dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
+from .dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm, verified
 from .nominal import (
     DEFAULT_GAINS,
     DEFAULT_MAX_POSITION_ERROR,
@@ -55,6 +55,7 @@ __all__ = [
     "CBFQPConfig",
     "CentralizedCBFQP",
     "DecentralizedCBFQP",
+    "brake_acceleration",
     "default_bounds",
     "nominal_acceleration",
     "track_acceleration",
@@ -86,6 +87,14 @@ def default_bounds(
     if room <= (1.05 * g) ** 2:
         raise ValueError("the quadrotor's thrust cannot hover while accelerating sideways at the tilt limit")
     return AccelBounds(horizontal, -(1 - lift_fraction) * g, math.sqrt(room) - g, polygon)
+
+
+def brake_acceleration(v: np.ndarray, bounds: AccelBounds, gain: float) -> np.ndarray:
+    """Fallback acceleration of an agent whose QP failed: ``-gain v`` ``(..., 3)`` scaled into the ball inscribed
+    in the bounds (a direction every agent can realize, whatever its heading)."""
+    a = -gain * v
+    nrm = np.linalg.norm(a, axis=-1, keepdims=True)
+    return a * np.minimum(1.0, 0.99 * bounds.inscribed / np.maximum(nrm, 1e-12))
 
 
 # ------------------------------------------------------------------------------------------------ config
@@ -203,10 +212,7 @@ class _CBFQPBase:
         return prep
 
     def _brake(self, v: np.ndarray, bounds: AccelBounds) -> np.ndarray:
-        """Fallback acceleration: ``-brake_gain v`` scaled into the ball inscribed in the bounds."""
-        a = -self.config.brake_gain * v
-        nrm = np.linalg.norm(a, axis=-1, keepdims=True)
-        return a * np.minimum(1.0, 0.99 * bounds.inscribed / np.maximum(nrm, 1e-12))
+        return brake_acceleration(v, bounds, self.config.brake_gain)
 
     def _finish(self, prep: _Prepared, a_safe: np.ndarray) -> Tensor:
         acc = torch.from_numpy(a_safe).to(prep.x)
@@ -378,9 +384,20 @@ class DecentralizedCBFQP(_CBFQPBase):
     name = "dcbf"
 
     def __call__(self, state, env_config) -> tuple[Tensor, dict]:
+        return self.filter(state, env_config)
+
+    def filter(self, state, env_config, a_ref: np.ndarray | None = None) -> tuple[Tensor, dict]:
+        """The dCBF-QP around a reference acceleration: each agent's QP keeps ``a_i`` closest to ``a_ref[b, i]``
+        ``(B, N, 3)`` (world frame, m/s^2; ``None``: the nominal acceleration, the dCBF-QP baseline). Used as the
+        ``dcbf`` run-time filter of a learned policy (:mod:`egcbf.algo.filtered`)."""
         t0, c0 = time.perf_counter(), time.process_time()
         cfg = self.config
         prep = self._prepare(state, env_config)
+        if a_ref is not None:
+            a_ref = np.asarray(a_ref, dtype=np.float64)
+            if a_ref.shape != prep.a_nom.shape:
+                raise ValueError(f"a_ref must have shape {prep.a_nom.shape} (B, N, 3), got {a_ref.shape}")
+            prep.a_nom = a_ref
         b, n = prep.p.shape[:2]
         m = b * n
         batch = np.repeat(np.arange(b), n)
@@ -405,14 +422,8 @@ class DecentralizedCBFQP(_CBFQPBase):
         else:
             raise ValueError(f"unknown dcbf_solver {cfg.dcbf_solver!r}; choose 'ipm' or 'proxsuite'")
         a, s = z[:, :3], z[:, 3]
-        # verify every agent's solution up to its slack (its own half-rows and its bounds)
         tol = cfg.slack_tol
-        res_rows = np.einsum("mkd,md->mk", qps.cbf_normal, np.nan_to_num(a)) + np.nan_to_num(s)[:, None]
-        viol = (np.maximum(qps.cbf_rhs - res_rows, 0.0) / (1.0 + np.abs(qps.cbf_rhs))).max(1, initial=0.0)
-        bv = np.einsum("mkd,md->mk", bC, np.nan_to_num(a))
-        viol = np.maximum(viol, np.maximum(blo - bv, bv - bhi).max(1, initial=0.0))
-        good = ok & (viol <= tol) & (s >= -tol)
-        bad = ~good
+        bad = ~verified(qps, z, ok, tol)  # every agent's solution up to its slack (its own half-rows, its bounds)
         if bad.any():
             a = a.copy()
             a[bad] = self._brake(prep.v.reshape(m, 3)[bad], prep.bounds)

@@ -24,7 +24,14 @@ from .dense_ipm import solve_dense_ipm
 from .ipm import INF
 from .qp import SlackPenalty
 
-__all__ = ["DenseBatchQP", "assemble_decentralized", "inequality_form", "solve_dense_batch", "solve_dense_batch_ipm"]
+__all__ = [
+    "DenseBatchQP",
+    "assemble_decentralized",
+    "inequality_form",
+    "solve_dense_batch",
+    "solve_dense_batch_ipm",
+    "verified",
+]
 
 _PENALTY = SlackPenalty()
 
@@ -181,3 +188,15 @@ def solve_dense_batch_ipm(
     it = torch.zeros(m_, dtype=torch.int64, device=q.device)
     it[hard] = it_h
     return z.cpu().numpy(), ok.cpu().numpy(), it.cpu().numpy()
+
+
+def verified(qps: DenseBatchQP, z: np.ndarray, ok: np.ndarray, tol: float) -> np.ndarray:
+    """``(M,)`` bool: the solver reported success and ``z = (a, s)`` ``(M, 4)`` satisfies the QP's CBF rows up to
+    its slack (relative to ``1 + |b|``: barrier rows reach ``|b| ~ 1e3`` next to the safety distance) and its
+    bounds, within ``tol``, with ``s >= -tol``. Agents where this is false get a fallback from the caller."""
+    a, s = np.nan_to_num(z[:, :3]), np.nan_to_num(z[:, 3])
+    res_rows = np.einsum("mkd,md->mk", qps.cbf_normal, a) + s[:, None]
+    viol = (np.maximum(qps.cbf_rhs - res_rows, 0.0) / (1.0 + np.abs(qps.cbf_rhs))).max(1, initial=0.0)
+    bv = np.einsum("mkd,md->mk", qps.bound_C, a)
+    viol = np.maximum(viol, np.maximum(qps.bound_lo - bv, bv - qps.bound_hi).max(1, initial=0.0))
+    return ok & np.isfinite(z).all(1) & (viol <= tol) & (s >= -tol)

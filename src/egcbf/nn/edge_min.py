@@ -52,16 +52,27 @@ def closest_approach(dp: Tensor, dv: Tensor, horizon: float) -> Tensor:
 
 
 def edge_features(
-    graph: SwarmGraph, frames: Tensor, group: Group, vectors: FieldType, horizon: float
+    graph: SwarmGraph,
+    frames: Tensor,
+    group: Group,
+    vectors: FieldType,
+    horizon: float,
+    dp: Tensor | None = None,
+    dv: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Per agent and LiDAR-hit edge: ``[dp, dv (receiver's frame), |dp|, d_min, t_min, is_hit]`` ``(E', 10)``, and
     the receiver of each edge ``(E',)``. All invariant under the group. (The head's MLP also reads the receiver's
-    features ``z_i``, appended by :func:`egcbf.nn.layers.mlp_on_edges`.)"""
+    features ``z_i``, appended by :func:`egcbf.nn.layers.mlp_on_edges`.)
+
+    ``dp``, ``dv`` ``(E', d)``: the world-frame relative positions and velocities of these edges (sender minus
+    receiver), to differentiate through; by default read from the graph."""
     sel = graph.edge_kind != KIND_GOAL
     edge_index = graph.edge_index[:, sel]
     dst = edge_index[1]
-    dp = graph.edge_attr[sel]
-    dv = graph.relative_velocity(edge_index).to(dp.dtype)
+    if dp is None:
+        dp = graph.edge_attr[sel]
+    if dv is None:
+        dv = graph.relative_velocity(edge_index).to(dp.dtype)
     approach = closest_approach(dp, dv, horizon)
     local = vectors.act(group.inverse(frames).index_select(0, dst), torch.cat((dp, dv), -1))
     is_hit = (graph.edge_kind[sel] == KIND_HIT).to(dp.dtype)[:, None]
@@ -95,10 +106,18 @@ class EdgeMinHead(nn.Module):
             self.edge_mlp[-1].weight.zero_()
             self.edge_mlp[-1].bias.zero_()
 
-    def forward(self, graph: SwarmGraph, z: Tensor, frames: Tensor) -> Tensor:
-        feats, dst = edge_features(graph, frames, self.group, self.vectors, self.horizon)
+    def edge_values(
+        self, graph: SwarmGraph, z: Tensor, frames: Tensor, dp: Tensor | None = None, dv: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """The per-edge barrier values ``b_ij`` ``(E',)`` (m) over the agent and LiDAR-hit edges (the graph's
+        edges of kind other than goal, in order) and their receivers ``(E',)``; ``dp``, ``dv`` as in
+        :func:`edge_features` (pass tensors that require grad to get ``db/d dp``, ``db/d dv``)."""
+        feats, dst = edge_features(graph, frames, self.group, self.vectors, self.horizon, dp, dv)
         approach = feats[:, 2 * self.dim + 1 : 2 * self.dim + 3]
-        b = approach[:, 0] - self.distance + mlp_on_edges(self.edge_mlp, feats, z, dst).squeeze(-1)
+        return approach[:, 0] - self.distance + mlp_on_edges(self.edge_mlp, feats, z, dst).squeeze(-1), dst
+
+    def forward(self, graph: SwarmGraph, z: Tensor, frames: Tensor) -> Tensor:
+        b, dst = self.edge_values(graph, z, frames)
         tau = self.temperature
         return -tau * segment_logsumexp(-b / tau, dst, graph.num_dst, -(1.0 - self.distance) / tau)
 

@@ -1,0 +1,248 @@
+"""Run-time safety filters around a learned policy: the policy proposes, a decentralized CBF-QP disposes.
+
+Every agent ``i`` computes its policy's command ``a_pi,i`` (a world acceleration, the ``accel`` interface) from its
+own graph neighbourhood, then solves one small QP over its own acceleration only::
+
+    min  1/2 ||a_i - a_pi,i||^2 + 1/2 w2 s_i^2 + w1 s_i
+    s.t. n_k . a_i + s_i >= b_k      (one row per neighbour and per LiDAR hit it senses)
+         the command box of the interface, in the agent's yaw frame;  s_i >= 0
+
+and the attitude loop tracks the result. Nothing is exchanged between agents: each pair row is split in halves, each
+agent enforcing its own half (the ``dCBF-QP``'s convention), so the two halves add up to the pair's condition when
+both agents keep their halves. All ``B N`` QPs are one batch of the interior-point solver of the dCBF-QP
+(:func:`egcbf.control.dense_qp.solve_dense_batch_ipm`); an agent whose QP fails (or whose solution fails the check)
+brakes. Three filters (``FILTERS``):
+
+* ``"cbf"``: the checkpoint's **learned per-edge barriers**. The soft-min CBF head
+  (:class:`egcbf.nn.edge_min.EdgeMinHead`) computes one barrier value ``b_ij(dp, dv; z_i)`` (m) per edge before
+  its smooth minimum. With the ideal model of the command (``dp' = dv``, ``dv' = a_j - a_i``, the receiver's
+  neighbourhood features ``z_i`` held fixed over the step, as the QP target holds the topology), the per-edge
+  condition ``db_ij/dt + alpha (b_ij - margin) >= 0`` is linear in the accelerations:
+  ``g_v . (a_j - a_i) >= -alpha (b_ij - margin) - g_p . dv`` with ``g_p, g_v`` the gradients of ``b_ij`` in
+  ``dp, dv`` (one backward pass for all edges: each ``b_ij`` reads its own edge only). Agent rows take half of the
+  right-hand side, LiDAR-hit rows (static points) all of it. Rows are normalized by ``|g_v|`` (units of m/s^2);
+  rows with ``|g_v| < 1e-6`` s (pairs moving apart: no acceleration changes ``b`` within the step) are dropped.
+* ``"prior"``: the same rows from the head's untrained prior ``b = d_min - D`` (closest-approach distance within
+  the horizon minus the checkpoint's ``cbf_distance``): the ablation that shows what learning the barrier adds.
+* ``"dcbf"``: the hand-crafted pairwise barriers of the dCBF-QP baseline (Wang et al.'s braking-distance barrier,
+  :class:`egcbf.control.cbf_qp.DecentralizedCBFQP`), with the policy's command as the reference instead of the
+  nominal one: learned liveness, hand-crafted safety.
+
+Every piece is an invariant or an equivariant of the agent's frame (edge vectors rotate with the scene, the box
+turns with the agent, the policy is equivariant for EGCBF+), so the filtered controller of EGCBF+ stays SE2xR
+equivariant (tested), and every input of agent ``i``'s QP lies within its sensing radius (tested).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..control.barriers import AccelBounds, BarrierConfig, bound_rows
+from ..control.cbf_qp import DecentralizedCBFQP, brake_acceleration
+from ..control.dense_qp import assemble_decentralized, solve_dense_batch_ipm, verified
+from ..control.qp import SlackPenalty
+from ..env import EnvConfig, SwarmState
+from ..graph import KIND_AGENT, KIND_GOAL, SwarmGraph, build_graph
+from ..nn.edge_min import EdgeMinHead, closest_approach
+from ..nn.models import CBFNet, ModelConfig, PolicyNet, frames_for
+from .interface import AccelInterface, make_interface
+from .learner import policy_command
+
+__all__ = ["FILTERS", "EdgeRows", "FilterConfig", "FilteredController", "edge_rows", "load_filtered_controller"]
+
+#: the run-time filters of ``egcbf eval --filter`` (``"none"``: the policy alone)
+FILTERS = ("none", "cbf", "prior", "dcbf")
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Settings of a run-time filter (module doc).
+
+    Attributes:
+        kind: ``"cbf"``, ``"prior"`` or ``"dcbf"``.
+        alpha: class-K gain (1/s) of the per-edge condition ``db/dt + alpha (b - margin) >= 0`` (``cbf``, ``prior``).
+        margin: barrier offset (m): the filter keeps ``b >= margin`` (``cbf``, ``prior``; negative: closer than the
+            barrier's own zero level).
+        penalty: slack cost ``1/2 w2 s^2 + w1 s`` (s in m/s^2), as the dCBF-QP's.
+        brake_gain: an agent whose QP fails gets ``a = -brake_gain v`` (within the box's inscribed ball).
+        slack_tol: a solution "needs slack" above this (m/s^2); also the tolerance of the solution check.
+        active_tol: an agent's command counts as changed by the filter above this (m/s^2).
+        barrier: the hand-crafted pairwise barrier of the ``dcbf`` filter (the dCBF-QP baseline's by default).
+    """
+
+    kind: str = "cbf"
+    alpha: float = 1.0
+    margin: float = 0.0
+    penalty: SlackPenalty = field(default_factory=SlackPenalty)
+    brake_gain: float = 4.0
+    slack_tol: float = 1e-4
+    active_tol: float = 1e-3
+    barrier: BarrierConfig = field(default_factory=BarrierConfig)
+
+    def __post_init__(self) -> None:
+        if self.kind not in FILTERS or self.kind == "none":
+            raise ValueError(f"FilterConfig.kind must be one of {FILTERS[1:]}, got {self.kind!r}")
+        if not (math.isfinite(self.alpha) and self.alpha > 0):
+            raise ValueError(f"FilterConfig.alpha must be positive and finite, got {self.alpha!r}")
+        if not math.isfinite(self.margin):
+            raise ValueError(f"FilterConfig.margin must be finite, got {self.margin!r}")
+        for name in ("brake_gain", "slack_tol", "active_tol"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"FilterConfig.{name} must be > 0, got {getattr(self, name)!r}")
+
+
+@dataclass
+class EdgeRows:
+    """Per-agent rows ``normal[r] . a_{owner[r]} >= rhs[r]`` (world frame, m/s^2) and their barrier values."""
+
+    owner: Tensor  # (R,) receiver row in the graph
+    normal: Tensor  # (R, 3)
+    rhs: Tensor  # (R,)
+    value: Tensor  # (R,) b (m)
+    gain: Tensor  # (R,) |g_v| (s): the row is the edge's condition divided by it (and halved for agent edges)
+    edge: Tensor  # (R,) the row's edge, an index into the graph's edges of kind other than goal
+    dropped: int  # edges whose row was dropped (|g_v| too small to act on)
+
+
+def edge_rows(
+    graph: SwarmGraph, alpha: float, margin: float, cbf: CBFNet | None = None, distance: float = 0.25,
+    horizon: float = 1.0,
+) -> EdgeRows:  # fmt: skip
+    """The ``cbf`` (``cbf`` given) or ``prior`` (``cbf = None``: ``b = d_min - distance``) rows of every agent
+    (module doc), from the agent and LiDAR-hit edges of ``graph``. float64 inside (the rows' gradients)."""
+    sel = graph.edge_kind != KIND_GOAL
+    ei = graph.edge_index[:, sel]
+    kind = graph.edge_kind[sel]
+    dp = graph.edge_attr[sel].detach().to(torch.float64).requires_grad_(True)
+    dv = graph.relative_velocity(ei).detach().to(torch.float64).requires_grad_(True)
+    with torch.enable_grad():
+        if cbf is None:
+            b = closest_approach(dp, dv, horizon)[:, 0] - distance
+        else:
+            head = cbf.head
+            if not isinstance(head, EdgeMinHead) or cbf.config.cbf_z_symmetric:
+                raise ValueError(
+                    "the 'cbf' filter needs the soft-min CBF head (cbf_head = 'edge_min', cbf_z_symmetric = False): "
+                    "it reads the head's per-edge barriers; use --filter prior or dcbf for this checkpoint"
+                )
+            with torch.no_grad():  # z_i: the receiver's neighbourhood summary, held fixed over the step
+                z = cbf.encoder(graph)
+            frames = frames_for(cbf.encoder.group, graph)
+            b, _ = head.edge_values(graph, z, frames, dp.to(z.dtype), dv.to(z.dtype))
+            b = b.to(torch.float64)
+        gp, gv = torch.autograd.grad(b.sum(), (dp, dv))
+    b = b.detach()
+    # db/dt = gp . dv + gv . (a_j - a_i): agent i's own part is -gv . a_i
+    rhs = -alpha * (b - margin) - (gp * dv.detach()).sum(-1)
+    rhs = torch.where(kind == KIND_AGENT, 0.5 * rhs, rhs)
+    norm = gv.norm(dim=-1)
+    keep = norm > 1e-6
+    normal = -gv[keep] / norm[keep, None]
+    edge = keep.nonzero()[:, 0]
+    return EdgeRows(ei[1, keep], normal, rhs[keep] / norm[keep], b[keep], norm[keep], edge, int((~keep).sum()))
+
+
+class FilteredController:
+    """A learned policy whose commands pass through a decentralized run-time filter (module doc):
+    ``u, info = ctrl(state, env_config)``, the evaluation controller's signature.
+
+    ``info``: ``u_ref`` (the nominal controller's control, for the reward as for the policy alone), ``qp_ms``,
+    ``num_slack`` (agents whose QP needed slack), ``num_failed`` (agents given the braking fallback),
+    ``num_active`` (agents whose command the filter changed by more than ``active_tol``), ``num_agents``.
+    """
+
+    name = "filtered"
+
+    def __init__(self, policy: PolicyNet, model_config: ModelConfig, config: FilterConfig, cbf: CBFNet | None = None):
+        if model_config.interface != "accel":
+            raise ValueError(
+                f"run-time filters act on the acceleration command; this policy's interface is "
+                f"{model_config.interface!r}"
+            )
+        if config.kind == "cbf" and cbf is None:
+            raise ValueError("the 'cbf' filter needs the checkpoint's CBF network")
+        self.policy, self.model_config, self.config, self.cbf = policy, model_config, config, cbf
+        self._dcbf = None
+        if config.kind == "dcbf":
+            self._dcbf = DecentralizedCBFQP(
+                barrier=config.barrier, penalty=config.penalty, brake_gain=config.brake_gain
+            )
+
+    @torch.no_grad()
+    def __call__(self, state: SwarmState, env_config: EnvConfig) -> tuple[Tensor, dict]:
+        t0 = time.perf_counter()
+        p = next(self.policy.parameters())
+        s = state if state.x.dtype == p.dtype and state.x.device == p.device else state.to(p.device, dtype=p.dtype)
+        robot = env_config.make_robot()
+        itf = make_interface("accel", robot)
+        graph = build_graph(s, env_config)
+        c_pi, _ = policy_command(self.policy, self.model_config, itf, graph, s.x, s.goals)
+        a_pi = (itf.accel_unit * c_pi).to(torch.float64)
+        u_nom = robot.nominal_control(s.x, s.goals)
+        t1 = time.perf_counter()
+        if self._dcbf is not None:
+            u, qinfo = self._dcbf.filter(state, env_config, a_pi.cpu().numpy())
+            a = torch.as_tensor(qinfo["a_safe"], dtype=torch.float64, device=a_pi.device)
+            info = {k: qinfo[k] for k in ("num_slack", "num_failed", "max_slack")}
+        else:
+            a, info = self._filter(graph, s, itf, a_pi)
+            u = itf.apply(s.x, (a / itf.accel_unit).to(s.x.dtype))
+        active = (a - a_pi).norm(dim=-1) > self.config.active_tol
+        info.update(
+            u_ref=u_nom.to(state.x.dtype).to(state.x.device),
+            qp_ms=1e3 * (time.perf_counter() - t1),
+            ctrl_ms=1e3 * (time.perf_counter() - t0),
+            num_active=int(active.sum()),
+            num_agents=int(active.numel()),
+            a_safe=a,
+            a_policy=a_pi,
+        )
+        return u.to(state.x.dtype).to(state.x.device), info
+
+    def _filter(self, graph: SwarmGraph, s: SwarmState, itf: AccelInterface, a_pi: Tensor) -> tuple[Tensor, dict]:
+        cfg, mc = self.config, self.model_config
+        b, n = s.x.shape[:2]
+        m = b * n
+        rows = edge_rows(
+            graph, cfg.alpha, cfg.margin, self.cbf if cfg.kind == "cbf" else None, mc.cbf_distance,
+            mc.closest_approach_horizon,
+        )  # fmt: skip
+        box = AccelBounds(itf.horizontal, -itf.down, itf.up, polygon=2)  # the interface's yaw-frame box
+        rot = s.x[..., 3:12].reshape(m, 9).detach().to(torch.float64).cpu().numpy()
+        bC, blo, bhi = bound_rows(rot, box)
+        qps = assemble_decentralized(
+            a_pi.reshape(m, 3).cpu().numpy(), rows.owner.cpu().numpy(), rows.normal.cpu().numpy(),
+            rows.rhs.cpu().numpy(), bC, blo, bhi, cfg.penalty,
+        )  # fmt: skip
+        z, ok, _ = solve_dense_batch_ipm(qps, device=a_pi.device)
+        good = verified(qps, z, ok, cfg.slack_tol)
+        a, slack = z[:, :3].copy(), z[:, 3]
+        if not good.all():
+            v = s.x[..., 12:15].reshape(m, 3).detach().to(torch.float64).cpu().numpy()
+            a[~good] = brake_acceleration(v[~good], box, cfg.brake_gain)
+            slack = np.where(good, slack, 0.0)
+        info = {
+            "num_slack": int((slack > cfg.slack_tol).sum()),
+            "num_failed": int((~good).sum()),
+            "max_slack": float(slack.max(initial=0.0)),
+            "rows_dropped": rows.dropped,
+        }
+        return torch.as_tensor(a, dtype=torch.float64, device=a_pi.device).view(b, n, 3), info
+
+
+def load_filtered_controller(
+    path, config: FilterConfig, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
+):
+    """``(FilteredController, TrainConfig)`` from a checkpoint (or run) directory: its policy, and for
+    ``config.kind == "cbf"`` its CBF network (``model.safetensors`` holds both)."""
+    from ..checkpoint import load_network
+
+    policy, train_cfg = load_network(path, "policy", device, dtype)
+    cbf = load_network(path, "cbf", device, dtype)[0] if config.kind == "cbf" else None
+    return FilteredController(policy, train_cfg.model, config, cbf), train_cfg

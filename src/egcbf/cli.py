@@ -288,9 +288,9 @@ def demo(
     ] = False,
 ) -> None:
     """The main job: the learned EGCBF+ policy, alone and behind the dCBF run-time filter, beside GCBF+, the nominal
-    controller and the hand-crafted dCBF-QP on the same episodes (128 agents, l = 4, 8 obstacles by default): one table, OUT/summary.md, a GIF of the first
-    episode of every controller side by side (OUT/compare_N<n>.gif), OUT/<controller>/metrics.json and
-    OUT/demo.json."""
+    controller and the hand-crafted dCBF-QP on the same episodes (128 agents, l = 4, 8 obstacles by default): one
+    table, OUT/summary.md, a GIF of the first episode of every controller side by side (OUT/compare_N<n>.gif),
+    OUT/<controller>/metrics.json and OUT/demo.json."""
     from .cli_demo import out_dir, run_demo
 
     method = method.value

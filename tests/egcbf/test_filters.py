@@ -175,7 +175,7 @@ def test_filter_config_rejects_bad_values():
 
 
 def test_the_cbf_filter_needs_its_network_and_the_acceleration_interface():
-    cbf, pol, cfg = _nets()
+    _, pol, cfg = _nets()
     with pytest.raises(ValueError, match="CBF network"):
         FilteredController(pol, cfg, FilterConfig(kind="cbf"))
     with pytest.raises(ValueError, match="acceleration"):

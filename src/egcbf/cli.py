@@ -188,8 +188,14 @@ def eval_cmd(
             "untrained barrier)"
         ),
     ] = SafetyFilter.none,
-    filter_alpha: Annotated[float, typer.Option(help="class-K gain (1/s) of the cbf and prior filters")] = 1.0,
-    filter_margin: Annotated[float, typer.Option(help="barrier offset (m) of the cbf and prior filters")] = 0.0,
+    filter_alpha: Annotated[
+        float | None,
+        typer.Option(help="class-K gain: alpha (1/s) of cbf and prior (default 1); gamma of dcbf's barrier (20)"),
+    ] = None,
+    filter_margin: Annotated[
+        float | None,
+        typer.Option(help="clearance (m): the barrier offset of cbf and prior (default 0); dcbf's margin (0.02)"),
+    ] = None,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)

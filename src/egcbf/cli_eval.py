@@ -99,6 +99,14 @@ def _filtered(ckpt, learned, train_cfg, config, dev, dtype, cls):
         usage_error(f"--filter {config.kind} on {ckpt}: {err}", err)
 
 
+def _filter_settings(config) -> dict:
+    """What ``run.json`` records of a filter: its gain and clearance as the filter reads them."""
+    if config.kind == "dcbf":
+        b = config.barrier
+        return {"barrier": b.kind, "gamma": b.gamma, "margin": b.margin, "brake_accel": b.brake_accel}
+    return {"alpha": config.alpha, "margin": config.margin}
+
+
 def say_run_checkpoint(given: Path, found: Path, flag: str) -> None:
     """On stderr, which checkpoint of the run directory ``given`` is used (nothing if ``given`` is one)."""
     if Path(found).resolve() != Path(given).resolve():
@@ -127,8 +135,8 @@ def run_eval(
     record: bool = False,
     robot: str | None = None,
     filter: str = "none",
-    filter_alpha: float = 1.0,
-    filter_margin: float = 0.0,
+    filter_alpha: float | None = None,
+    filter_margin: float | None = None,
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -154,7 +162,7 @@ def run_eval(
     filter_config = None
     if filter != "none":
         try:
-            filter_config = FilterConfig(kind=filter, alpha=filter_alpha, margin=filter_margin)
+            filter_config = FilterConfig.for_kind(filter, filter_alpha, filter_margin)
         except ValueError as err:
             usage_error(str(err).replace("FilterConfig.alpha", "--filter-alpha").replace("FilterConfig.margin",
                         "--filter-margin"), err)  # fmt: skip
@@ -193,7 +201,7 @@ def run_eval(
         "robot": robot,
         "checkpoint": None if ckpt is None else str(ckpt),
         "filter": filter,
-        "filter_config": None if filter_config is None else {"alpha": filter_alpha, "margin": filter_margin},
+        "filter_config": None if filter_config is None else _filter_settings(filter_config),
         "num_agents": sizes,
         "finished": [],
         "complete": False,

@@ -64,6 +64,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/env_scaling.py --threads 1
 	$(PY) benchmarks/qp_scaling.py
 	$(PY) benchmarks/policy_scaling.py
+	$(PY) benchmarks/filter_cost.py
 
 clean:
 	rm -rf $(VENV) $(ESCNN_VENV) .pytest_cache .ruff_cache .hypothesis

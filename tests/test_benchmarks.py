@@ -21,3 +21,13 @@ def test_benchmark_quick_runs(tmp_path):
     text = out.read_text()  # the markdown section is rendered (to a temporary file, not docs/)
     assert "<!-- groupcanon:begin -->" in text and "<!-- groupcanon:end -->" in text
     assert "| N | E | pass |" in text and "roma Rigid" in text
+
+
+def test_filter_cost_benchmark_quick_runs():
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "filter_cost.py"), "--sizes", "16", "--steps", "4", "--stride",
+         "2", "--no-write"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert proc.returncode == 0, f"filter_cost.py exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    assert "| 16 |" in proc.stdout and "dcbf ms (x policy)" in proc.stdout

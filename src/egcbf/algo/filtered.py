@@ -80,6 +80,8 @@ class FilterConfig:
         slack_tol: a solution "needs slack" above this (m/s^2); also the tolerance of the solution check.
         active_tol: an agent's command counts as changed by the filter above this (m/s^2).
         barrier: the hand-crafted pairwise barrier of the ``dcbf`` filter (``DCBF_FILTER_BARRIER``).
+        lookahead: (s) the ``dcbf`` filter's barriers read every agent ``lookahead`` seconds ahead at its current
+            velocity (:meth:`egcbf.control.cbf_qp.DecentralizedCBFQP.filter`).
     """
 
     kind: str = "cbf"
@@ -90,6 +92,7 @@ class FilterConfig:
     slack_tol: float = 1e-4
     active_tol: float = 1e-3
     barrier: BarrierConfig = DCBF_FILTER_BARRIER
+    lookahead: float = 0.0
 
     @classmethod
     def for_kind(cls, kind: str, alpha: float | None = None, margin: float | None = None) -> FilterConfig:
@@ -111,6 +114,8 @@ class FilterConfig:
             raise ValueError(f"FilterConfig.alpha must be positive and finite, got {self.alpha!r}")
         if not math.isfinite(self.margin):
             raise ValueError(f"FilterConfig.margin must be finite, got {self.margin!r}")
+        if not (math.isfinite(self.lookahead) and self.lookahead >= 0):
+            raise ValueError(f"FilterConfig.lookahead must be >= 0, got {self.lookahead!r}")
         for name in ("brake_gain", "slack_tol", "active_tol"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"FilterConfig.{name} must be > 0, got {getattr(self, name)!r}")
@@ -206,7 +211,7 @@ class FilteredController:
         u_nom = robot.nominal_control(s.x, s.goals)
         t1 = time.perf_counter()
         if self._dcbf is not None:
-            u, qinfo = self._dcbf.filter(state, env_config, a_pi.cpu().numpy())
+            u, qinfo = self._dcbf.filter(state, env_config, a_pi.cpu().numpy(), self.config.lookahead)
             a = torch.as_tensor(qinfo["a_safe"], dtype=torch.float64, device=a_pi.device)
             info = {k: qinfo[k] for k in ("num_slack", "num_failed", "max_slack")}
         else:

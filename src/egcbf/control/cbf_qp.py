@@ -386,13 +386,21 @@ class DecentralizedCBFQP(_CBFQPBase):
     def __call__(self, state, env_config) -> tuple[Tensor, dict]:
         return self.filter(state, env_config)
 
-    def filter(self, state, env_config, a_ref: np.ndarray | None = None) -> tuple[Tensor, dict]:
+    def filter(
+        self, state, env_config, a_ref: np.ndarray | None = None, lookahead: float = 0.0
+    ) -> tuple[Tensor, dict]:
         """The dCBF-QP around a reference acceleration: each agent's QP keeps ``a_i`` closest to ``a_ref[b, i]``
         ``(B, N, 3)`` (world frame, m/s^2; ``None``: the nominal acceleration, the dCBF-QP baseline). Used as the
-        ``dcbf`` run-time filter of a learned policy (:mod:`egcbf.algo.filtered`)."""
+        ``dcbf`` run-time filter of a learned policy (:mod:`egcbf.algo.filtered`).
+
+        ``lookahead`` (s): the barriers read every agent at its position ``lookahead`` seconds ahead at its current
+        velocity (``p + lookahead v``), so that a pair closing in is constrained as if already that much closer:
+        a margin for the attitude loop's lag in realizing a new acceleration, proportional to the closing speed."""
         t0, c0 = time.perf_counter(), time.process_time()
         cfg = self.config
         prep = self._prepare(state, env_config)
+        if lookahead:
+            prep.p = prep.p + lookahead * prep.v
         if a_ref is not None:
             a_ref = np.asarray(a_ref, dtype=np.float64)
             if a_ref.shape != prep.a_nom.shape:

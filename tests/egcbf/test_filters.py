@@ -226,3 +226,38 @@ def test_eval_filter_refuses_what_it_cannot_do(tiny_checkpoint, tmp_path):
     )  # fmt: skip
     assert res.exit_code == 2 and "--filter-alpha" in res.output
     assert not (tmp_path / "o").exists()
+
+
+def test_lookahead_reads_the_predicted_state():
+    """The dcbf filter with ``lookahead T`` and accelerations ``a`` solves the QPs of the state moved to
+    ``p + T v + T^2 a / 2``, ``v + T a`` (same reference), exactly."""
+    from egcbf.control.cbf_qp import DecentralizedCBFQP
+
+    state, cfg = _scene(8, 1.0, 4, envs=2, obstacles=2)
+    qp = DecentralizedCBFQP()
+    gen = torch.Generator().manual_seed(1)
+    a_ref = torch.randn(2, 8, 3, generator=gen, dtype=F64).numpy()
+    acc = torch.randn(2, 8, 3, generator=gen, dtype=F64)
+    T = 0.05
+    x = state.x.clone()
+    x[..., 0:3] += T * x[..., 12:15] + 0.5 * T * T * acc
+    x[..., 12:15] += T * acc
+    moved = SwarmState(x, state.goals, state.obstacles)
+    _, a = qp.filter(state, cfg, a_ref, lookahead=T, accel=acc.numpy())
+    _, b = qp.filter(moved, cfg, a_ref)
+    assert abs(a["a_safe"] - b["a_safe"]).max() <= 1e-12
+
+
+def test_the_realized_acceleration_is_remembered_within_an_episode_only():
+    ctrl = _controller("dcbf", lookahead=0.05)
+    state, cfg = _scene(4, 1.0, 2, envs=1, obstacles=0)
+    assert ctrl._realized_acceleration(state, cfg) is None  # first step: nothing seen before
+    x = state.x.clone()
+    x[..., 12:15] += 0.1
+    later = SwarmState(x, state.goals, state.obstacles, t=1)
+    acc = ctrl._realized_acceleration(later, cfg)
+    assert acc is not None and abs(acc - 0.1 / cfg.dt).max() <= 1e-9
+    assert ctrl._realized_acceleration(SwarmState(x, state.goals, state.obstacles, t=0), cfg) is None  # new episode
+    assert _controller("dcbf")._realized_acceleration(later, cfg) is None  # without lookahead: never
+    with pytest.raises(ValueError, match="lookahead"):
+        FilterConfig(kind="dcbf", lookahead=-0.1)

@@ -80,8 +80,8 @@ class FilterConfig:
         slack_tol: a solution "needs slack" above this (m/s^2); also the tolerance of the solution check.
         active_tol: an agent's command counts as changed by the filter above this (m/s^2).
         barrier: the hand-crafted pairwise barrier of the ``dcbf`` filter (``DCBF_FILTER_BARRIER``).
-        lookahead: (s) the ``dcbf`` filter's barriers read every agent ``lookahead`` seconds ahead at its current
-            velocity (:meth:`egcbf.control.cbf_qp.DecentralizedCBFQP.filter`).
+        lookahead: (s) the ``dcbf`` filter's barriers read every agent ``lookahead`` seconds ahead under the
+            acceleration it realized over the last step (:meth:`egcbf.control.cbf_qp.DecentralizedCBFQP.filter`).
     """
 
     kind: str = "cbf"
@@ -193,6 +193,7 @@ class FilteredController:
             raise ValueError("the 'cbf' filter needs the checkpoint's CBF network")
         self.policy, self.model_config, self.config, self.cbf = policy, model_config, config, cbf
         self._dcbf = None
+        self._last: tuple[int, np.ndarray] | None = None  # (step, velocities) of the previous call: lookahead only
         if config.kind == "dcbf":
             self._dcbf = DecentralizedCBFQP(
                 barrier=config.barrier, penalty=config.penalty, brake_gain=config.brake_gain
@@ -211,7 +212,8 @@ class FilteredController:
         u_nom = robot.nominal_control(s.x, s.goals)
         t1 = time.perf_counter()
         if self._dcbf is not None:
-            u, qinfo = self._dcbf.filter(state, env_config, a_pi.cpu().numpy(), self.config.lookahead)
+            accel = self._realized_acceleration(s, env_config)
+            u, qinfo = self._dcbf.filter(state, env_config, a_pi.cpu().numpy(), self.config.lookahead, accel)
             a = torch.as_tensor(qinfo["a_safe"], dtype=torch.float64, device=a_pi.device)
             info = {k: qinfo[k] for k in ("num_slack", "num_failed", "max_slack")}
         else:
@@ -228,6 +230,18 @@ class FilteredController:
             a_policy=a_pi,
         )
         return u.to(state.x.dtype).to(state.x.device), info
+
+    def _realized_acceleration(self, s: SwarmState, env_config: EnvConfig) -> np.ndarray | None:
+        """Every agent's acceleration over the last control step, ``(v_t - v_{t-1}) / dt`` ``(B, N, 3)``, from the
+        velocities seen at the previous call (each agent senses its neighbours' velocities every step); ``None``
+        at an episode's first step or when the previous call was another swarm. Only with ``lookahead``."""
+        if not self.config.lookahead:
+            return None
+        v = s.x[..., 12:15].detach().to(torch.float64).cpu().numpy()
+        prev, self._last = self._last, (s.t, v)
+        if prev is None or prev[0] != s.t - 1 or prev[1].shape != v.shape:
+            return None
+        return (v - prev[1]) / env_config.dt
 
     def _filter(self, graph: SwarmGraph, s: SwarmState, itf: AccelInterface, a_pi: Tensor) -> tuple[Tensor, dict]:
         cfg, mc = self.config, self.model_config

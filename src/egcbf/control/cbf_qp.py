@@ -387,20 +387,28 @@ class DecentralizedCBFQP(_CBFQPBase):
         return self.filter(state, env_config)
 
     def filter(
-        self, state, env_config, a_ref: np.ndarray | None = None, lookahead: float = 0.0
+        self,
+        state,
+        env_config,
+        a_ref: np.ndarray | None = None,
+        lookahead: float = 0.0,
+        accel: np.ndarray | None = None,
     ) -> tuple[Tensor, dict]:
         """The dCBF-QP around a reference acceleration: each agent's QP keeps ``a_i`` closest to ``a_ref[b, i]``
         ``(B, N, 3)`` (world frame, m/s^2; ``None``: the nominal acceleration, the dCBF-QP baseline). Used as the
         ``dcbf`` run-time filter of a learned policy (:mod:`egcbf.algo.filtered`).
 
-        ``lookahead`` (s): the barriers read every agent at its position ``lookahead`` seconds ahead at its current
-        velocity (``p + lookahead v``), so that a pair closing in is constrained as if already that much closer:
-        a margin for the attitude loop's lag in realizing a new acceleration, proportional to the closing speed."""
+        ``lookahead`` (s): the barriers read every agent at its state ``lookahead`` seconds ahead under its
+        current acceleration ``accel`` ``(B, N, 3)`` (m/s^2, world frame; ``None``: zero), ``p + T v + T^2 a / 2``
+        and ``v + T a``: a new command acts only after the attitude loop has turned the thrust (~0.1 s), and until
+        then the agents keep the acceleration they have (a predictor for the loop's lag)."""
         t0, c0 = time.perf_counter(), time.process_time()
         cfg = self.config
         prep = self._prepare(state, env_config)
         if lookahead:
-            prep.p = prep.p + lookahead * prep.v
+            acc = np.zeros_like(prep.v) if accel is None else np.asarray(accel, dtype=np.float64)
+            prep.p = prep.p + lookahead * prep.v + 0.5 * lookahead**2 * acc
+            prep.v = prep.v + lookahead * acc
         if a_ref is not None:
             a_ref = np.asarray(a_ref, dtype=np.float64)
             if a_ref.shape != prep.a_nom.shape:

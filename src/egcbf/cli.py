@@ -190,7 +190,7 @@ def eval_cmd(
     ] = SafetyFilter.none,
     filter_alpha: Annotated[
         float | None,
-        typer.Option(help="class-K gain: alpha (1/s) of cbf and prior (default 1); gamma of dcbf's barrier (20)"),
+        typer.Option(help="class-K gain: alpha (1/s) of cbf and prior (default 1); gamma of dcbf's barrier (50)"),
     ] = None,
     filter_margin: Annotated[
         float | None,

@@ -258,6 +258,6 @@ def test_the_realized_acceleration_is_remembered_within_an_episode_only():
     acc = ctrl._realized_acceleration(later, cfg)
     assert acc is not None and abs(acc - 0.1 / cfg.dt).max() <= 1e-9
     assert ctrl._realized_acceleration(SwarmState(x, state.goals, state.obstacles, t=0), cfg) is None  # new episode
-    assert _controller("dcbf")._realized_acceleration(later, cfg) is None  # without lookahead: never
+    assert _controller("dcbf", lookahead=0.0)._realized_acceleration(later, cfg) is None  # without lookahead: never
     with pytest.raises(ValueError, match="lookahead"):
         FilterConfig(kind="dcbf", lookahead=-0.1)

@@ -61,9 +61,11 @@ FILTERS = ("none", "cbf", "prior", "dcbf")
 
 
 #: the ``dcbf`` filter's barrier: Wang et al.'s braking-distance barrier with a smaller clearance and a larger gain
-#: than the dCBF-QP baseline's (margin 0.05 m, gamma 5), chosen on validation episodes (seed 777, N = 1024 and 4096;
+#: and a larger assumed deceleration than the dCBF-QP baseline's (margin 0.05 m, gamma 5, 2.5 m/s^2), chosen on validation episodes (seed 777, N = 512 to 4096;
 #: docs/safety_filters.md): the policy already steers around its neighbours, so the filter need act only late
-DCBF_FILTER_BARRIER = BarrierConfig(margin=0.02, gamma=20.0)
+DCBF_FILTER_BARRIER = BarrierConfig(margin=0.02, gamma=50.0, brake_accel=3.0)
+#: the ``dcbf`` filter's look-ahead (s) under the realized acceleration: the attitude loop's lag (docs)
+DCBF_FILTER_LOOKAHEAD = 0.05
 
 
 @dataclass(frozen=True)
@@ -81,7 +83,8 @@ class FilterConfig:
         active_tol: an agent's command counts as changed by the filter above this (m/s^2).
         barrier: the hand-crafted pairwise barrier of the ``dcbf`` filter (``DCBF_FILTER_BARRIER``).
         lookahead: (s) the ``dcbf`` filter's barriers read every agent ``lookahead`` seconds ahead under the
-            acceleration it realized over the last step (:meth:`egcbf.control.cbf_qp.DecentralizedCBFQP.filter`).
+            acceleration it realized over the last step (:meth:`egcbf.control.cbf_qp.DecentralizedCBFQP.filter`;
+            ``DCBF_FILTER_LOOKAHEAD``; 0: the current state; ``cbf`` and ``prior`` ignore it).
     """
 
     kind: str = "cbf"
@@ -92,7 +95,7 @@ class FilterConfig:
     slack_tol: float = 1e-4
     active_tol: float = 1e-3
     barrier: BarrierConfig = DCBF_FILTER_BARRIER
-    lookahead: float = 0.0
+    lookahead: float = DCBF_FILTER_LOOKAHEAD
 
     @classmethod
     def for_kind(cls, kind: str, alpha: float | None = None, margin: float | None = None) -> FilterConfig:

@@ -60,9 +60,10 @@ __all__ = ["FILTERS", "EdgeRows", "FilterConfig", "FilteredController", "edge_ro
 FILTERS = ("none", "cbf", "prior", "dcbf")
 
 
-#: the ``dcbf`` filter's barrier: Wang et al.'s braking-distance barrier with a smaller clearance and a larger gain
-#: and a larger assumed deceleration than the dCBF-QP baseline's (margin 0.05 m, gamma 5, 2.5 m/s^2), chosen on validation episodes (seed 777, N = 512 to 4096;
-#: docs/safety_filters.md): the policy already steers around its neighbours, so the filter need act only late
+#: the ``dcbf`` filter's barrier: Wang et al.'s braking-distance barrier with a smaller clearance, a larger gain and
+#: a larger assumed deceleration than the dCBF-QP baseline's (margin 0.05 m, gamma 5, 2.5 m/s^2), chosen on
+#: validation episodes (seed 777, N = 512 to 4096; docs/safety_filters.md): the policy already steers around its
+#: neighbours, so the filter need act only late
 DCBF_FILTER_BARRIER = BarrierConfig(margin=0.02, gamma=50.0, brake_accel=3.0)
 #: the ``dcbf`` filter's look-ahead (s) under the realized acceleration: the attitude loop's lag (docs)
 DCBF_FILTER_LOOKAHEAD = 0.05

@@ -2,8 +2,9 @@
 
 Each ``docs/results/filters/<split>/<row>/<case>/`` is the output of one ``egcbf eval`` (``metrics.json``: one row
 per swarm size; ``run.json``: the exact command, checkpoint, filter, seed, episodes, machine). ``<split>`` is
-``evaluation`` (seed 0, Table I's seed, never used for a choice; the settings were chosen on seed 777). ``<row>`` names the controller (``egcbf+-s0-dcbf``: the shipped EGCBF+ seed 0
-behind the ``dcbf`` filter; ``dcbf-qp``: the hand-crafted baseline), ``<case>`` the arena and obstacles.
+``evaluation`` (seed 0, Table I's seed, never used for a choice; the settings were chosen on seed 777). ``<row>``
+names the controller (``egcbf+-s0-dcbf``: the shipped EGCBF+ seed 0 behind the ``dcbf`` filter), ``<case>`` the
+arena and obstacles. Each cell is shown beside the reproduction's cells of the same N, arena, obstacles and seed.
 
 To add a cell: ``egcbf eval --checkpoint checkpoints/egcbf+ --filter dcbf --num-agents 512 --area 4 --obstacles 0
 --episodes 50 --seed 0 --out docs/results/filters/evaluation/egcbf+-s0-dcbf/l4``, then run:
@@ -18,13 +19,24 @@ from egcbf.report import pct, replace_section
 
 ROOT = Path(__file__).parent
 RESULTS = ROOT / "results" / "filters"
+REPRODUCTION = ROOT / "results" / "reproduction"
 DOC = ROOT / "safety_filters.md"
+#: the reproduction's controllers shown beside the filtered ones: (label, runs averaged)
+BESIDE = (
+    ("EGCBF+ policy alone (3 seeds)", ("egcbf+", "egcbf+-s1", "egcbf+-s2")),
+    ("GCBF+ policy alone (3 seeds)", ("gcbf+", "gcbf+-s1", "gcbf+-s2")),
+    ("dCBF-QP", ("dcbf",)),
+    ("cCBF-QP", ("ccbf",)),
+    ("nominal", ("nominal",)),
+)
 
 
 def _rows(split: str) -> list[dict]:
     rows = []
     for run_file in sorted((RESULTS / split).glob("*/*/run.json")):
         run = json.loads(run_file.read_text())
+        if not (run_file.parent / "metrics.json").exists():  # an evaluation still running: no finished size yet
+            continue
         for r in json.loads((run_file.parent / "metrics.json").read_text()):
             rows.append({**r, "run": run, "row": run_file.parent.parent.name})
     return sorted(rows, key=lambda r: (r["run"]["obstacles"], r["num_agents"], r["row"]))
@@ -45,6 +57,8 @@ def _table(rows: list[dict]) -> str:
             f"{pct(r['safe_rate'])} | {pct(r['reach_rate'])} | {pct(r['success_rate'])} | {r['reward']:.2f} | "
             f"{active} | {slack} | {r['step_ms_median']:.0f} |"
         )
+    lines += ["", "ms/step: the median wall time of one simulation step per episode, measured beside other jobs (not a "
+              "benchmark; `benchmarks/filter_cost.py` is)."]  # fmt: skip
     seeds = sorted({r["run"]["seed"] for r in rows})
     commands = sorted({r["run"]["command"] for r in rows})
     lines += ["", f"Evaluation seed(s): {', '.join(map(str, seeds))}. Commands:", ""]
@@ -52,9 +66,55 @@ def _table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _reproduction_row(run: str, obstacles: int, n: int, area: float) -> dict | None:
+    """The reproduction's cell of ``run`` (Table I at l = 4, else the scalability study), if computed."""
+    base = REPRODUCTION if abs(area - 4.0) < 1e-9 else REPRODUCTION / "scale"
+    path = base / f"{run}_obs{obstacles}" / f"N{n}.json"
+    if not path.exists():
+        return None
+    cell = json.loads(path.read_text())
+    return cell["row"] if abs(cell["meta"]["area"] - area) < 1e-3 else None
+
+
+def _spread(values: list[float]) -> str:
+    mean = sum(values) / len(values)
+    return pct(mean) if len(values) == 1 else f"{pct(mean)} ({pct(min(values))}-{pct(max(values))})"
+
+
+def _beside(rows: list[dict]) -> str:
+    """Each filtered cell beside the reproduction's cells of the same N, arena, obstacles and seed (safe / success)."""
+    lines = [
+        "| N, l (m), obstacles | controller | episodes | safe % | success % |",
+        "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        run = r["run"]
+        n, area, obstacles = r["num_agents"], float(run["area"]), int(run["obstacles"])
+        case = f"{n}, {area:g}, {obstacles}"
+        lines.append(
+            f"| {case} | **{r['row']}** | {r['num_episodes']} | **{pct(r['safe_rate'])}** | "
+            f"**{pct(r['success_rate'])}** |"
+        )
+        for label, runs in BESIDE:
+            cells = [c for c in (_reproduction_row(x, obstacles, n, area) for x in runs) if c is not None]
+            if not cells or run["seed"] != 0:
+                continue
+            seeds = f" ({len(cells)} of {len(runs)} seeds)" if len(cells) < len(runs) else ""
+            lines.append(
+                f"| {case} | {label.replace(' (3 seeds)', '')}{seeds if len(runs) > 1 else ''} | "
+                f"{cells[0]['num_episodes']} | {_spread([c['safe_rate'] for c in cells])} | "
+                f"{_spread([c['success_rate'] for c in cells])} |"
+            )
+    lines += ["", "The other rows are the cells of docs/results/reproduction (the same evaluation seed, episodes and "
+              "arenas; mean (min-max) over training seeds)."]  # fmt: skip
+    return "\n".join(lines)
+
+
 def main() -> None:
     rows = _rows("evaluation")
     body = _table(rows) if rows else "(no results yet)"
+    if rows:
+        body = _beside(rows) + "\n\nAll columns:\n\n" + body
     replace_section(DOC, "filters-evaluation", f"Generated by `.venv/bin/python docs/gen_filters.py`.\n\n{body}")
     print(f"wrote {DOC}")
 

@@ -155,9 +155,9 @@ def run_eval(
     require(batch is None or batch >= 1, f"--batch must be >= 1 (episodes simulated together), got {batch}")
     require(filter in FILTERS, f"--filter must be one of {list(FILTERS)}, got {filter!r}")
     require(
-        filter == "none" or checkpoint is not None,
-        f"--filter {filter} filters a learned policy's commands: give its --checkpoint (the hand-crafted "
-        "controllers are their own filters)",
+        filter == "none" or checkpoint is not None or (controller == "nominal" and filter != "cbf"),
+        f"--filter {filter} filters a learned policy's commands (its --checkpoint) or, as an ablation, the nominal "
+        "controller's (--controller nominal; not with cbf, which reads a checkpoint's CBF)",
     )
     filter_config = None
     if filter != "none":
@@ -186,10 +186,16 @@ def run_eval(
     else:
         controller = controller or "nominal"
         require(controller in CONTROLLERS, f"--controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
+        if filter_config is not None:  # the nominal command behind the filter
+            filtered_nominal = FilteredController(None, None, filter_config)
+            controller = f"nominal:{filter}"
     robot = robot or "quadrotor"
     require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
-    if controller in ("ccbf", "dcbf") and robot != "quadrotor":
-        usage_error(f"--controller {controller}: the hand-crafted CBF-QPs are written for the quadrotor, not a {robot}")
+    if (controller in ("ccbf", "dcbf") or filter_config is not None) and robot != "quadrotor":
+        usage_error(
+            f"--controller {controller}: the hand-crafted CBF-QPs and the run-time filters are written for the "
+            f"quadrotor, not a {robot}"
+        )
     configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides, robot)
     if checkpoint is not None:
         check_policy_memory(configs, episodes, batch, train_cfg.model.hidden, dev)
@@ -229,7 +235,11 @@ def run_eval(
         write_json_atomic(out / "run.json", meta)
 
     rows, _ = evaluate(
-        (lambda cfg: learned) if checkpoint is not None else (lambda cfg: make_controller(controller)),
+        (lambda cfg: learned)
+        if checkpoint is not None
+        else (lambda cfg: filtered_nominal)
+        if filter_config is not None
+        else (lambda cfg: make_controller(controller)),
         sizes,
         area_size=area,
         num_obstacles=obstacles,

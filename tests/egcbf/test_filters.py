@@ -261,3 +261,35 @@ def test_the_realized_acceleration_is_remembered_within_an_episode_only():
     assert _controller("dcbf", lookahead=0.0)._realized_acceleration(later, cfg) is None  # without lookahead: never
     with pytest.raises(ValueError, match="lookahead"):
         FilterConfig(kind="dcbf", lookahead=-0.1)
+
+
+def test_the_nominal_controller_behind_the_dcbf_filter_is_the_dcbf_qp_with_the_filters_barrier(tmp_path):
+    """``--controller nominal --filter dcbf`` (the ablation without a policy) runs the dCBF-QP's QPs around the
+    nominal command, with the filter's barrier: the same accelerations as ``DecentralizedCBFQP.filter``."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from egcbf.algo.filtered import DCBF_FILTER_BARRIER
+    from egcbf.cli import app
+    from egcbf.control.cbf_qp import DecentralizedCBFQP
+
+    state, cfg = _scene(6, 1.0, 9, envs=1, obstacles=1)
+    ctrl = FilteredController(None, None, FilterConfig(kind="dcbf", lookahead=0.0))
+    _, a = ctrl(state, cfg)
+    from egcbf.algo.interface import make_interface
+
+    itf = make_interface("accel")
+    a_ref = (itf.accel_unit * itf.nominal(state.x, state.goals)).numpy()
+    _, b = DecentralizedCBFQP(barrier=DCBF_FILTER_BARRIER).filter(state, cfg, a_ref)
+    assert abs(a["a_safe"].numpy() - b["a_safe"]).max() <= 1e-12
+    with pytest.raises(ValueError, match="checkpoint"):
+        FilteredController(None, None, FilterConfig(kind="cbf"))
+    out = tmp_path / "n"
+    args = ["eval", "--controller", "nominal", "--filter", "dcbf", "--num-agents", "3", "--area", "1.5",
+            "--episodes", "1", "--max-steps", "4", "--no-progress", "--out", str(out)]  # fmt: skip
+    res = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    assert json.loads((out / "run.json").read_text())["controller"] == "nominal:dcbf"
+    res = CliRunner().invoke(app, [*args[:-1], str(tmp_path / "m"), "--filter", "cbf"], env={"COLUMNS": "200"})
+    assert res.exit_code == 2 and "checkpoint" in res.output

@@ -46,6 +46,7 @@ from torch import Tensor
 from ..control.barriers import AccelBounds, BarrierConfig, bound_rows
 from ..control.cbf_qp import DecentralizedCBFQP, brake_acceleration
 from ..control.dense_qp import assemble_decentralized, solve_dense_batch_ipm, verified
+from ..config import TrainConfig
 from ..control.qp import SlackPenalty
 from ..env import EnvConfig, SwarmState
 from ..graph import KIND_AGENT, KIND_GOAL, SwarmGraph, build_graph
@@ -178,7 +179,8 @@ def edge_rows(
 
 class FilteredController:
     """A learned policy whose commands pass through a decentralized run-time filter (module doc):
-    ``u, info = ctrl(state, env_config)``, the evaluation controller's signature.
+    ``u, info = ctrl(state, env_config)``, the evaluation controller's signature. ``policy = None`` filters the
+    nominal controller's command instead (``dcbf`` or ``prior``: the ablation that shows what the policy adds).
 
     ``info``: ``u_ref`` (the nominal controller's control, for the reward as for the policy alone), ``qp_ms``,
     ``num_slack`` (agents whose QP needed slack), ``num_failed`` (agents given the braking fallback),
@@ -187,8 +189,18 @@ class FilteredController:
 
     name = "filtered"
 
-    def __init__(self, policy: PolicyNet, model_config: ModelConfig, config: FilterConfig, cbf: CBFNet | None = None):
-        if model_config.interface != "accel":
+    def __init__(
+        self,
+        policy: PolicyNet | None,
+        model_config: ModelConfig | None,
+        config: FilterConfig,
+        cbf: CBFNet | None = None,
+    ):
+        if policy is None:  # the nominal controller's command behind the filter (an ablation: what the policy adds)
+            if config.kind == "cbf":
+                raise ValueError("the 'cbf' filter reads a checkpoint's CBF: it needs a learned policy's checkpoint")
+            model_config = TrainConfig.preset("egcbf+", "cpu").model  # the prior's distance and horizon
+        elif model_config.interface != "accel":
             raise ValueError(
                 f"run-time filters act on the acceleration command; this policy's interface is "
                 f"{model_config.interface!r}"
@@ -206,12 +218,18 @@ class FilteredController:
     @torch.no_grad()
     def __call__(self, state: SwarmState, env_config: EnvConfig) -> tuple[Tensor, dict]:
         t0 = time.perf_counter()
-        p = next(self.policy.parameters())
-        s = state if state.x.dtype == p.dtype and state.x.device == p.device else state.to(p.device, dtype=p.dtype)
+        if self.policy is not None:
+            p = next(self.policy.parameters())
+            s = state if state.x.dtype == p.dtype and state.x.device == p.device else state.to(p.device, dtype=p.dtype)
+        else:
+            s = state
         robot = env_config.make_robot()
         itf = make_interface("accel", robot)
-        graph = build_graph(s, env_config)
-        c_pi, _ = policy_command(self.policy, self.model_config, itf, graph, s.x, s.goals)
+        graph = build_graph(s, env_config) if self.policy is not None or self._dcbf is None else None
+        if self.policy is None:
+            c_pi = itf.nominal(s.x, s.goals)
+        else:
+            c_pi, _ = policy_command(self.policy, self.model_config, itf, graph, s.x, s.goals)
         a_pi = (itf.accel_unit * c_pi).to(torch.float64)
         u_nom = robot.nominal_control(s.x, s.goals)
         t1 = time.perf_counter()

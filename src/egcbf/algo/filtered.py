@@ -43,10 +43,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..config import TrainConfig
 from ..control.barriers import AccelBounds, BarrierConfig, bound_rows
 from ..control.cbf_qp import DecentralizedCBFQP, brake_acceleration
 from ..control.dense_qp import assemble_decentralized, solve_dense_batch_ipm, verified
-from ..config import TrainConfig
 from ..control.qp import SlackPenalty
 from ..env import EnvConfig, SwarmState
 from ..graph import KIND_AGENT, KIND_GOAL, SwarmGraph, build_graph

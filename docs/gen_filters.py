@@ -13,6 +13,7 @@ To add a cell: ``egcbf eval --checkpoint checkpoints/egcbf+ --filter dcbf --num-
 """
 
 import json
+import re
 from pathlib import Path
 
 from egcbf.report import pct, replace_section
@@ -82,31 +83,51 @@ def _spread(values: list[float]) -> str:
 
 
 def _beside(rows: list[dict]) -> str:
-    """Each filtered cell beside the reproduction's cells of the same N, arena, obstacles and seed (safe / success)."""
+    """Per case (N, arena, obstacles): the filtered controllers, then the reproduction's cells of the same case and
+    seed (safe / success)."""
     lines = [
         "| N, l (m), obstacles | controller | episodes | safe % | success % |",
         "|---|---|---|---|---|",
     ]
+    cases: dict[tuple, list[dict]] = {}
     for r in rows:
-        run = r["run"]
-        n, area, obstacles = r["num_agents"], float(run["area"]), int(run["obstacles"])
+        key = (int(r["run"]["obstacles"]), r["num_agents"], float(r["run"]["area"]), int(r["run"]["seed"]))
+        cases.setdefault(key, []).append(r)
+    for (obstacles, n, area, seed), group in sorted(cases.items()):
         case = f"{n}, {area:g}, {obstacles}"
-        lines.append(
-            f"| {case} | **{r['row']}** | {r['num_episodes']} | **{pct(r['safe_rate'])}** | "
-            f"**{pct(r['success_rate'])}** |"
-        )
+        for r in sorted(group, key=lambda r: (r["row"].startswith("nominal"), r["row"])):
+            name = f"{r['row']} (no policy)" if r["row"].startswith("nominal") else f"**{r['row']}**"
+            lines.append(
+                f"| {case} | {name} | {r['num_episodes']} | {pct(r['safe_rate'])} | {pct(r['success_rate'])} |"
+            )
+        by_method: dict[str, list[dict]] = {}
+        for r in group:
+            m = re.fullmatch(r"(?P<method>.+)-s\d+-(?P<filter>[a-z]+)", r["row"])
+            if m is not None:
+                by_method.setdefault(f"{m['method']} behind {m['filter']}", []).append(r)
+        for name, rs in by_method.items():
+            if len(rs) > 1:
+                lines.append(
+                    f"| {case} | **{name}, mean (min-max) over {len(rs)} training seeds** | {rs[0]['num_episodes']} | "
+                    f"{_spread([r['safe_rate'] for r in rs])} | {_spread([r['success_rate'] for r in rs])} |"
+                )
+        if seed != 0:
+            continue
         for label, runs in BESIDE:
             cells = [c for c in (_reproduction_row(x, obstacles, n, area) for x in runs) if c is not None]
-            if not cells or run["seed"] != 0:
+            if not cells:
                 continue
-            seeds = f" ({len(cells)} of {len(runs)} seeds)" if len(cells) < len(runs) else ""
+            name = label if len(cells) == len(runs) else f"{label} ({len(cells)} of {len(runs)} seeds)"
             lines.append(
-                f"| {case} | {label.replace(' (3 seeds)', '')}{seeds if len(runs) > 1 else ''} | "
-                f"{cells[0]['num_episodes']} | {_spread([c['safe_rate'] for c in cells])} | "
+                f"| {case} | {name} | {cells[0]['num_episodes']} | {_spread([c['safe_rate'] for c in cells])} | "
                 f"{_spread([c['success_rate'] for c in cells])} |"
             )
-    lines += ["", "The other rows are the cells of docs/results/reproduction (the same evaluation seed, episodes and "
-              "arenas; mean (min-max) over training seeds)."]  # fmt: skip
+    lines += [
+        "",
+        "Bold: a learned policy behind the filter (`<method>-s<training seed>-<filter>`); `nominal-dcbf`: the "
+        "nominal command behind the same filter. The other rows are the cells of docs/results/reproduction (the "
+        "same evaluation seed, episodes and arenas; mean (min-max) over training seeds).",
+    ]
     return "\n".join(lines)
 
 

@@ -184,8 +184,8 @@ def eval_cmd(
         SafetyFilter,
         typer.Option(
             help="run-time safety filter of the --checkpoint's commands (docs/safety_filters.md): none (the policy "
-            "alone), dcbf (hand-crafted pairwise barriers), cbf (the learned per-edge barriers), prior (the "
-            "untrained barrier)"
+            "alone), dcbf (hand-crafted pairwise barriers: the recommended one), cbf (the learned per-edge "
+            "barriers), prior (the untrained barrier); with --controller nominal, the nominal command's (dcbf, prior)"
         ),
     ] = SafetyFilter.none,
     filter_alpha: Annotated[

@@ -95,13 +95,13 @@ def _beside(rows: list[dict]) -> str:
         cases.setdefault(key, []).append(r)
     for (obstacles, n, area, seed), group in sorted(cases.items()):
         case = f"{n}, {area:g}, {obstacles}"
-        for r in sorted(group, key=lambda r: (r["row"].startswith("nominal"), r["row"])):
-            name = f"{r['row']} (no policy)" if r["row"].startswith("nominal") else f"**{r['row']}**"
+        learned = sorted((r for r in group if not r["row"].startswith("nominal")), key=lambda r: r["row"])
+        for r in learned:
             lines.append(
-                f"| {case} | {name} | {r['num_episodes']} | {pct(r['safe_rate'])} | {pct(r['success_rate'])} |"
+                f"| {case} | **{r['row']}** | {r['num_episodes']} | {pct(r['safe_rate'])} | {pct(r['success_rate'])} |"
             )
         by_method: dict[str, list[dict]] = {}
-        for r in group:
+        for r in learned:
             m = re.fullmatch(r"(?P<method>.+)-s\d+-(?P<filter>[a-z]+)", r["row"])
             if m is not None:
                 by_method.setdefault(f"{m['method']} behind {m['filter']}", []).append(r)
@@ -111,6 +111,11 @@ def _beside(rows: list[dict]) -> str:
                     f"| {case} | **{name}, mean (min-max) over {len(rs)} training seeds** | {rs[0]['num_episodes']} | "
                     f"{_spread([r['safe_rate'] for r in rs])} | {_spread([r['success_rate'] for r in rs])} |"
                 )
+        for r in sorted((r for r in group if r["row"].startswith("nominal")), key=lambda r: r["row"]):
+            lines.append(
+                f"| {case} | {r['row']} (no policy) | {r['num_episodes']} | {pct(r['safe_rate'])} | "
+                f"{pct(r['success_rate'])} |"
+            )
         if seed != 0:
             continue
         for label, runs in BESIDE:

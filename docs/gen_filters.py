@@ -86,7 +86,7 @@ def _beside(rows: list[dict]) -> str:
     """Per case (N, arena, obstacles): the filtered controllers, then the reproduction's cells of the same case and
     seed (safe / success)."""
     lines = [
-        "| N, l (m), obstacles | controller | episodes | safe % | success % |",
+        "| N, l (m), obstacles, evaluation seed | controller | episodes | safe % | success % |",
         "|---|---|---|---|---|",
     ]
     cases: dict[tuple, list[dict]] = {}
@@ -94,7 +94,7 @@ def _beside(rows: list[dict]) -> str:
         key = (int(r["run"]["obstacles"]), r["num_agents"], float(r["run"]["area"]), int(r["run"]["seed"]))
         cases.setdefault(key, []).append(r)
     for (obstacles, n, area, seed), group in sorted(cases.items()):
-        case = f"{n}, {area:g}, {obstacles}"
+        case = f"{n}, {area:g}, {obstacles}, {seed}"
         learned = sorted((r for r in group if not r["row"].startswith("nominal")), key=lambda r: r["row"])
         for r in learned:
             lines.append(

@@ -4,7 +4,7 @@ Every agent ``i`` computes its policy's command ``a_pi,i`` (a world acceleration
 own graph neighbourhood, then solves one small QP over its own acceleration only::
 
     min  1/2 ||a_i - a_pi,i||^2 + 1/2 w2 s_i^2 + w1 s_i
-    s.t. n_k . a_i + s_i >= b_k      (one row per neighbour and per LiDAR hit it senses)
+    s.t. n_k . a_i + s_i >= b_k      (one row per neighbour and per LiDAR hit or obstacle it senses)
          the command box of the interface, in the agent's yaw frame;  s_i >= 0
 
 and the attitude loop tracks the result. Nothing is exchanged between agents: each pair row is split in halves, each
@@ -24,9 +24,14 @@ brakes. Three filters (``FILTERS``):
   rows with ``|g_v| < 1e-6`` s (pairs moving apart: no acceleration changes ``b`` within the step) are dropped.
 * ``"prior"``: the same rows from the head's untrained prior ``b = d_min - D`` (closest-approach distance within
   the horizon minus the checkpoint's ``cbf_distance``): the ablation that shows what learning the barrier adds.
-* ``"dcbf"``: the hand-crafted pairwise barriers of the dCBF-QP baseline (Wang et al.'s braking-distance barrier,
-  :class:`egcbf.control.cbf_qp.DecentralizedCBFQP`), with the policy's command as the reference instead of the
-  nominal one: learned liveness, hand-crafted safety.
+* ``"dcbf"`` (the recommended one): the hand-crafted pairwise and obstacle barriers of the dCBF-QP baseline (Wang
+  et al.'s braking-distance barrier, :class:`egcbf.control.cbf_qp.DecentralizedCBFQP`) with the policy's command
+  as the reference instead of the nominal one, its own settings (``DCBF_FILTER_BARRIER``), its QP box, and a
+  look-ahead (``DCBF_FILTER_LOOKAHEAD``): the rows read every agent ``T`` seconds ahead under the acceleration it
+  realized over the last step, a predictor for the attitude loop's lag. Learned liveness, hand-crafted safety.
+
+``FilteredController(None, None, config)`` filters the nominal controller's command instead (``dcbf``, ``prior``):
+the ablation that shows what the policy adds. docs/safety_filters.md has the measurements behind every default.
 
 Every piece is an invariant or an equivariant of the agent's frame (edge vectors rotate with the scene, the box
 turns with the agent, the policy is equivariant for EGCBF+), so the filtered controller of EGCBF+ stays SE2xR

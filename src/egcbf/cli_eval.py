@@ -87,14 +87,15 @@ def load_policy(checkpoint: Path, dev: torch.device, dtype: torch.dtype, flag: s
     return ckpt, learned, train_cfg
 
 
-def _filtered(ckpt, learned, train_cfg, config, dev, dtype, cls):
+def _filtered(ckpt, learned, train_cfg, config, dev, dtype):
     """The checkpoint's policy behind the run-time filter ``config`` (its CBF network for ``cbf``), or a usage
     error saying why this checkpoint cannot be filtered."""
+    from .algo.filtered import FilteredController
     from .checkpoint import CheckpointError, load_network
 
     try:
         cbf = load_network(ckpt, "cbf", dev, dtype)[0] if config.kind == "cbf" else None
-        return cls(learned.policy, train_cfg.model, config, cbf)
+        return FilteredController(learned.policy, train_cfg.model, config, cbf)
     except (CheckpointError, ValueError) as err:
         usage_error(f"--filter {config.kind} on {ckpt}: {err}", err)
 
@@ -175,7 +176,7 @@ def run_eval(
         ckpt, learned, train_cfg = load_policy(checkpoint, dev, DTYPES[dtype])
         controller = train_cfg.algo
         if filter_config is not None:
-            learned = _filtered(ckpt, learned, train_cfg, filter_config, dev, DTYPES[dtype], FilteredController)
+            learned = _filtered(ckpt, learned, train_cfg, filter_config, dev, DTYPES[dtype])
             controller = f"{train_cfg.algo}:{filter}"
         env_overrides = dict(train_cfg.env_overrides)  # the sensing the policy was trained with (radii, LiDAR)
         require(

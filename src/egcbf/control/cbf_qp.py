@@ -178,7 +178,9 @@ class _CBFQPBase:
             cfg = replace(cfg, **overrides)
         self.config = cfg
 
-    def _prepare(self, state, env_config) -> _Prepared:
+    def _prepare(self, state, env_config, a_ref: np.ndarray | None = None) -> _Prepared:
+        """The QPs' data; ``a_ref`` ``(B, N, 3)`` replaces the nominal acceleration as the reference (which is then
+        not computed)."""
         if env_config.robot != "quadrotor":  # the barriers and bounds are the quadrotor's acceleration command's
             raise ValueError(f"the hand-crafted CBF-QPs are written for the quadrotor, not a {env_config.robot}")
         if state.t == 0:  # a state entering the QP (a reset or a hand-built one): finite, rotations, radii > 0
@@ -196,7 +198,12 @@ class _CBFQPBase:
             )
         x = state.x.detach().to(torch.float64)
         goals = state.goals.detach().to(torch.float64)
-        a_nom = nominal_acceleration(x, goals, cfg.gains, cfg.max_position_error).cpu().numpy()
+        if a_ref is None:
+            a_nom = nominal_acceleration(x, goals, cfg.gains, cfg.max_position_error).cpu().numpy()
+        else:
+            a_nom = np.asarray(a_ref, dtype=np.float64)
+            if a_nom.shape != (*x.shape[:2], 3):
+                raise ValueError(f"a_ref must have shape {(*x.shape[:2], 3)} (B, N, 3), got {a_nom.shape}")
         xn = x.cpu().numpy()
         obs = state.obstacles
         if obs.num_obstacles > 0:
@@ -404,16 +411,11 @@ class DecentralizedCBFQP(_CBFQPBase):
         then the agents keep the acceleration they have (a predictor for the loop's lag)."""
         t0, c0 = time.perf_counter(), time.process_time()
         cfg = self.config
-        prep = self._prepare(state, env_config)
+        prep = self._prepare(state, env_config, a_ref)
         if lookahead:
             acc = np.zeros_like(prep.v) if accel is None else np.asarray(accel, dtype=np.float64)
             prep.p = prep.p + lookahead * prep.v + 0.5 * lookahead**2 * acc
             prep.v = prep.v + lookahead * acc
-        if a_ref is not None:
-            a_ref = np.asarray(a_ref, dtype=np.float64)
-            if a_ref.shape != prep.a_nom.shape:
-                raise ValueError(f"a_ref must have shape {prep.a_nom.shape} (B, N, 3), got {a_ref.shape}")
-            prep.a_nom = a_ref
         b, n = prep.p.shape[:2]
         m = b * n
         batch = np.repeat(np.arange(b), n)

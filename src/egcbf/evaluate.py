@@ -71,6 +71,11 @@ class EpisodeRecord:
     radii: Tensor | None = None
 
 
+def _new_timing() -> dict:
+    """The step times and QP / filter counts :func:`run_episodes` collects and :func:`evaluate` pools."""
+    return {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0, "num_active": 0, "num_filtered": 0}
+
+
 def run_episodes(
     controller: Controller,
     config: EnvConfig,
@@ -89,7 +94,7 @@ def run_episodes(
     env = SwarmEnv(dataclasses.replace(config, num_envs=len(seeds)), device=device, dtype=dtype)
     robot = env.robot
     stats = EpisodeStats(len(seeds), config.num_agents, device=device)
-    timing = {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0, "num_active": 0, "num_filtered": 0}
+    timing = _new_timing()
     rec = None
     if record:
         rec = EpisodeRecord(
@@ -160,7 +165,7 @@ def evaluate(
         b = batch or episode_batch(n, episodes, max_agents_per_batch)
         seeds = [episode_seed(seed, n, e) for e in range(episodes)]
         per_episode = []
-        timing = {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0, "num_active": 0, "num_filtered": 0}
+        timing = _new_timing()
         bar = tqdm(
             total=episodes * config.max_steps, desc=f"N={n}", unit="step", disable=not show_progress, leave=False
         )

@@ -12,12 +12,14 @@ holds::
 ``config.json`` and ``model.safetensors`` are enough to evaluate (:func:`load_controller`, :func:`load_network`);
 :func:`load_learner` restores everything training needs to continue.
 
-Every checkpoint records what it is in ``state.json``: ``format_version`` (:data:`FORMAT_VERSION`), ``algo``,
-``group``, ``interface`` and ``weights_sha256`` (the hash of its ``model.safetensors``). :func:`check_identity`
-compares them with the directory's ``config.json`` and weights file on load, so that one method's weights (or another
-run's) are never loaded under another's config. Checkpoints written before the format was versioned (no
-``format_version``) are checked on ``algo`` only. A missing, corrupted, truncated or mismatched file raises
-:class:`CheckpointError` (a ``ValueError``) naming the file instead of a raw parser error.
+Every checkpoint records what it is, ``format_version`` (:data:`FORMAT_VERSION`), ``algo``, ``group`` and
+``interface``, twice: in the header of its ``model.safetensors`` (:func:`save_weights`, :func:`weights_identity`),
+which travels with the weights and which editing the JSON files does not change, and in ``state.json`` beside
+``weights_sha256`` (the hash of the weights file). :func:`check_identity` compares both with the directory's
+``config.json`` on load, so that one method's weights (or another run's) are never loaded or reported under
+another's name. Weights written before format 2 carry no header identity: their ``state.json`` must then exist
+(format 1: with all three keys and the hash; unversioned: checked on ``algo`` only). A missing, corrupted, truncated
+or mismatched file raises :class:`CheckpointError` (a ``ValueError``) naming the file instead of a raw parser error.
 
 Directories are written into ``NAME.tmp`` and swapped into place (:mod:`egcbf.atomic`), so a kill at any moment
 leaves a complete directory (the new one or the previous one); every reader recovers a swap killed half-way.
@@ -37,9 +39,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
+from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from .atomic import recover_dir, replace_dir
+from .atomic import WriteError, recover_dir, replace_dir, writing
 
 if TYPE_CHECKING:
     from .algo.learner import GraphCBFLearner, LearnedController
@@ -66,12 +69,17 @@ __all__ = [
     "read_training_state",
     "save_best",
     "save_checkpoint",
+    "save_weights",
     "set_aside",
     "sha256",
+    "weights_identity",
 ]
 
-#: Version of the checkpoint layout written by this code (``state.json["format_version"]``).
-FORMAT_VERSION = 1
+#: Version of the checkpoint layout written by this code (``state.json["format_version"]``). 2: ``model.safetensors``
+#: carries the identity in its own header (:func:`weights_identity`).
+FORMAT_VERSION = 2
+#: What a checkpoint's weights are: the keys of :func:`identity` compared on load.
+IDENTITY_KEYS = ("algo", "group", "interface")
 #: The subdirectory of a run directory holding its ``step_XXXXXX`` checkpoints.
 CHECKPOINTS_DIR = "checkpoints"
 _STEP_DIR = re.compile(r"step_(\d+)")
@@ -90,6 +98,24 @@ def identity(config: TrainConfig) -> dict:
         "group": config.group,
         "interface": config.model.interface,
     }
+
+
+def weights_identity(path: Path) -> dict:
+    """The identity stored in the header of a ``model.safetensors`` (format 2: ``format_version``, ``algo``,
+    ``group``, ``interface``, as strings); ``{}`` for weights written before format 2."""
+    try:
+        with safe_open(str(path), "pt") as f:
+            meta = f.metadata() or {}
+    except Exception as err:  # safetensors raises its own SafetensorError (and OSError) on bad files
+        raise CheckpointError(f"{path} is corrupted or truncated ({type(err).__name__}: {err})") from None
+    return {k: meta[k] for k in ("format_version", *IDENTITY_KEYS) if k in meta}
+
+
+def save_weights(tensors: dict[str, torch.Tensor], path: Path, config: TrainConfig) -> None:
+    """Write ``tensors`` to the safetensors file ``path`` with the identity of ``config`` in its header, so that what
+    the weights are travels with them (relabelling ``config.json`` and ``state.json`` is caught on load)."""
+    meta = {k: str(v) for k, v in identity(config).items()}
+    save_file({k: v.detach().cpu().contiguous() for k, v in tensors.items()}, str(path), metadata=meta)
 
 
 def sha256(path: Path) -> str:
@@ -150,24 +176,48 @@ def read_training_state(path: Path) -> dict:
 
 
 def check_identity(ckpt: Path, config: TrainConfig, state: dict | None = None) -> None:
-    """Raise :class:`CheckpointError` if ``ckpt/state.json`` says the weights are of another method, group,
-    interface or a newer format than ``config`` (the directory's ``config.json``)."""
-    state = read_state(ckpt) if state is None else state
+    """Raise :class:`CheckpointError` unless the weights of ``ckpt`` are what ``config`` (its ``config.json``) says.
+
+    What the weights are is read from the header of ``model.safetensors`` (format 2, :func:`weights_identity`), which
+    editing ``config.json`` or ``state.json`` does not change; for weights without it (format 0-1) from
+    ``state.json``, which must then exist. ``state.json``, when present, must agree too, and its ``weights_sha256``
+    must be the hash of the weights file."""
+    ckpt = Path(ckpt)
+    weights = ckpt / "model.safetensors"
+    state_path = ckpt / "state.json"
+    if state is None:
+        state = read_state(ckpt) if state_path.exists() else None
+    stored = weights_identity(weights) if weights.exists() else {}
+    if not stored and state is None:
+        raise CheckpointError(
+            f"{state_path} is missing, and {weights} does not record what it is (written before format 2): the "
+            "method, group and interface of the weights cannot be checked; copy the whole checkpoint directory"
+        )
+    want = identity(config)
+    for key in IDENTITY_KEYS if stored else ():
+        if stored.get(key) != str(want[key]):
+            raise CheckpointError(
+                f"{weights} holds weights of {key} {stored.get(key)!r} but {ckpt / 'config.json'} says "
+                f"{want[key]!r}: the config was edited or comes from another run (copy the whole checkpoint directory)"
+            )
+    if state is None:
+        return
     version = state.get("format_version", 0)
     if not isinstance(version, int) or version > FORMAT_VERSION:
         raise CheckpointError(
-            f"{Path(ckpt) / 'state.json'} has checkpoint format {version!r}; this egcbf reads up to "
-            f"{FORMAT_VERSION} (upgrade egcbf)"
+            f"{state_path} has checkpoint format {version!r}; this egcbf reads up to {FORMAT_VERSION} (upgrade egcbf)"
         )
-    want = identity(config)
-    keys = ("algo", "group", "interface") if version >= 1 else ("algo",)
+    keys = IDENTITY_KEYS if version >= 1 else ("algo",)
+    if version >= 1 and not stored and not all(k in state for k in keys):
+        raise CheckpointError(f"{state_path} does not say what the weights are (missing {keys}); it was edited")
     for key in keys:
         if key in state and state[key] != want[key]:
             raise CheckpointError(
                 f"{ckpt}: state.json says the weights are {key} {state[key]!r} but config.json says "
                 f"{want[key]!r}; the files come from different runs (copy the whole checkpoint directory)"
             )
-    weights = Path(ckpt) / "model.safetensors"
+    if version >= 1 and "weights_sha256" not in state:
+        raise CheckpointError(f"{state_path} has no weights_sha256 (format {version} writes one); it was edited")
     if "weights_sha256" in state and weights.exists() and sha256(weights) != state["weights_sha256"]:
         raise CheckpointError(
             f"{weights} is not the file its state.json was written with (SHA-256 differs): replaced by another "
@@ -191,28 +241,36 @@ def _to_cpu(obj):
 
 
 def _write_dir_atomically(learner: GraphCBFLearner, final: Path, state: dict, extra=None) -> Path:
-    """Write ``config.json``, ``model.safetensors``, ``state.json`` (and whatever ``extra(tmp_dir)`` adds) into
-    ``final.tmp``, then swap it into place (:func:`egcbf.atomic.replace_dir`): a kill at any moment leaves a
-    complete ``final`` (new or previous) or a previous one that :func:`egcbf.atomic.recover_dir` restores."""
+    """Write ``config.json``, ``model.safetensors``, ``state.json`` (and whatever ``extra(tmp_dir, at)`` adds, each
+    file passed through ``at``, :func:`egcbf.atomic.writing`) into ``final.tmp``, then swap it into place
+    (:func:`egcbf.atomic.replace_dir`): a kill at any moment leaves a complete ``final`` (new or previous) or a
+    previous one that :func:`egcbf.atomic.recover_dir` restores. A full disk or the file-size limit raises
+    :class:`egcbf.atomic.WriteError` naming the file, with ``final.tmp`` removed and ``final`` unchanged."""
     tmp = final.with_name(final.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    learner.config.to_json(tmp / "config.json")
-    save_file({k: v.cpu() for k, v in learner.weights().items()}, str(tmp / "model.safetensors"))
-    if extra is not None:
-        extra(tmp)
-    state = {**state, **identity(learner.config), "weights_sha256": sha256(tmp / "model.safetensors")}
-    (tmp / "state.json").write_text(json.dumps(state, indent=2) + "\n")
+    try:
+        with writing(tmp, f"{final} was not saved; the checkpoints already saved are unchanged") as at:
+            tmp.mkdir(parents=True)
+            learner.config.to_json(at(tmp / "config.json"))
+            save_weights(learner.weights(), at(tmp / "model.safetensors"), learner.config)
+            if extra is not None:
+                extra(tmp, at)
+            state = {**state, **identity(learner.config), "weights_sha256": sha256(tmp / "model.safetensors")}
+            at(tmp / "state.json").write_text(json.dumps(state, indent=2) + "\n")
+    except WriteError:
+        shutil.rmtree(tmp, ignore_errors=True)  # the partial copy: give its space back
+        raise
     return replace_dir(tmp, final)
 
 
 def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: int = 0, buffers: bool = True) -> Path:
     """Write the learner's checkpoint ``OUT/checkpoints/step_XXXXXX`` atomically; keep the newest ``keep`` (0: all)."""
 
-    def training_files(tmp: Path) -> None:
-        torch.save(_to_cpu(learner.training_state()), tmp / "training_state.pt")
+    def training_files(tmp: Path, at) -> None:
+        with open(at(tmp / "training_state.pt"), "wb") as f:  # a file object: a failed write's OSError is kept
+            torch.save(_to_cpu(learner.training_state()), f)
         if buffers:
-            save_file({k: v.cpu() for k, v in learner.buffers().items()}, str(tmp / "buffers.safetensors"))
+            save_file({k: v.cpu() for k, v in learner.buffers().items()}, str(at(tmp / "buffers.safetensors")))
 
     state = {
         "step": learner.step,
@@ -290,6 +348,11 @@ def find_checkpoint(path: str | Path, prefer_best: bool = False) -> Path:
         return p
     if p.exists() and not p.is_dir():
         raise FileNotFoundError(f"{p} is a file; pass a checkpoint directory (config.json + model.safetensors)")
+    if (p / "model.safetensors").exists():  # a checkpoint directory missing its config: not a run directory
+        raise CheckpointError(
+            f"{p / 'config.json'} is missing: {p} holds weights but not the config they were trained with (a "
+            "checkpoint holds config.json and model.safetensors; copy the whole directory)"
+        )
     best = recover_dir(p / "best")
     if prefer_best and (best / "model.safetensors").exists() and (best / "config.json").exists():
         return best

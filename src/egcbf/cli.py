@@ -228,19 +228,23 @@ def eval_cmd(
 def _demo_source(name: str, checkpoints: Path) -> Path | None:
     """The checkpoint directory of a learned method (``checkpoints/<name>``), or ``None`` for a hand-crafted
     controller name; a clear error naming the path and the training command if a learned method has none."""
-    from .algo.filtered import FILTERS
     from .config import LEARNED_METHODS
     from .control.controllers import CONTROLLERS
+    from .filter_names import FILTERS, split_method
 
     if name in CONTROLLERS:
         return None
-    name, _, filt = name.partition(":")
-    if name not in LEARNED_METHODS or (filt and filt not in FILTERS):
+    try:
+        method = split_method(name)[0]
+    except ValueError:
+        method = None
+    if method not in LEARNED_METHODS:
         usage_error(
-            f"unknown method {name + (':' + filt if filt else '')!r}: a learned method {sorted(LEARNED_METHODS)}, "
+            f"unknown method {name!r}: a learned method {sorted(LEARNED_METHODS)}, "
             f"one behind a run-time filter as METHOD:FILTER with FILTER in {list(FILTERS[1:])} (e.g. egcbf+:dcbf), "
             f"or a controller {sorted(CONTROLLERS)}"
         )
+    name = method
     from .checkpoint import find_checkpoint
 
     path = checkpoints / name
@@ -298,6 +302,7 @@ def demo(
     table, OUT/summary.md, a GIF of the first episode of every controller side by side (OUT/compare_N<n>.gif),
     OUT/<controller>/metrics.json and OUT/demo.json."""
     from .cli_demo import out_dir, run_demo
+    from .filter_names import split_method
 
     method = method.value
     if compare is None:  # a hand-crafted --method alone is compared with the nominal controller only
@@ -313,9 +318,15 @@ def demo(
     require(num_agents >= 1, f"--num-agents must be >= 1, got {num_agents}")
     dev = parse_device(device)
     check_env_flags([num_agents], area, obstacles, max_steps)
-    for ckpt in sources.values():  # every checkpoint loads and fits in memory, before the first method runs
+    for name, ckpt in sources.items():  # every checkpoint loads and fits in memory, before the first method runs
         if ckpt is not None:
             _, _, train_cfg = load_policy(ckpt, dev, torch.float32, "--checkpoints")
+            base = split_method(name)[0]
+            require(  # the label comes from what the weights are, not from the folder's name
+                train_cfg.algo == base,
+                f"--checkpoints: {ckpt} holds {train_cfg.algo} weights (its model.safetensors says so), not {base}; "
+                f"the folders of --checkpoints are named after their method (put {base}'s checkpoint there)",
+            )
             require(
                 train_cfg.robot == "quadrotor",
                 f"--checkpoints: {ckpt} drives a {train_cfg.robot}; the demo compares quadrotor controllers (for "
@@ -407,6 +418,8 @@ def train(
             usage_error(f"--steps {steps} is below the run's current update {current}; pass --steps >= {current}")
         if threads is not None:
             torch.set_num_threads(threads)
+        require(out.is_dir(), f"--resume --out {out}: no such run directory (no checkpoint to continue from)")
+        prepare_out(out, False, (), run_dir_ok=True)  # locked: one process continues a run
         try:
             run_training(TrainConfig(), out, resume=True, steps=steps, progress=progress, tensorboard=tensorboard)
         except (FileNotFoundError, CheckpointError) as err:
@@ -443,7 +456,7 @@ def train(
     except (TypeError, ValueError) as err:
         usage_error(f"{'--config ' + str(config) + ': ' if config is not None else ''}{err}", err)
     check_training_memory(cfg, parse_device(cfg.device))
-    prepare_out(out, False, ())
+    prepare_out(out, False, (), run_dir_ok=True)
     try:
         run_training(cfg, out, progress=progress, tensorboard=tensorboard)
     except FileExistsError as err:
@@ -456,8 +469,16 @@ def _parse_methods(text: str, option: str) -> tuple[str, ...]:
     names = tuple(s for s in text.replace(" ", "").split(",") if s)
     bad = [m for m in names if m not in METHODS]
     if bad:
-        usage_error(f"{option}: unknown method(s) {bad}; choose from {', '.join(METHODS)}")
+        usage_error(
+            f"{option}: unknown method(s) {bad}; choose from {', '.join(METHODS)} (METHOD:FILTER: a method behind a "
+            "run-time filter)"
+        )
     return names
+
+
+#: the reproduction's default methods (``egcbf.reproduce.METHODS``; tests/egcbf/test_reproduce.py checks they agree)
+_REPRO_METHODS = "gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal,egcbf+:dcbf,gcbf+:dcbf,egcbf+:cbf,egcbf+:prior,nominal:dcbf"
+_REPRO_OBSTACLE_METHODS = "gcbf,gcbf+,egcbf,egcbf+,nominal,egcbf+:dcbf,gcbf+:dcbf,egcbf+:cbf,egcbf+:prior,nominal:dcbf"
 
 
 def _parse_seeds(text: str) -> list[int]:
@@ -472,9 +493,13 @@ def _parse_seeds(text: str) -> list[int]:
 
 @app.command()
 def reproduce(
-    methods: Annotated[str, typer.Option(help="comma list of gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal")] = (
-        "gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal"
-    ),
+    methods: Annotated[
+        str,
+        typer.Option(
+            help="comma list of gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal and the run-time filtered controllers "
+            "METHOD:FILTER egcbf+:dcbf,gcbf+:dcbf,egcbf+:cbf,egcbf+:prior,nominal:dcbf (default: all)"
+        ),
+    ] = _REPRO_METHODS,
     num_agents: Annotated[str, typer.Option("--num-agents", help="comma-separated swarm sizes")] = (
         "8,16,64,128,256,512"
     ),
@@ -482,7 +507,7 @@ def reproduce(
     obstacles: Annotated[int, typer.Option(help="obstacles of the obstacle setting (0: none)")] = 8,
     obstacle_methods: Annotated[
         str, typer.Option("--obstacle-methods", help="methods also run with obstacles (comma list)")
-    ] = "gcbf,gcbf+,egcbf,egcbf+,nominal",
+    ] = _REPRO_OBSTACLE_METHODS,
     episodes: Annotated[int, typer.Option(help="episodes per cell (method, obstacles, N)")] = 50,
     baseline_episodes: Annotated[
         int | None,
@@ -500,7 +525,7 @@ def reproduce(
     ] = "1024,2048,4096",
     scale_methods: Annotated[
         str, typer.Option("--scale-methods", help="methods of the scalability study (comma list)")
-    ] = "gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal",
+    ] = _REPRO_METHODS,
     scale_agent_episodes: Annotated[
         int, typer.Option("--scale-agent-episodes", help="agent-episodes per scalability cell (episodes = this / N)")
     ] = 25_600,
@@ -546,6 +571,7 @@ def reproduce(
         load_cells,
         mismatched_cells,
         sweep,
+        unreadable_cells,
         validate,
         write_report,
     )
@@ -582,6 +608,17 @@ def reproduce(
         cfg = SweepConfig(**sweep_cfg)
     except ValueError as err:
         usage_error(_sweep_flags(str(err)), err)
+    given = {  # method lists the user gave (not the defaults): every entry must be one --methods runs
+        "--obstacle-methods": (obstacle_methods, _REPRO_OBSTACLE_METHODS, "obstacle_methods"),
+        "--seed-methods": (seed_methods, "gcbf+,egcbf+", "seed_methods"),
+        "--scale-methods": (scale_methods, _REPRO_METHODS, "scale_methods"),
+    }
+    for flag, (text, default, field) in given.items():
+        extra = [m for m in sweep_cfg[field] if m not in sweep_cfg["methods"]]
+        if text != default and extra:
+            runs = ",".join(sweep_cfg["methods"])
+            usage_error(f"{flag} names {', '.join(extra)}, which --methods does not run (--methods {runs}); add "
+                        f"them to --methods or drop them from {flag}")  # fmt: skip
     try:
         if not report_only:
             parse_device(device)
@@ -601,9 +638,14 @@ def reproduce(
         usage_error(str(err), err)
     if not report_only:
         prepare_out(out, True, ())  # writable (finished cells in it are reused; other settings are refused)
-    prepare_out(report.parent, True, (), flag="--report")
+    prepare_out(report.parent, True, (), flag="--report", lock=False)
     if report_only:
         records = load_cells(cfg)
+        unreadable = unreadable_cells(cfg)
+        if unreadable:
+            names = ", ".join(str(p) for p in unreadable[:5]) + (" ..." if len(unreadable) > 5 else "")
+            typer.echo(f"Warning: {len(unreadable)} cell file(s) cannot be read (truncated or corrupted): {names}; "
+                       "they show as pending (run the sweep to recompute them)", err=True)  # fmt: skip
         stale = mismatched_cells(cfg)
         if stale and not records:
             usage_error(describe_mismatch(cfg, stale) + "; pass the flags of the sweep that made them")

@@ -13,7 +13,9 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import NoReturn
 
@@ -122,6 +124,17 @@ def check_env_flags(
                 f"--num-agents {n} cannot be placed in --area {area:g} (agents {sep:g} m apart: at most "
                 f"{max_agents(area, sep, cfg.dim)} fit); use a larger --area or fewer agents"
             )
+        if obstacles:  # one trial placement (milliseconds): obstacles can crowd out the agents' starts and goals
+            from .env import SwarmEnv
+
+            try:
+                SwarmEnv(replace(cfg, num_envs=1)).reset(0)
+            except ValueError as err:
+                usage_error(
+                    f"--obstacles {obstacles} leave no room for --num-agents {n} in --area {area:g} ({err}); use "
+                    "fewer obstacles or a larger --area",
+                    err,
+                )
         configs.append(cfg)
     return configs
 
@@ -132,21 +145,18 @@ _BYTES_PER_EDGE_64 = 2048
 
 
 def available_memory(device: torch.device) -> int | None:
-    """Bytes the run may still allocate: free GPU memory for CUDA, ``MemAvailable`` of ``/proc/meminfo`` on the
-    CPU; ``None`` where it cannot be told (then nothing is refused)."""
+    """Bytes the run may still allocate: free GPU memory for CUDA; on the CPU the least of free memory, what the
+    address-space and data limits (``ulimit -v``, ``ulimit -d``) leave of the process's current size, and the
+    cgroup's headroom (:func:`egcbf.allocator.memory_headroom`, whose ``limit`` names the one that binds);
+    ``None`` where it cannot be told (then nothing is refused)."""
     if device.type == "cuda":
         try:
             return int(torch.cuda.mem_get_info(device)[0])
         except (RuntimeError, AssertionError):
             return None
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        return None
-    return None
+    from .allocator import memory_headroom
+
+    return memory_headroom()
 
 
 def policy_memory(num_agents: int, area: float, comm_radius: float, num_envs: int, hidden: int) -> tuple[int, int]:
@@ -164,6 +174,13 @@ def _size(num_bytes: float) -> str:
     return f"{num_bytes / 2**30:.1f} GiB" if num_bytes >= 2**30 else f"{num_bytes / 2**20:.1f} MiB"
 
 
+def _available(free: int) -> str:
+    """``free`` bytes in words: the limit that binds, with its numbers, when :func:`available_memory` knows it
+    (e.g. "the 120.0 MiB left under the address-space limit (ulimit -v, RLIMIT_AS) of ..."), else "the X available"."""
+    limit = getattr(free, "limit", None)
+    return str(limit) if limit is not None else f"the {_size(free)} available"
+
+
 def check_policy_memory(configs: Sequence, episodes: int, batch: int | None, hidden: int, device: torch.device) -> None:
     """Refuse (usage error, with the numbers) a learned-policy evaluation whose estimated step memory
     (:func:`policy_memory`) exceeds :func:`available_memory`, before anything is allocated."""
@@ -179,7 +196,7 @@ def check_policy_memory(configs: Sequence, episodes: int, batch: int | None, hid
         if need > free:
             usage_error(
                 f"--num-agents {n} at --area {cfg.area_size:g}: the learned policy needs about {_size(need)} "
-                f"(~{edges:,} graph edges, {envs} episode(s) at once), more than the {_size(free)} available; "
+                f"(~{edges:,} graph edges, {envs} episode(s) at once), more than {_available(free)}; "
                 "use fewer agents, a larger --area or a smaller --batch"
             )
 
@@ -208,7 +225,7 @@ def check_sweep_memory(cells: Sequence[tuple[int, float, int]], workers: int, hi
         need, n, area = parallel[0]
         usage_error(
             f"the sweep's largest learned cell (N = {n}, l = {area:g}) needs about {_size(need)}, and {len(parallel)} "
-            f"cell(s) at once about {_size(total)}, more than the {_size(free)} available; use fewer --workers or "
+            f"cell(s) at once about {_size(total)}, more than {_available(free)}; use fewer --workers or "
             "smaller --num-agents / --scale-sizes"
         )
 
@@ -231,20 +248,55 @@ def check_training_memory(cfg, device: torch.device) -> None:
     if need > free:
         usage_error(
             f"training needs about {_size(need)} (a minibatch of {cfg.batch_size} graphs of {cfg.num_agents} agents at "
-            f"l = {area:g}: ~{edges:,} edges, with gradients), more than the {_size(free)} available; lower "
+            f"l = {area:g}: ~{edges:,} edges, with gradients), more than {_available(free)}; lower "
             "batch_size or num_agents in the --config, or use --device cuda"
         )
 
 
-def prepare_out(out: Path, overwrite: bool, results: Sequence[str], flag: str = "--out") -> Path:
-    """Make ``out`` an empty-of-results, writable directory before any work starts.
+def prepare_out(
+    out: Path,
+    overwrite: bool,
+    results: Sequence[str],
+    flag: str = "--out",
+    run_dir_ok: bool = False,
+    lock: bool = True,
+) -> Path:
+    """Make ``out`` an empty-of-results, writable directory that this process alone writes into, before any work
+    starts.
 
-    ``results`` are glob patterns of the files a run writes there (e.g. ``metrics.json``, ``*_N*.gif``). If any
-    exists, the run is refused unless ``overwrite``, in which case they are deleted first (so that a new run never
-    mixes with an old one's renders).
+    ``out`` is locked for the rest of the command (:func:`egcbf.locks.hold_dir`): a second command writing there at
+    the same time is refused, naming the first. ``results`` are glob patterns of the files a run writes there (e.g.
+    ``metrics.json``, ``*_N*.gif``). If any exists, the run is refused unless ``overwrite``, in which case they are
+    deleted first (so that a new run never mixes with an old one's renders). The current directory (``--out ''``
+    from an empty shell variable, or ``.``), a dangling symbolic link and, unless ``run_dir_ok``, a training run's
+    directory are refused. ``lock=False`` (a directory that only receives a report file, e.g. ``--report``'s)
+    checks that it is a writable directory, nothing else.
     """
+    from .locks import DirLockedError, hold_dir
+
+    if lock and str(out) in ("", "."):
+        usage_error(f"{flag} is empty or '.' (the current directory); name a directory for the results, e.g. "
+                    f"{flag} out/results")  # fmt: skip
+    if out.is_symlink() and not out.exists():
+        usage_error(f"{flag} {out} is a symbolic link to {os.readlink(out)}, which does not exist; choose another "
+                    f"{flag} or create its target")  # fmt: skip
     if out.exists() and not out.is_dir():
         usage_error(f"{flag} {out} is a file, not a directory; choose another {flag}")
+    if (
+        lock
+        and not run_dir_ok
+        and out.is_dir()
+        and ((out / "checkpoints").is_dir() or (out / "model.safetensors").exists())
+    ):
+        usage_error(f"{flag} {out} is a training run or checkpoint directory; write results elsewhere (e.g. "
+                    f"{flag} {out / 'eval'})")  # fmt: skip
+    try:
+        if lock:
+            hold_dir(out, " ".join(["egcbf", *sys.argv[1:2]]))
+    except DirLockedError as err:
+        usage_error(str(err), err)
+    except OSError as err:
+        usage_error(f"{flag} {out} is not writable ({err.strerror or err}); choose another {flag}", err)
     found = sorted({p for pattern in results for p in out.glob(pattern)}) if out.is_dir() else []
     if found and not overwrite:
         usage_error(

@@ -17,6 +17,7 @@ import typer
 
 from .atomic import write_json_atomic, write_text_atomic
 from .cli_eval import run_eval
+from .filter_names import FILTER_LABELS, filter_label, path_name, split_method
 from .report import machine_info, number, pct
 
 __all__ = ["DESCRIPTIONS", "FILTER_DESCRIPTIONS", "demo_table", "describe", "out_dir", "run_demo"]
@@ -31,21 +32,21 @@ DESCRIPTIONS = {
     "dcbf": "dCBF-QP (hand-crafted)",
     "ccbf": "cCBF-QP (hand-crafted)",
 }
-#: a learned method behind a run-time filter, ``METHOD:FILTER``
-FILTER_DESCRIPTIONS = {"dcbf": "+ dCBF filter", "cbf": "+ learned-CBF filter", "prior": "+ prior-CBF filter"}
+#: a learned method behind a run-time filter, ``METHOD:FILTER`` (:mod:`egcbf.filter_names`)
+FILTER_DESCRIPTIONS = {k: f"+ {v}" for k, v in FILTER_LABELS.items()}
 
 
 def describe(name: str) -> str:
     """The table's label of a controller name (``egcbf+``, ``dcbf``, ``egcbf+:dcbf``, ...)."""
-    method, _, filt = name.partition(":")
-    if not filt or filt == "none":
+    method, filt = split_method(name)
+    if filt == "none":
         return DESCRIPTIONS.get(method, method)
-    return f"{DESCRIPTIONS.get(method, method).split(' (')[0]} {FILTER_DESCRIPTIONS.get(filt, filt)}"
+    return filter_label(DESCRIPTIONS.get(method, method).split(" (")[0], filt)
 
 
 def out_dir(out: Path, name: str) -> Path:
     """The folder of a controller's results (``METHOD:FILTER`` as ``METHOD_FILTER``: no colon in paths)."""
-    return out / name.replace(":", "_")
+    return out / path_name(name)
 
 
 def demo_table(rows: dict[str, dict], header: str) -> str:
@@ -91,7 +92,7 @@ def run_demo(
     t0 = time.time()
     rows, episodes_seen = {}, {}
     for name, ckpt in sources.items():
-        filt = name.partition(":")[2] or "none"
+        filt = split_method(name)[1]
         recorded = run_eval(
             controller=name if ckpt is None else None,
             num_agents=str(num_agents),

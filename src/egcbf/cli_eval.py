@@ -11,7 +11,7 @@ from pathlib import Path
 import torch
 import typer
 
-from .atomic import write_json_atomic
+from .atomic import WriteError, write_json_atomic, writing
 from .cli_checks import (
     check_env_flags,
     check_policy_memory,
@@ -56,7 +56,8 @@ def format_table(rows: list[dict], title: str = "") -> str:
 
 
 def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path]:
-    """A GIF and a top-down PNG per recorded swarm size ``{N: EpisodeRecord}``; returns the paths written."""
+    """A GIF and a top-down PNG per recorded swarm size ``{N: EpisodeRecord}``; returns the paths written. A full disk
+    or the file-size limit raises :class:`egcbf.atomic.WriteError` naming the image (no partial image is left)."""
     from .render import render_gif, render_topdown
 
     paths = []
@@ -67,8 +68,12 @@ def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path
         for render, name in ((render_gif, f"{tag}_N{n}.gif"), (render_topdown, f"{tag}_N{n}_topdown.png")):
             final = out / name
             tmp = final.with_name(f".{final.stem}.partial{final.suffix}")  # a kill never leaves a half image
-            render(tmp, *args, area_size=area, title=f"{tag} N={n}")
-            os.replace(tmp, final)
+            try:
+                with writing(final, f"the metrics of N = {n} are kept"):
+                    render(tmp, *args, area_size=area, title=f"{tag} N={n}")
+                    os.replace(tmp, final)
+            finally:
+                tmp.unlink(missing_ok=True)
             paths.append(final)
     return paths
 
@@ -98,14 +103,6 @@ def _filtered(ckpt, learned, train_cfg, config, dev, dtype):
         return FilteredController(learned.policy, train_cfg.model, config, cbf)
     except (CheckpointError, ValueError) as err:
         usage_error(f"--filter {config.kind} on {ckpt}: {err}", err)
-
-
-def _filter_settings(config) -> dict:
-    """What ``run.json`` records of a filter: its gain and clearance as the filter reads them."""
-    if config.kind == "dcbf":
-        b = config.barrier
-        return {"barrier": b.kind, "gamma": b.gamma, "margin": b.margin, "brake_accel": b.brake_accel}
-    return {"alpha": config.alpha, "margin": config.margin}
 
 
 def say_run_checkpoint(given: Path, found: Path, flag: str) -> None:
@@ -149,6 +146,7 @@ def run_eval(
     from .algo.filtered import FILTERS, FilterConfig, FilteredController
     from .control.controllers import CONTROLLERS, make_controller
     from .evaluate import evaluate
+    from .filter_names import join_method
     from .robots import ROBOTS
 
     require(dtype in DTYPES, f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
@@ -177,7 +175,7 @@ def run_eval(
         controller = train_cfg.algo
         if filter_config is not None:
             learned = _filtered(ckpt, learned, train_cfg, filter_config, dev, DTYPES[dtype])
-            controller = f"{train_cfg.algo}:{filter}"
+            controller = join_method(train_cfg.algo, filter)
         env_overrides = dict(train_cfg.env_overrides)  # the sensing the policy was trained with (radii, LiDAR)
         require(
             robot in (None, train_cfg.robot),
@@ -189,7 +187,7 @@ def run_eval(
         require(controller in CONTROLLERS, f"--controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
         if filter_config is not None:  # the nominal command behind the filter
             filtered_nominal = FilteredController(None, None, filter_config)
-            controller = f"nominal:{filter}"
+            controller = join_method("nominal", filter)
     robot = robot or "quadrotor"
     require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
     if (controller in ("ccbf", "dcbf") or filter_config is not None) and robot != "quadrotor":
@@ -208,7 +206,7 @@ def run_eval(
         "robot": robot,
         "checkpoint": None if ckpt is None else str(ckpt),
         "filter": filter,
-        "filter_config": None if filter_config is None else _filter_settings(filter_config),
+        "filter_config": None if filter_config is None else filter_config.settings(),
         "num_agents": sizes,
         "finished": [],
         "complete": False,
@@ -230,8 +228,11 @@ def run_eval(
         write_json_atomic(out / "metrics.json", rows)
         if episode is not None:
             recorded[rows[-1]["num_agents"]] = episode
-            if render:
-                written.extend(render_records({rows[-1]["num_agents"]: episode}, out, area, controller))
+            if render:  # after metrics.json: an image that cannot be written is said, and the metrics stay
+                try:
+                    written.extend(render_records({rows[-1]["num_agents"]: episode}, out, area, controller))
+                except WriteError as err:
+                    typer.echo(f"Warning: {err}", err=True)
         meta.update(finished=[r["num_agents"] for r in rows], wall_s=round(time.time() - t0, 1))
         write_json_atomic(out / "run.json", meta)
 

@@ -205,7 +205,24 @@ class TrainConfig:
             need(ok, "area_sizes", "None or a non-empty list of numbers > 0")
             self.area_sizes = [float(a) for a in self.area_sizes]
         need(self.dtype in ("float32", "float64"), "dtype", "'float32' or 'float64'")
-        self.env_config()  # validates the environment fields
+        need(isinstance(self.seed, int) and not isinstance(self.seed, bool) and self.seed >= 0, "seed",
+             "an integer >= 0")  # fmt: skip
+        for name in ("eval_num_agents", "eval_num_obstacles", "eval_max_steps"):
+            v = getattr(self, name)
+            need(v is None or (isinstance(v, int) and not isinstance(v, bool)), name, "None or an integer")
+        # the training and evaluation environments are built now, not at the first rollout or evaluation
+        for what, fields, build in (
+            ("training", "num_agents, area_size(s), num_obstacles, env_overrides", self._every_training_env),
+            ("evaluation", "eval_num_agents, eval_area_size, eval_num_obstacles, eval_max_steps", self.eval_env_config),
+        ):
+            try:
+                build()
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"TrainConfig: the {what} environment ({fields}) is invalid: {err}") from None
+
+    def _every_training_env(self) -> None:
+        for area in self.area_sizes or [self.area_size]:
+            self.env_config(area_size=area)
 
     # ------------------------------------------------------------------------------------------- derived
     @property

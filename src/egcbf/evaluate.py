@@ -13,6 +13,7 @@ dict that may hold ``qp_ms`` (solve time of this step, ms), ``num_slack`` / ``nu
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -151,6 +152,13 @@ def evaluate(
     record (or ``None``): the CLI writes its results there, so that a later failure loses no finished size.
     ``robot`` (:mod:`egcbf.robots`) sets the environment's defaults (:meth:`EnvConfig.for_robot`).
     """
+    for name, value in (("seed", seed), ("episodes", episodes)):  # a float would be truncated silently below
+        if not isinstance(value, numbers.Integral) or isinstance(value, bool):
+            raise TypeError(f"evaluate: {name} must be an integer, got {value!r}")
+    if isinstance(num_agents, (int, str)) or not all(
+        isinstance(n, numbers.Integral) and not isinstance(n, bool) for n in num_agents
+    ):
+        raise TypeError(f"evaluate: num_agents must be a sequence of integers (e.g. [8, 16]), got {num_agents!r}")
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if batch is not None and batch < 1:

@@ -41,7 +41,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .algo.learner import GraphCBFLearner
-from .atomic import write_json_atomic, write_text_atomic
+from .atomic import write_json_atomic, write_text_atomic, writing
 from .checkpoint import (
     CheckpointError,
     best_metrics,
@@ -76,6 +76,10 @@ def require_tensorboard():
     return SummaryWriter
 
 
+#: what a failed append to a CSV log keeps (:func:`egcbf.atomic.writing`)
+_ROWS_KEPT = "the rows logged before are intact (--resume drops a partial last row)"
+
+
 class _Logger:
     """Scalars to ``scalars.csv`` (always) and, if ``tensorboard``, to TensorBoard events in ``OUT/tb``;
     evaluations to ``metrics.csv``."""
@@ -91,7 +95,7 @@ class _Logger:
             self.tb = writer(str(out / "tb"), purge_step=start_step + 1 if start_step else None)
 
     def scalars(self, step: int, wall_s: float, values: dict[str, float]) -> None:
-        with open(self.out / "scalars.csv", "a", newline="") as f:
+        with writing(self.out / "scalars.csv", _ROWS_KEPT), open(self.out / "scalars.csv", "a", newline="") as f:
             w = csv.writer(f)
             for k, v in values.items():
                 w.writerow((step, f"{wall_s:.3f}", k, repr(float(v))))
@@ -100,7 +104,7 @@ class _Logger:
                 self.tb.add_scalar(k, float(v), step)
 
     def metrics(self, row: dict) -> None:
-        with open(self.out / "metrics.csv", "a", newline="") as f:
+        with writing(self.out / "metrics.csv", _ROWS_KEPT), open(self.out / "metrics.csv", "a", newline="") as f:
             csv.DictWriter(f, METRICS_FIELDS, extrasaction="ignore").writerow(row)
         if self.tb is not None:
             for k in METRICS_FIELDS[2:]:

@@ -98,3 +98,15 @@ def test_demo_runs_a_hand_crafted_controller_without_checkpoints(tmp_path):
 def test_demo_rejects_an_unknown_method(tmp_path):
     res = _invoke(["--method", "nope", "--out", str(tmp_path / "o"), *SMALL])
     assert res.exit_code != 0 and "unknown method" in res.output
+
+
+def test_demo_labels_come_from_the_weights_not_the_folder_names(checkpoints, tmp_path):
+    """Method folders swapped: GCBF+ weights under checkpoints/egcbf+ are refused, not labelled EGCBF+."""
+    import shutil
+
+    swapped = tmp_path / "swapped"
+    shutil.copytree(checkpoints / "egcbf+", swapped / "gcbf+")
+    shutil.copytree(checkpoints / "gcbf+", swapped / "egcbf+")
+    res = _invoke(["--checkpoints", str(swapped), "--compare", "gcbf+", "--out", str(tmp_path / "o"), *SMALL])
+    assert res.exit_code == 2 and "holds gcbf+ weights" in res.output and "not egcbf+" in res.output, res.output
+    assert not (tmp_path / "o").exists()

@@ -6,6 +6,7 @@ import pickle
 import shutil
 import sys
 import types
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -168,13 +169,28 @@ def test_a_failing_cell_keeps_the_others_and_the_invocation_is_recorded(first, t
 
 
 def test_a_second_sweep_into_the_same_directory_is_refused(first, tmp_path):
+    """Another process holding the results directory (a sweep, an eval) stops the sweep before any cell runs."""
+    import subprocess
+    import sys
+    import time
+
     cfg, _ = first
-    with rp.runner._SweepLock(cfg.out):
-        with pytest.raises(RuntimeError, match=r"another sweep \(pid \d+\) is writing into"):
-            with rp.runner._SweepLock(cfg.out):
-                pass
-    with rp.runner._SweepLock(cfg.out):  # released
-        pass
+    ready = tmp_path / "ready"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import pathlib, sys, time\nfrom egcbf.locks import DirLock\n"
+        f"with DirLock({str(cfg.out)!r}, 'egcbf reproduce'):\n"
+        f"    pathlib.Path({str(ready)!r}).touch()\n    time.sleep(60)\n"
+    )])  # fmt: skip
+    try:
+        deadline = time.time() + 30
+        while not ready.exists() and time.time() < deadline:
+            time.sleep(0.05)
+        with pytest.raises(RuntimeError, match=rf"is being written by egcbf reproduce \(pid {holder.pid}\)"):
+            rp.sweep(cfg, progress=False, log=lambda s: None)
+    finally:
+        holder.kill()
+        holder.wait()
+    rp.sweep(cfg, progress=False, log=lambda s: None)  # released when its process died
 
 
 def test_sigterm_stops_a_sweep_like_ctrl_c():
@@ -599,3 +615,167 @@ def test_provenance_flags_cells_of_another_checkpoint(first):
     assert "ffffffffffff (1) **not the current checkpoint**" in prov
     assert "**1 cell(s) were computed with a checkpoint other than the one now in" in prov
     assert "not the current checkpoint" not in rp.provenance_markdown(cfg, records)
+
+
+# ------------------------------------------------------------------------------------------------ run-time filters
+@pytest.fixture(scope="module")
+def filtered(checkpoints, tmp_path_factory):
+    """A finished sweep of EGCBF+ behind the dCBF filter (with and without obstacles) and of the nominal controller
+    behind it: its config and records."""
+    cfg = _cfg(checkpoints, tmp_path_factory.mktemp("filtered"), methods=("egcbf+:dcbf", "nominal:dcbf"),
+               num_agents=(3,), obstacle_methods=("egcbf+:dcbf",), episodes=1)  # fmt: skip
+    return cfg, rp.sweep(cfg, command="egcbf reproduce (filtered)", progress=False, log=lambda s: None)
+
+
+def test_filtered_cells_equal_egcbf_eval_with_the_filter(filtered, tmp_path):
+    """A METHOD:FILTER cell is what `egcbf eval --checkpoint ... --filter FILTER` computes (`--controller nominal` for
+    the nominal one), in a folder of its own, and records the filter as eval's run.json does."""
+    cfg, records = filtered
+    assert set(records) == {Cell("egcbf+:dcbf", 0, 3, 0), Cell("egcbf+:dcbf", 1, 3, 0), Cell("nominal:dcbf", 0, 3)}
+    paths = {c.path(cfg.out).relative_to(cfg.out).as_posix() for c in records}
+    assert paths == {"egcbf+_dcbf_obs0/N3.json", "egcbf+_dcbf_obs1/N3.json", "nominal_dcbf_obs0/N3.json"}
+    common = ["--num-agents", "3", "--area", "1.5", "--episodes", "1", "--seed", "3", "--max-steps", "5"]
+    for cell, source in ((Cell("egcbf+:dcbf", 1, 3, 0), ["--checkpoint", str(cfg.checkpoints / "egcbf+")]),
+                         (Cell("nominal:dcbf", 0, 3), ["--controller", "nominal"])):  # fmt: skip
+        out = tmp_path / cell.method.replace(":", "_")
+        args = ["eval", *source, "--filter", "dcbf", "--obstacles", str(cell.obstacles), *common, "--out", str(out)]
+        res = CliRunner().invoke(app, [*args, "--no-progress"])
+        assert res.exit_code == 0, res.output
+        run, row = json.loads((out / "run.json").read_text()), json.loads((out / "metrics.json").read_text())[0]
+        stored = json.loads(cell.path(cfg.out).read_text())
+        assert run["controller"] == cell.method and _metrics(stored["row"]) == _metrics(row)
+        for part in ("key", "meta"):
+            assert stored[part]["filter"] == run["filter"] == "dcbf"
+            assert stored[part]["filter_config"] == run["filter_config"]
+        assert "filter_active" in stored["row"] and "qp_slack_steps" in stored["row"]
+    learned, nominal = records[Cell("egcbf+:dcbf", 0, 3, 0)], records[Cell("nominal:dcbf", 0, 3)]
+    assert learned["key"]["checkpoint_sha256"] == rp.find_method_checkpoint(cfg.checkpoints, "egcbf+").sha256
+    assert learned["meta"]["checkpoint"] == str(cfg.checkpoints / "egcbf+") and learned["meta"]["train_seed"] == 0
+    assert nominal["key"]["checkpoint_sha256"] is None and nominal["meta"]["train_seed"] is None
+
+
+def test_filtered_cells_resume_without_recomputing(filtered, monkeypatch):
+    cfg, records = filtered
+
+    def boom(task):
+        raise AssertionError(f"recomputed {task.cell}")
+
+    monkeypatch.setattr(rp.workers, "run_cell", boom)
+    assert rp.sweep(cfg, progress=False, log=lambda s: None) == records
+    assert json.loads((cfg.out / "sweep.json").read_text())[-1]["reused"] == len(records)
+    assert rp.load_cells(cfg) == records
+
+
+def test_filtered_rows_in_the_tables_summary_and_figure(filtered, tmp_path):
+    cfg, records = filtered
+    table = rp.table_markdown(cfg, records)
+    n3 = table.split("**N = 3**")[1].split("###")[0]
+    assert "| EGCBF+ + dCBF filter |" in n3 and "| nominal + dCBF filter |" in n3 and "% changed)" in n3
+    assert "| QP slack / failed |" in n3 and n3.count("| - | - | - | - | - |") == 2  # not in the paper
+    obstacles = table.split("### With 1 obstacles")[1]
+    assert "| 3 | EGCBF+ + dCBF filter |" in obstacles and "nominal + dCBF filter" not in obstacles
+    assert "Run-time safety filters (not in the paper" in table
+    assert "**Behind run-time filters**" in rp.summary_markdown(cfg, records)
+    assert "Run-time filter `dcbf` of 3 cell(s): barrier wang" in rp.provenance_markdown(cfg, records)
+    assert rp.scalability_figure(cfg, records, tmp_path / "f.png").stat().st_size > 0
+    # a filtered method with no cell yet shows as pending, like any other
+    wide = dataclasses.replace(cfg, methods=(*cfg.methods, "egcbf+:prior"))
+    assert "| EGCBF+ + prior-CBF filter | pending |" in rp.table_markdown(wide, records)
+
+
+def test_filtered_methods_follow_their_base_methods_seeds_and_checkpoints(checkpoints, tmp_path, monkeypatch):
+    cfg = _cfg(checkpoints, tmp_path / "out", methods=("egcbf+", "egcbf+:dcbf", "egcbf+:cbf", "nominal:dcbf"),
+               obstacles=0, train_seeds=(0, 1), seed_methods=("egcbf+",), num_agents=(2,))  # fmt: skip
+    assert cfg.seeds_for("egcbf+:dcbf") == cfg.seeds_for("egcbf+") == (0, 1) and cfg.seeds_for("nominal:dcbf") == (
+        None,
+    )
+    assert cfg.checkpoint_runs() == [("egcbf+", 0), ("egcbf+", 1)]
+    paths = {c.path(cfg.out).relative_to(cfg.out).as_posix() for c in cfg.cells()}
+    assert {"egcbf+-s1_obs0/N2.json", "egcbf+_dcbf-s1_obs0/N2.json", "egcbf+_cbf_obs0/N2.json"} <= paths
+    assert "nominal_dcbf_obs0/N2.json" in paths and len(paths) == len(cfg.cells()) == 7
+    ckpts = rp.validate(cfg)
+    keys = {c: rp.store.wanted_key(cfg, c, ckpts) for c in cfg.cells()}
+    assert keys[Cell("egcbf+:dcbf", 0, 2, 1)]["checkpoint_sha256"] == ckpts["egcbf+", 1].sha256
+    # an unfiltered cell's key is the one of the sweep before the filtered methods: its stored cells are found
+    assert list(keys[Cell("egcbf+", 0, 2, 1)]) == [
+        "method", "obstacles", "num_agents", "area", "episodes", "seed", "max_steps", "checkpoint_sha256"
+    ]  # fmt: skip
+    assert keys[Cell("egcbf+:cbf", 0, 2, 0)]["filter_config"] == {"alpha": 1.0, "margin": 0.0}
+    # the learned-CBF filter needs the soft-min CBF head: refused before any cell runs
+    plain = types.SimpleNamespace(model=types.SimpleNamespace(interface="accel", cbf_head="mlp", cbf_z_symmetric=False))
+    import egcbf.checkpoint
+
+    monkeypatch.setattr(egcbf.checkpoint, "read_config", lambda path: plain)
+    with pytest.raises(ValueError, match=r"egcbf\+:cbf cannot use the checkpoint .*soft-min CBF head"):
+        rp.runner._check_filters(cfg, ckpts)
+    rp.runner._check_filters(dataclasses.replace(cfg, methods=("egcbf+:dcbf",)), ckpts)  # dcbf reads no CBF
+
+
+def test_committed_results_are_found_with_the_filtered_methods_in_the_default_set():
+    """The default sweep now holds the filtered methods; every committed cell of docs/results/reproduction keeps
+    its file and its key (nothing stored is recomputed or reported as made with other settings)."""
+    out = Path(__file__).resolve().parents[2] / "docs" / "results" / "reproduction"
+    stored = sorted(out.rglob("N*.json"))
+    if not stored:
+        pytest.skip("no committed reproduction cells")
+    cfg = SweepConfig(out=out)
+    assert set(rp.FILTERED) <= set(cfg.methods) & set(cfg.obstacle_methods) & set(cfg.scale_methods)
+    before = dataclasses.replace(
+        cfg,
+        methods=tuple(m for m in cfg.methods if m not in rp.FILTERED),
+        obstacle_methods=tuple(m for m in cfg.obstacle_methods if m not in rp.FILTERED),
+        scale_methods=tuple(m for m in cfg.scale_methods if m not in rp.FILTERED),
+    )
+    found = rp.load_cells(cfg)
+    assert set(found) == set(before.cells()) and len(found) == len(stored) and not rp.mismatched_cells(cfg)
+    for cell, rec in found.items():
+        assert rec["key"] == rp.cell_key(cfg, cell, rec["key"]["checkpoint_sha256"])
+    assert all(c.path(out).exists() for c in before.cells())
+
+
+def test_reproduce_command_takes_the_filtered_names(filtered, tmp_path):
+    from egcbf.cli import _REPRO_METHODS, _REPRO_OBSTACLE_METHODS
+
+    assert tuple(_REPRO_METHODS.split(",")) == SweepConfig().methods == SweepConfig().scale_methods == rp.METHODS
+    assert tuple(_REPRO_OBSTACLE_METHODS.split(",")) == SweepConfig().obstacle_methods
+    res = CliRunner().invoke(app, ["reproduce", "--methods", "egcbf+:bogus,egcbf+:dcbf"])
+    assert res.exit_code == 2 and "unknown method(s) ['egcbf+:bogus']" in res.output
+    assert "egcbf+:dcbf, gcbf+:dcbf, egcbf+:cbf, egcbf+:prior, nominal:dcbf" in res.output
+    cfg, records = filtered
+    report = tmp_path / "r.md"
+    args = ["reproduce", "--methods", "egcbf+:dcbf,nominal:dcbf", "--obstacle-methods", "egcbf+:dcbf"]
+    args += ["--num-agents", "3", "--area", "1.5", "--obstacles", "1", "--episodes", "1", "--seed", "3"]
+    args += ["--max-steps", "5", "--train-seeds", "0", "--scale-sizes", "none", "--checkpoints", str(cfg.checkpoints)]
+    args += ["--out", str(cfg.out), "--report", str(report), "--no-progress"]
+    res = CliRunner().invoke(app, args)  # every cell exists: nothing is recomputed
+    assert res.exit_code == 0, res.output
+    assert f"{len(records)} of {len(records)} cells" in res.output and "EGCBF+ + dCBF filter" in report.read_text()
+
+
+def test_method_lists_naming_methods_not_run_are_refused(first, tmp_path):
+    cfg, _ = first
+    base = ["reproduce", "--methods", "egcbf+,dcbf", "--num-agents", "2", "--area", "1.5", "--episodes", "2",
+            "--checkpoints", str(cfg.checkpoints), "--out", str(tmp_path / "o"), "--report", str(tmp_path / "r.md"),
+            "--scale-sizes", "none", "--no-progress", "--report-only"]  # fmt: skip
+    for flag, value in (("--obstacle-methods", "egcbf+,gcbf+"), ("--seed-methods", "gcbf+"),
+                        ("--scale-methods", "dcbf,ccbf")):  # fmt: skip
+        res = CliRunner().invoke(app, [*base, flag, value])
+        assert res.exit_code == 2, res.output
+        assert f"{flag} names" in res.output and "which --methods does not run" in res.output, res.output
+
+
+def test_report_only_names_a_truncated_cell_file(first, tmp_path):
+    import shutil
+
+    cfg, records = first
+    out = tmp_path / "cells"
+    shutil.copytree(cfg.out, out)
+    victim = next(iter(records)).path(out)
+    victim.write_text(victim.read_text()[:40])  # truncated
+    args = ["reproduce", "--methods", "egcbf+,dcbf", "--num-agents", "2,3", "--area", "1.5", "--obstacles", "1"]
+    args += ["--obstacle-methods", "egcbf+", "--episodes", "2", "--seed", "3", "--max-steps", "5", "--no-progress"]
+    args += ["--checkpoints", str(cfg.checkpoints), "--out", str(out), "--report", str(tmp_path / "r.md")]
+    args += ["--train-seeds", "0", "--scale-sizes", "none", "--report-only"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "1 cell file(s) cannot be read" in res.output and str(victim) in res.output, res.output

@@ -82,6 +82,14 @@ def test_missing_weights_name_the_file(run):
         load_controller(run / "best")
 
 
+@pytest.mark.parametrize("where", ["best", "newest"])
+def test_missing_config_names_the_file(run, where):
+    ckpt = run / "best" if where == "best" else _ckpt(run)
+    (ckpt / "config.json").unlink()
+    with pytest.raises(CheckpointError, match=r"config.json is missing.*holds weights"):
+        load_controller(ckpt)
+
+
 def test_another_methods_config_is_refused(run):
     from egcbf.config import TrainConfig
 
@@ -91,15 +99,17 @@ def test_another_methods_config_is_refused(run):
 
 
 def test_weights_of_another_shape_are_refused(run):
-    from safetensors.torch import load_file, save_file
+    from safetensors.torch import load_file
+
+    from egcbf.checkpoint import read_config, save_weights, sha256
 
     f = run / "best" / "model.safetensors"
     w = load_file(str(f))
     key = next(k for k in w if k.startswith("policy."))
     w[key] = torch.zeros(3, 3, 3)
-    save_file(w, str(f))
+    save_weights(w, f, read_config(run / "best"))
     st = run / "best" / "state.json"
-    st.write_text(json.dumps({k: v for k, v in json.loads(st.read_text()).items() if k != "weights_sha256"}))
+    st.write_text(json.dumps({**json.loads(st.read_text()), "weights_sha256": sha256(f)}))
     with pytest.raises(CheckpointError, match="does not match"):
         load_controller(run / "best")
 
@@ -171,3 +181,79 @@ def test_state_json_records_the_weights_hash(run):
 
     state = json.loads((run / "best" / "state.json").read_text())
     assert state["weights_sha256"] == sha256(run / "best" / "model.safetensors")
+
+
+# ------------------------------------------------------------------------------ identity cannot be relabelled away
+def _relabel(best, algo: str, group: str) -> None:
+    """Edit what config.json and state.json say the weights are, consistently (the weights file untouched)."""
+    cfg = json.loads((best / "config.json").read_text())
+    cfg["algo"] = algo
+    cfg["model"]["group"] = group
+    (best / "config.json").write_text(json.dumps(cfg))
+    st = json.loads((best / "state.json").read_text())
+    st.update(algo=algo, group=group)
+    (best / "state.json").write_text(json.dumps(st))
+
+
+def test_weights_record_what_they_are_in_their_own_header(run):
+    from egcbf.checkpoint import identity, read_config, weights_identity
+
+    best = run / "best"
+    assert weights_identity(best / "model.safetensors") == {k: str(v) for k, v in identity(read_config(best)).items()}
+
+
+def test_relabelling_config_and_state_together_is_refused(run):
+    """Editing both JSON files to call EGCBF+ weights GCBF+ is caught by the weights' own header."""
+    _relabel(run / "best", "gcbf+", "trivial")
+    with pytest.raises(CheckpointError, match=r"model.safetensors holds weights of algo 'egcbf\+'.*'gcbf\+'"):
+        load_controller(run / "best")
+
+
+def test_missing_state_json_is_fine_when_the_weights_say_what_they_are(run):
+    (run / "best" / "state.json").unlink()
+    load_controller(run / "best")  # identity from the weights' header: nothing to relabel
+    from egcbf.config import TrainConfig
+
+    TrainConfig.preset("gcbf+", "tiny").to_json(run / "best" / "config.json")
+    with pytest.raises(CheckpointError, match=r"holds weights of algo 'egcbf\+'"):
+        load_controller(run / "best")
+
+
+def _strip_header_identity(f) -> None:
+    """Rewrite ``f`` as a format-1 file: the same tensors, no identity in the header."""
+    from safetensors.torch import load_file, save_file
+
+    save_file(load_file(str(f)), str(f))
+
+
+def test_missing_state_json_of_legacy_weights_is_refused(run):
+    """Weights written before format 2 say nothing about themselves: without state.json nothing can be checked."""
+    _strip_header_identity(run / "best" / "model.safetensors")
+    (run / "best" / "state.json").unlink()
+    with pytest.raises(CheckpointError, match=r"state\.json is missing.*cannot be checked"):
+        load_controller(run / "best")
+
+
+@pytest.mark.parametrize("key", ["algo", "group", "interface", "weights_sha256"])
+def test_legacy_state_json_stripped_of_a_key_is_refused(run, key):
+    from egcbf.checkpoint import sha256
+
+    best = run / "best"
+    _strip_header_identity(best / "model.safetensors")
+    st = json.loads((best / "state.json").read_text())
+    st = {**st, "format_version": 1, "weights_sha256": sha256(best / "model.safetensors")}
+    del st[key]
+    (best / "state.json").write_text(json.dumps(st))
+    with pytest.raises(CheckpointError, match=r"state\.json"):
+        load_controller(best)
+
+
+def test_legacy_checkpoint_with_complete_state_json_still_loads(run):
+    from egcbf.checkpoint import sha256
+
+    best = run / "best"
+    _strip_header_identity(best / "model.safetensors")
+    st = json.loads((best / "state.json").read_text())
+    st.update(format_version=1, weights_sha256=sha256(best / "model.safetensors"))
+    (best / "state.json").write_text(json.dumps(st))
+    load_controller(best)

@@ -54,6 +54,7 @@ from ..control.cbf_qp import DecentralizedCBFQP, brake_acceleration
 from ..control.dense_qp import assemble_decentralized, solve_dense_batch_ipm, verified
 from ..control.qp import SlackPenalty
 from ..env import EnvConfig, SwarmState
+from ..filter_names import FILTERS
 from ..graph import KIND_AGENT, KIND_GOAL, SwarmGraph, build_graph
 from ..nn.edge_min import EdgeMinHead, closest_approach
 from ..nn.models import CBFNet, ModelConfig, PolicyNet, frames_for
@@ -61,9 +62,6 @@ from .interface import AccelInterface, make_interface
 from .learner import policy_command
 
 __all__ = ["FILTERS", "EdgeRows", "FilterConfig", "FilteredController", "edge_rows", "load_filtered_controller"]
-
-#: the run-time filters of ``egcbf eval --filter`` (``"none"``: the policy alone)
-FILTERS = ("none", "cbf", "prior", "dcbf")
 
 
 #: the ``dcbf`` filter's barrier: Wang et al.'s braking-distance barrier with a smaller clearance, a larger gain and
@@ -116,6 +114,14 @@ class FilterConfig:
         except ValueError as err:  # name the filter's fields, not the barrier's
             raise ValueError(str(err).replace("BarrierConfig.gamma", "FilterConfig.alpha").replace(
                 "BarrierConfig.margin", "FilterConfig.margin")) from None  # fmt: skip
+
+    def settings(self) -> dict:
+        """What a result records of the filter (``egcbf eval``'s run.json, ``egcbf reproduce``'s cells): its gain
+        and clearance as the filter reads them (the barrier's for ``dcbf``)."""
+        if self.kind == "dcbf":
+            b = self.barrier
+            return {"barrier": b.kind, "gamma": b.gamma, "margin": b.margin, "brake_accel": b.brake_accel}
+        return {"alpha": self.alpha, "margin": self.margin}
 
     def __post_init__(self) -> None:
         if self.kind not in FILTERS or self.kind == "none":

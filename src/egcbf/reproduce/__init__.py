@@ -5,10 +5,12 @@
     records = sweep(cfg, command="egcbf reproduce")
     write_report(cfg, records, "docs/reproduction.md")
 
-The sweep evaluates every method (GCBF, GCBF+, dCBF-QP, cCBF-QP, EGCBF, EGCBF+, and the nominal controller alone)
-at every swarm size of Table I in an arena ``[0, l]^3`` without obstacles and (the methods of ``obstacle_methods``)
-with sphere obstacles; EGCBF+ and GCBF+ once per training seed; and, past the paper, at N = 1024 ... 4096 at the
-density of N = 512. One job per module:
+The sweep evaluates every method (GCBF, GCBF+, dCBF-QP, cCBF-QP, EGCBF, EGCBF+, the nominal controller alone, and
+past the paper the run-time safety-filtered controllers ``METHOD:FILTER``: EGCBF+ and GCBF+ behind the dCBF filter,
+EGCBF+ behind its learned CBF and behind the untrained prior, the nominal controller behind the dCBF filter) at
+every swarm size of Table I in an arena ``[0, l]^3`` without obstacles and (the methods of ``obstacle_methods``) with
+sphere obstacles; EGCBF+ and GCBF+ (alone and filtered) once per training seed; and, past the paper, at
+N = 1024 ... 4096 at the density of N = 512. One job per module:
 
 * :mod:`~egcbf.reproduce.paper`: the paper's Table I and the method names;
 * :mod:`~egcbf.reproduce.plan`: :class:`SweepConfig`, its cells and what a cell's result depends on;
@@ -24,7 +26,7 @@ density of N = 512. One job per module:
 """
 
 from .figures import scalability_figure
-from .paper import BASELINES, DEFAULT_SIZES, LABELS, LEARNED, METHODS, PAPER_TABLE_I, SCALE_SIZES
+from .paper import BASELINES, DEFAULT_SIZES, FILTERED, LABELS, LEARNED, METHODS, PAPER_TABLE_I, SCALE_SIZES
 from .plan import Cell, SweepConfig, cell_key
 from .provenance import provenance_markdown, regenerate_command
 from .report import write_report
@@ -38,6 +40,7 @@ from .store import (
     load_cells,
     mismatched_cells,
     read_invocations,
+    unreadable_cells,
 )
 from .summary import summary_markdown
 from .tables import table_markdown
@@ -46,6 +49,7 @@ from .workers import CellTask, require_ray, run_cell
 __all__ = [
     "BASELINES",
     "DEFAULT_SIZES",
+    "FILTERED",
     "LABELS",
     "LEARNED",
     "METHODS",
@@ -72,6 +76,7 @@ __all__ = [
     "summary_markdown",
     "sweep",
     "table_markdown",
+    "unreadable_cells",
     "validate",
     "write_report",
 ]

@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .paper import LABELS, LEARNED, METHODS
+from .paper import LABELS, LEARNED, METHODS, base_method, method_filter
 from .plan import Cell, SweepConfig
 from .stats import episodes_text, label, scale_text, seed_rows, stat
 from .store import find_method_checkpoint
@@ -24,6 +24,18 @@ def _panels(cfg: SweepConfig) -> list[tuple[int, str, str]]:
     return panels
 
 
+#: the marker of each run-time filter's line (a method alone: a circle)
+_MARKERS = {"none": "o", "dcbf": "s", "cbf": "^", "prior": "v"}
+
+
+def _style(m: str) -> tuple[str, str]:
+    """``(colour, marker)`` of a method's lines: a method alone keeps its colour of the paper's methods (the
+    nominal controller black); behind a run-time filter, its base method's colour with the filter's marker."""
+    base = base_method(m)
+    color = "k" if base == "nominal" else f"C{METHODS.index(base)}"
+    return color, _MARKERS.get(method_filter(m), "o")
+
+
 def _join(cfg: SweepConfig) -> int | None:
     """The Table I N that the fixed-density line starts from: ``scale_reference`` (the same density), if Table I
     has it."""
@@ -32,7 +44,8 @@ def _join(cfg: SweepConfig) -> int | None:
 
 def scalability_figure(cfg: SweepConfig, records: dict[Cell, dict], out_png: str | Path) -> Path:
     """Safety rate without obstacles, success rate without obstacles and (with an obstacle setting) safety rate
-    with obstacles, in %, against N (log2 axis); one colour per method, a band for the min-max over training seeds.
+    with obstacles, in %, against N (log2 axis); one colour per method (behind a run-time filter: its base method's
+    colour, a marker per filter), a band for the min-max over training seeds.
     Table I's cells (l fixed, the density grows) are joined by solid lines; the scalability study's (fixed density)
     by dotted lines from Table I's ``scale_reference`` N on (the same density). Returns ``out_png``."""
     from matplotlib.figure import Figure
@@ -42,9 +55,9 @@ def scalability_figure(cfg: SweepConfig, records: dict[Cell, dict], out_png: str
     axes = fig.subplots(1, len(panels), sharey=True)
     big, join = max(int(n) for n in cfg.num_agents), _join(cfg)
     for ax, (k, metric, title) in zip(axes, panels):
-        for i, m in enumerate(METHODS):
-            color = "k" if m == "nominal" else f"C{i}"
-            for scale, style in ((False, "-o"), (True, ":o")):
+        for m in METHODS:
+            color, marker = _style(m)
+            for scale, style in ((False, "-" + marker), (True, ":" + marker)):
                 sizes = cfg.scale_sizes if scale else cfg.num_agents
                 pts = [(int(n), stat(seed_rows(records, m, k, int(n), scale), metric)) for n in sizes]
                 pts = [(n, st) for n, st in pts if st is not None]

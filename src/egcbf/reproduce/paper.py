@@ -3,16 +3,35 @@
 from __future__ import annotations
 
 from ..config import LEARNED_METHODS
+from ..filter_names import filter_label, split_method
 
-__all__ = ["BASELINES", "DEFAULT_SIZES", "LABELS", "LEARNED", "METHODS", "PAPER_TABLE_I", "SCALE_SIZES", "PaperRow"]
+__all__ = [
+    "BASELINES",
+    "DEFAULT_SIZES",
+    "FILTERED",
+    "LABELS",
+    "LEARNED",
+    "METHODS",
+    "PAPER_TABLE_I",
+    "SCALE_SIZES",
+    "PaperRow",
+    "base_method",
+    "method_filter",
+]
 
 #: the learned methods (``egcbf.config.LEARNED_METHODS``: each one's group and reference controller)
 LEARNED = tuple(LEARNED_METHODS)
 BASELINES = ("dcbf", "ccbf", "nominal")
+#: controllers behind a run-time safety filter (``egcbf eval --filter``, docs/safety_filters.md), ``METHOD:FILTER``
+#: (:mod:`egcbf.filter_names`), not in the paper: the learned policy behind the dCBF filter (EGCBF+, GCBF+), behind
+#: its own learned CBF and behind the untrained prior CBF (the ablation that shows what the learned CBF adds), and
+#: the nominal controller behind the dCBF filter (the ablation that shows what the learned policy adds)
+FILTERED = ("egcbf+:dcbf", "gcbf+:dcbf", "egcbf+:cbf", "egcbf+:prior", "nominal:dcbf")
 #: every controller the sweep evaluates (not only learned ones, unlike ``LEARNED_METHODS``), in the paper's row
-#: order, then the nominal controller alone (not in the paper: what the learned residual starts from)
-METHODS = ("gcbf", "gcbf+", "dcbf", "ccbf", "egcbf", "egcbf+", "nominal")
-LABELS = {
+#: order, then the nominal controller alone (not in the paper: what the learned residual starts from), then the
+#: filtered controllers
+METHODS = ("gcbf", "gcbf+", "dcbf", "ccbf", "egcbf", "egcbf+", "nominal", *FILTERED)
+_BASE_LABELS = {
     "nominal": "nominal (no CBF)",
     "gcbf": "GCBF",
     "gcbf+": "GCBF+",
@@ -21,6 +40,26 @@ LABELS = {
     "egcbf": "EGCBF",
     "egcbf+": "EGCBF+",
 }
+
+
+def base_method(method: str) -> str:
+    """The controller behind the filter of ``method`` (``egcbf+:dcbf`` -> ``egcbf+``), or ``method`` itself: a
+    filtered learned method's checkpoints and training seeds are its base method's."""
+    return split_method(method)[0]
+
+
+def method_filter(method: str) -> str:
+    """The run-time filter of ``method`` (``egcbf+:dcbf`` -> ``dcbf``; ``"none"`` for an unfiltered method)."""
+    return split_method(method)[1]
+
+
+def _label(method: str) -> str:
+    base, filt = split_method(method)
+    return _BASE_LABELS[method] if filt == "none" else filter_label(_BASE_LABELS[base].split(" (")[0], filt)
+
+
+#: ``EGCBF+``, ``EGCBF+ + dCBF filter``, ``nominal + dCBF filter``, ...
+LABELS = {m: _label(m) for m in METHODS}
 #: Table I's swarm sizes (l = 4)
 DEFAULT_SIZES = (8, 16, 64, 128, 256, 512)
 #: the scalability study past the paper: N at the density of N = 512, l = 4 (8 agents per m^3)

@@ -7,9 +7,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
-from .paper import BASELINES, DEFAULT_SIZES, LEARNED, METHODS, SCALE_SIZES
+from ..filter_names import path_name
+from .paper import BASELINES, DEFAULT_SIZES, FILTERED, LEARNED, METHODS, SCALE_SIZES, base_method, method_filter
 
-__all__ = ["BACKENDS", "Cell", "SweepConfig", "cell_key"]
+__all__ = ["BACKENDS", "Cell", "SweepConfig", "cell_key", "filter_settings"]
 
 BACKENDS = ("process", "ray")
 
@@ -18,8 +19,9 @@ class Cell(NamedTuple):
     """One evaluation of the sweep: ``method`` with ``obstacles`` obstacles at ``num_agents`` agents.
 
     ``train_seed`` is the training seed of a learned method's checkpoint (``None`` for the hand-crafted
-    controllers). ``area`` is ``None`` for Table I's cells (the sweep's ``l``) and the side ``l`` of the arena for
-    the cells of the scalability study past Table I (``N`` at the density of ``scale_reference`` agents)."""
+    controllers); a method behind a run-time filter (``egcbf+:dcbf``) uses its base method's checkpoint. ``area``
+    is ``None`` for Table I's cells (the sweep's ``l``) and the side ``l`` of the arena for the cells of the
+    scalability study past Table I (``N`` at the density of ``scale_reference`` agents)."""
 
     method: str
     obstacles: int
@@ -29,8 +31,19 @@ class Cell(NamedTuple):
 
     @property
     def run(self) -> str:
-        """``egcbf+`` (training seed 0 or a baseline) or ``egcbf+-s2`` (training seed 2)."""
+        """``egcbf+`` (training seed 0 or a baseline) or ``egcbf+-s2`` (training seed 2); ``egcbf+:dcbf-s2``
+        behind a run-time filter."""
         return self.method if not self.train_seed else f"{self.method}-s{self.train_seed}"
+
+    @property
+    def base(self) -> str:
+        """The method whose checkpoint (and training seeds) the cell uses: ``egcbf+`` for ``egcbf+:dcbf``."""
+        return base_method(self.method)
+
+    @property
+    def filter(self) -> str:
+        """The cell's run-time filter: ``"dcbf"`` for ``egcbf+:dcbf``, ``"none"`` for a method alone."""
+        return method_filter(self.method)
 
     @property
     def scale(self) -> bool:
@@ -38,9 +51,10 @@ class Cell(NamedTuple):
         return self.area is not None
 
     def path(self, out: str | Path) -> Path:
-        """Its result file: ``OUT/<run>_obs<k>/N<n>.json``, or ``OUT/scale/<run>_obs<k>/N<n>.json``."""
+        """Its result file: ``OUT/<run>_obs<k>/N<n>.json``, or ``OUT/scale/<run>_obs<k>/N<n>.json`` (``METHOD:FILTER``
+        written ``METHOD_FILTER``: ``OUT/egcbf+_dcbf-s2_obs0/N512.json``)."""
         base = Path(out) / "scale" if self.scale else Path(out)
-        return base / f"{self.run}_obs{self.obstacles}" / f"N{self.num_agents}.json"
+        return base / f"{path_name(self.run)}_obs{self.obstacles}" / f"N{self.num_agents}.json"
 
 
 def _positive_ints(name: str, values) -> None:
@@ -61,6 +75,10 @@ class SweepConfig:
     checkpoint ``CHECKPOINTS/<method>`` for seed 0, ``CHECKPOINTS/seeds/<method>-s<k>`` for seed ``k``); the other
     learned methods run their seed-0 checkpoint.
 
+    **Run-time filters** (``FILTERED``, ``METHOD:FILTER``): a learned method behind a filter runs the checkpoints
+    and training seeds of its base method (``egcbf+:dcbf`` those of ``egcbf+``), ``nominal:dcbf`` none; the filter
+    has ``egcbf eval --filter``'s default settings (:func:`filter_settings`), recorded in the cell's key and meta.
+
     **Scalability past Table I.** The methods of ``scale_methods`` (among ``methods``) also run without obstacles
     at every ``scale_sizes`` N, in the arena of side ``l_N = area (N / scale_reference)^(1/3)`` (the density of
     ``scale_reference`` agents at ``l = area``), for ``ceil(scale_agent_episodes / N)`` episodes (as many
@@ -77,7 +95,7 @@ class SweepConfig:
     num_agents: tuple[int, ...] = DEFAULT_SIZES
     area: float = 4.0
     obstacles: int = 8
-    obstacle_methods: tuple[str, ...] = (*LEARNED, "nominal")
+    obstacle_methods: tuple[str, ...] = (*LEARNED, "nominal", *FILTERED)
     episodes: int = 50
     baseline_episodes: int | None = None
     train_seeds: tuple[int, ...] = (0, 1, 2)
@@ -130,10 +148,12 @@ class SweepConfig:
 
     # ------------------------------------------------------------------------------------------------ cells
     def seeds_for(self, method: str) -> tuple[int | None, ...]:
-        """The training seeds evaluated for ``method``: ``(None,)`` for a hand-crafted controller."""
-        if method in BASELINES:
+        """The training seeds evaluated for ``method``: ``(None,)`` for a hand-crafted controller (also behind a
+        filter); a filtered learned method's are its base method's."""
+        base = base_method(method)
+        if base in BASELINES:
             return (None,)
-        return tuple(int(s) for s in self.train_seeds) if method in self.seed_methods else (0,)
+        return tuple(int(s) for s in self.train_seeds) if base in self.seed_methods else (0,)
 
     def scale_area(self, num_agents: int) -> float:
         """``l`` of the scalability cell at ``num_agents``: the density of ``scale_reference`` agents at ``area``
@@ -164,13 +184,15 @@ class SweepConfig:
         return self.table_cells() + self.scale_cells()
 
     def checkpoint_runs(self) -> list[tuple[str, int]]:
-        """``(method, training seed)`` of every learned checkpoint some cell needs."""
-        return list(dict.fromkeys((c.method, c.train_seed) for c in self.cells() if c.train_seed is not None))
+        """``(method, training seed)`` of every learned checkpoint some cell needs (a filtered method's is its base
+        method's)."""
+        return list(dict.fromkeys((c.base, c.train_seed) for c in self.cells() if c.train_seed is not None))
 
     # ------------------------------------------------------------------------------------------------ episodes
     def episodes_for(self, cell: Cell) -> int:
         """Episodes of ``cell``: ``ceil(scale_agent_episodes / N)`` in the scalability study; in Table I
-        ``baseline_episodes`` for the hand-crafted controllers if set, else ``episodes``."""
+        ``baseline_episodes`` for the hand-crafted controllers if set (not behind a filter: the filtered cells are
+        never imported), else ``episodes``."""
         if cell.scale:
             return math.ceil(self.scale_agent_episodes / cell.num_agents)
         if cell.method in BASELINES and self.baseline_episodes is not None:
@@ -182,9 +204,23 @@ class SweepConfig:
         return float(self.area if cell.area is None else cell.area)
 
 
+def filter_settings(method: str) -> dict | None:
+    """The run-time filter of ``method`` as ``egcbf eval`` records it in run.json: ``{"filter": kind,
+    "filter_config": settings}`` with ``egcbf eval --filter KIND``'s defaults (``FilterConfig.for_kind``); ``None``
+    for a method without a filter."""
+    kind = method_filter(method)
+    if kind == "none":
+        return None
+    from ..algo.filtered import FilterConfig
+
+    return {"filter": kind, "filter_config": FilterConfig.for_kind(kind).settings()}
+
+
 def cell_key(cfg: SweepConfig, cell: Cell, checkpoint_sha256: str | None) -> dict:
-    """What a cell's result depends on; a stored cell with an equal key is reused."""
-    return {
+    """What a cell's result depends on; a stored cell with an equal key is reused. A filtered method's key also
+    holds its filter and the filter's settings (:func:`filter_settings`); the keys of the other cells are those of
+    the sweep before the filtered methods (so their stored cells are still found)."""
+    key = {
         "method": cell.method,
         "obstacles": cell.obstacles,
         "num_agents": cell.num_agents,
@@ -194,3 +230,4 @@ def cell_key(cfg: SweepConfig, cell: Cell, checkpoint_sha256: str | None) -> dic
         "max_steps": cfg.max_steps,
         "checkpoint_sha256": checkpoint_sha256,
     }
+    return key | (filter_settings(cell.method) or {})

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ..dynamics.quadrotor import DEFAULT_DT, DEFAULT_MAX_STEPS
 from ..report import md_table
-from .paper import LABELS, METHODS
+from .paper import LABELS, METHODS, base_method
 from .plan import Cell, SweepConfig
 from .stats import episodes_text, scale_text
 from .store import find_method_checkpoint, read_invocations
@@ -210,12 +210,12 @@ def _invocation_table(invocations: list[dict]) -> str:
 
 
 def _current_sha(cfg: SweepConfig, method: str, train_seed: int | None) -> str | None:
-    """The sha256 of the checkpoint now under ``cfg.checkpoints`` for this run, or ``None`` (hand-crafted, or no
-    readable checkpoint there: ``--report-only`` works without them)."""
+    """The sha256 of the checkpoint now under ``cfg.checkpoints`` for this run (a filtered method's: its base
+    method's), or ``None`` (hand-crafted, or no readable checkpoint there: ``--report-only`` works without them)."""
     if train_seed is None:
         return None
     try:
-        return find_method_checkpoint(cfg.checkpoints, method, train_seed).sha256
+        return find_method_checkpoint(cfg.checkpoints, base_method(method), train_seed).sha256
     except (FileNotFoundError, ValueError, OSError):
         return None
 
@@ -270,13 +270,24 @@ def provenance_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
     lines += [_invocation_table(invocations) if invocations else "(none recorded)", ""]
     lines += [
         f"- Results: `{cfg.out}/<method>[-s<seed>]_obs<k>/N<n>.json` (Table I) and `{cfg.out}/scale/...` "
-        "(scalability), one file per cell (metrics row + meta).",
+        "(scalability), one file per cell (metrics row + meta); a method behind a run-time filter, `METHOD:FILTER`, "
+        "in `METHOD_FILTER[-s<seed>]_obs<k>/`.",
         f"- Evaluation seed {cfg.seed}; episode e at size N resets from `episode_seed({cfg.seed}, N, e)` "
         f"(`egcbf.evaluate`); {episodes_text(cfg)}; episode length {cfg.max_steps or DEFAULT_MAX_STEPS} steps of "
         f"{1e3 * DEFAULT_DT:g} ms; l = {cfg.area:g} m; obstacle setting: "
         + (f"{cfg.obstacles} obstacles" if cfg.obstacles > 0 else "none")
         + f"; scalability: {scale_text(cfg)}.",
     ]
+    filters = Counter(
+        json.dumps({k: r["meta"][k] for k in ("filter", "filter_config")}, sort_keys=True)
+        for r in records.values()
+        if r["meta"].get("filter")
+    )
+    for text, count in sorted(filters.items()):
+        d = json.loads(text)
+        settings = ", ".join(f"{k} {v}" for k, v in d["filter_config"].items())
+        lines.append(f"- Run-time filter `{d['filter']}` of {count} cell(s): {settings} (as the cells record it, "
+                     "like `egcbf eval --filter` in run.json; `docs/safety_filters.md`).")  # fmt: skip
     machines = Counter(
         json.dumps(r["meta"].get("machine"), sort_keys=True) for r in records.values() if r["meta"].get("machine")
     )

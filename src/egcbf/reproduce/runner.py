@@ -5,13 +5,12 @@ Cells run largest ``N`` first (:mod:`~egcbf.reproduce.workers`); each is written
 (the sweep raises :class:`CellsFailed` at the end); stopping a sweep (Ctrl-C, ``kill``) stops its workers at once
 and loses only the cells in progress; the same command resumes it. A stored cell made with other settings
 (episodes, seed, area, episode length) is never overwritten unless asked (``recompute=True``); a cell whose
-checkpoint changed is recomputed. One sweep at a time may write into a results directory (``OUT/.sweep.lock``).
+checkpoint changed is recomputed. One sweep at a time may write into a results directory (:class:`egcbf.locks.DirLock`).
 """
 
 from __future__ import annotations
 
 import datetime
-import os
 import signal
 import time
 from collections.abc import Callable, Sequence
@@ -20,8 +19,9 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
+from ..locks import DirLock
 from ..report import code_version, machine_info
-from .paper import LEARNED
+from .paper import LEARNED, METHODS, base_method, method_filter
 from .plan import Cell, SweepConfig
 from .store import (
     CheckpointInfo,
@@ -45,7 +45,7 @@ def _schedule(cells: Sequence[Cell]) -> list[Cell]:
     """The rows every table needs first: Table I's cells of training seed 0 and the hand-crafted controllers, then
     its further seeds, then the scalability study (seed 0, then further seeds); within each group largest ``N``
     first (the longest cells start first, so the workers finish together)."""
-    order = {m: i for i, m in enumerate(("ccbf", "dcbf", *LEARNED, "nominal"))}
+    order = {m: i for i, m in enumerate(dict.fromkeys(("ccbf", "dcbf", *LEARNED, "nominal", *METHODS)))}
     return sorted(
         cells, key=lambda c: (c.scale, bool(c.train_seed), -c.num_agents, -c.obstacles, order[c.method], c.run)
     )
@@ -55,14 +55,41 @@ def _checkpoints(cfg: SweepConfig) -> dict[tuple[str, int], CheckpointInfo]:
     return {(m, s): find_method_checkpoint(cfg.checkpoints, m, s) for m, s in cfg.checkpoint_runs()}
 
 
+def _check_filters(cfg: SweepConfig, ckpts: dict[tuple[str, int], CheckpointInfo]) -> None:
+    """Refuse, before any cell runs, a checkpoint that a filtered method cannot put behind its filter (what
+    ``egcbf eval --filter`` would refuse): the filters act on the ``accel`` interface's command, and the ``cbf``
+    filter reads the soft-min CBF head's per-edge barriers."""
+    from ..checkpoint import read_config
+
+    for m, s in dict.fromkeys((c.method, c.train_seed) for c in cfg.cells() if c.train_seed is not None):
+        kind = method_filter(m)
+        if kind == "none":
+            continue
+        info = ckpts[base_method(m), s]
+        model = read_config(info.path).model
+        if model.interface != "accel":
+            why = f"the run-time filters act on the acceleration command, but its interface is {model.interface!r}"
+        elif kind == "cbf" and (model.cbf_head != "edge_min" or model.cbf_z_symmetric):
+            why = (
+                f"the learned-CBF filter needs the soft-min CBF head (cbf_head = 'edge_min', cbf_z_symmetric = False), "
+                f"but it has cbf_head = {model.cbf_head!r}, cbf_z_symmetric = {model.cbf_z_symmetric}"
+            )
+        else:
+            continue
+        raise ValueError(f"{m} cannot use the checkpoint {info.path}: {why}; leave {m} out of --methods")
+
+
 def validate(cfg: SweepConfig) -> dict[tuple[str, int], CheckpointInfo]:
-    """Fail early (FileNotFoundError, ValueError, ImportError) on missing checkpoints or a missing backend; returns
-    the checkpoints ``{(method, training seed): info}`` of the learned methods of the sweep."""
+    """Fail early (FileNotFoundError, ValueError, ImportError) on missing checkpoints, a checkpoint a filtered
+    method cannot filter, or a missing backend; returns the checkpoints ``{(method, training seed): info}`` of the
+    learned methods of the sweep (a filtered method uses its base method's)."""
     if cfg.backend == "ray":
         require_ray()
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise ValueError(f"device {cfg.device!r} was given but torch.cuda.is_available() is False")
-    return _checkpoints(cfg)
+    ckpts = _checkpoints(cfg)
+    _check_filters(cfg, ckpts)
+    return ckpts
 
 
 class CellsFailed(RuntimeError):
@@ -83,42 +110,6 @@ def _log_cell(log: Callable[[str], None], rec: dict) -> None:
         f"{m['obstacles']:2d}  N {m['num_agents']:4d}  l {m['area']:g}: safe {100 * r['safe_rate']:5.1f}%  "
         f"reach {100 * r['reach_rate']:5.1f}%  success {100 * r['success_rate']:5.1f}%  ({how})"
     )
-
-
-class _SweepLock:
-    """An exclusive ``flock`` on ``OUT/.sweep.lock`` (POSIX; elsewhere no lock): two sweeps writing into the same
-    results directory would compute the same cells twice and race on ``sweep.json``."""
-
-    def __init__(self, out: Path):
-        self.path = out / ".sweep.lock"
-        self.file = None
-
-    def __enter__(self):
-        try:
-            import fcntl
-        except ImportError:  # pragma: no cover - Windows
-            return self
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.file = open(self.path, "a+")
-        try:
-            fcntl.flock(self.file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            self.file.seek(0)
-            holder = self.file.read().strip() or "another process"
-            self.file.close()
-            raise RuntimeError(
-                f"another sweep ({holder}) is writing into {self.path.parent}; wait for it, stop it, or use another "
-                "--out"
-            ) from None
-        self.file.seek(0)
-        self.file.truncate()
-        self.file.write(f"pid {os.getpid()}")
-        self.file.flush()
-        return self
-
-    def __exit__(self, *exc):
-        if self.file is not None:
-            self.file.close()  # closing releases the lock
 
 
 class _TermAsInterrupt:
@@ -194,7 +185,7 @@ def sweep(
             max_steps=cfg.max_steps,
             device=cfg.device,
             threads=cfg.threads,
-            checkpoint_files=ckpts[c.method, c.train_seed].files() if (c.method, c.train_seed) in ckpts else None,
+            checkpoint_files=ckpts[c.base, c.train_seed].files() if (c.base, c.train_seed) in ckpts else None,
             progress=progress and local,
         )
         for c in _schedule(todo)
@@ -216,7 +207,7 @@ def sweep(
         }
 
     failures: dict[Cell, str] = {}
-    with _SweepLock(Path(cfg.out)), _TermAsInterrupt():
+    with DirLock(Path(cfg.out), "egcbf reproduce"), _TermAsInterrupt():
         index = record_invocation(Path(cfg.out), entry("running"))
         bar = tqdm(total=len(tasks), desc="reproduce", unit="cell", disable=not progress)
         status, outcomes = "interrupted", execute(tasks, cfg.backend, cfg.workers)
@@ -229,7 +220,7 @@ def sweep(
                     log(f"FAILED {cell.run} obstacles {cell.obstacles} N {cell.num_agents}:\n{error.rstrip()}")
                 else:
                     meta = {k: res[k] for k in ("wall_s", "machine", "code") if k in res}
-                    ckpt = ckpts.get((cell.method, cell.train_seed))
+                    ckpt = ckpts.get((cell.base, cell.train_seed))
                     rec = make_record(cfg, cell, wanted_key(cfg, cell, ckpts), ckpt, res["row"], **meta)
                     write_json(cell.path(cfg.out), rec)
                     records[cell], counts["computed"] = rec, counts["computed"] + 1

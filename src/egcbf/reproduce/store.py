@@ -3,11 +3,14 @@
 A cell is written atomically to its file (:meth:`Cell.path`)::
 
     {"key":  what the result depends on (method, obstacles, num_agents, area, episodes, seed, max_steps,
-              sha256 of the checkpoint's model.safetensors): a cell file with the same key is never recomputed,
+              sha256 of the checkpoint's model.safetensors; behind a run-time filter also "filter" and
+              "filter_config", as ``egcbf eval`` writes them in run.json): a cell file with the same key is never
+              recomputed,
      "row":  the metrics row of docs/metrics.md (rates in [0, 1], cost in collision events per agent per episode,
               reward -sum_t ||u - u_nom||^2 in SI units, step_ms_median in ms per environment step),
-     "meta": checkpoint path / step / training seed, wall time of the cell (s), device, machine, code version, and
-              "imported_from" when the row was taken from an earlier ``egcbf eval`` output (docs/results/baselines)}
+     "meta": checkpoint path / step / training seed, wall time of the cell (s), device, machine, code version,
+              "filter" and "filter_config" behind a run-time filter, and "imported_from" when the row was taken
+              from an earlier ``egcbf eval`` output (docs/results/baselines)}
 
 ``OUT/sweep.json`` lists the sweep's invocations (command, code version, wall time, counts, status).
 """
@@ -23,7 +26,7 @@ from pathlib import Path
 from ..atomic import write_json_atomic
 from ..checkpoint import sha256
 from .paper import BASELINES, LABELS
-from .plan import Cell, SweepConfig, cell_key
+from .plan import Cell, SweepConfig, cell_key, filter_settings
 
 __all__ = [
     "CheckpointInfo",
@@ -35,6 +38,7 @@ __all__ = [
     "mismatched_cells",
     "pending_cells",
     "read_invocations",
+    "unreadable_cells",
     "wanted_key",
 ]
 
@@ -51,8 +55,10 @@ class CheckpointInfo:
     train_seed: int | None
 
     def files(self) -> dict[str, bytes]:
-        """``config.json`` and ``model.safetensors`` as bytes (what a cell needs, shipped to remote workers)."""
-        return {name: (self.path / name).read_bytes() for name in ("config.json", "model.safetensors")}
+        """``config.json``, ``model.safetensors`` and ``state.json`` as bytes (what a cell needs to load and check the
+        weights, shipped to remote workers)."""
+        names = ("config.json", "model.safetensors", "state.json")
+        return {name: (self.path / name).read_bytes() for name in names if (self.path / name).exists()}
 
 
 def checkpoint_dir(root: str | Path, method: str, train_seed: int = 0) -> Path:
@@ -116,6 +122,7 @@ def make_record(cfg: SweepConfig, cell: Cell, key: dict, ckpt: CheckpointInfo | 
         "checkpoint": None if ckpt is None else str(ckpt.path),
         "checkpoint_step": None if ckpt is None else ckpt.step,
         "train_seed": cell.train_seed,
+        **(filter_settings(cell.method) or {}),
         "device": cfg.device,
         "finished": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
@@ -214,8 +221,9 @@ def _settings_diff(stored: dict, wanted: dict) -> dict[str, tuple]:
 
 
 def wanted_key(cfg: SweepConfig, cell: Cell, ckpts: dict | None) -> dict:
-    """:func:`cell_key` of ``cell`` with the sha256 of its checkpoint among ``ckpts`` (``None`` if it has none)."""
-    ckpt = (ckpts or {}).get((cell.method, cell.train_seed))
+    """:func:`cell_key` of ``cell`` with the sha256 of its checkpoint among ``ckpts`` (``None`` if it has none; a
+    filtered method's checkpoint is its base method's)."""
+    ckpt = (ckpts or {}).get((cell.base, cell.train_seed))
     return cell_key(cfg, cell, None if ckpt is None else ckpt.sha256)
 
 
@@ -253,6 +261,19 @@ def describe_mismatch(cfg: SweepConfig, mismatched: dict[Cell, dict[str, tuple]]
         f"{len(mismatched)} stored cell(s) in {cfg.out} were made with other settings, e.g. "
         f"{cell.path(cfg.out)}: {what}"
     )
+
+
+def unreadable_cells(cfg: SweepConfig) -> list[Path]:
+    """The cell files of ``cfg`` that exist but cannot be read (truncated or corrupted JSON, or no ``key``): the
+    report shows them as pending and the sweep recomputes them; the command line names them."""
+    bad = []
+    for cell in cfg.cells():
+        path = cell.path(cfg.out)
+        if path.exists():
+            rec = read_json(path)
+            if not isinstance(rec, dict) or "key" not in rec:
+                bad.append(path)
+    return bad
 
 
 def load_cells(cfg: SweepConfig) -> dict[Cell, dict]:

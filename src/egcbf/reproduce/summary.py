@@ -12,12 +12,14 @@ Table I, :mod:`~egcbf.reproduce.paper`). The bullets, each present only when its
 * **<E-method> minus <plain method>**: the difference of safe-rate points per N (where either is below 100 %), with
   how the training seeds bear on it (seed ranges overlap or not; a single training seed said so).
 * **<method>'s seeds**: each training seed's safe rate at Table I's largest N, labelled with its own seed.
+* **Behind run-time filters**: each filtered controller's safe and success rate at Table I's largest N (no
+  obstacles) beside those of the same controller alone.
 """
 
 from __future__ import annotations
 
 from ..report import pct
-from .paper import LABELS, LEARNED, METHODS, PAPER_TABLE_I
+from .paper import FILTERED, LABELS, LEARNED, METHODS, PAPER_TABLE_I, base_method
 from .plan import Cell, SweepConfig
 from .stats import Stat, seed_rows, setting_text, so_far, stat
 
@@ -169,6 +171,24 @@ def _seeds(cfg: SweepConfig, records: dict[Cell, dict], big: int) -> list[str]:
     return lines
 
 
+def _filters(cfg: SweepConfig, records: dict[Cell, dict], big: int) -> list[str]:
+    """Each filtered controller against its base controller alone, at Table I's largest N without obstacles."""
+    parts = []
+    for m in (m for m in FILTERED if m in cfg.methods):
+        safe, succ = _at(records, m, big), _at(records, m, big, metric="success_rate")
+        if safe is None or succ is None:
+            continue
+        base = base_method(m)
+        alone = (_at(records, base, big), _at(records, base, big, metric="success_rate"))
+        name = LABELS[base].split(" (")[0]  # "nominal", not "nominal (no CBF)"
+        beside = "" if None in alone else f" ({name} alone: {alone[0].text()} / {alone[1].text()} %)"
+        parts.append(f"{LABELS[m]} {safe.text()} / {succ.text()} %{beside}{so_far(safe, cfg, m)}")
+    if not parts:
+        return []
+    return [f"- **Behind run-time filters** (safe / success rate at N = {big}, no obstacles): " + "; ".join(parts)
+            + "."]  # fmt: skip
+
+
 def summary_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
     """What the tables say, in sentences written from the cells (module doc)."""
     lines = [_progress(cfg, records)]
@@ -180,4 +200,5 @@ def summary_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
     lines += _fixed_density(cfg, records)
     lines += _differences(cfg, records)
     lines += _seeds(cfg, records, big)
+    lines += _filters(cfg, records, big)
     return "\n".join(lines)

@@ -7,7 +7,8 @@
   over training seeds, min-max in brackets), Cost (collision events per agent per episode, mean; min/max over
   episodes and seeds), ``coll. steps`` (steps in collision per agent per episode, mean: the other reading of the
   paper's cost), Rew, ``step ms`` (``†``: an imported cell, timed elsewhere), ``QP slack / failed`` (tables with a
-  CBF-QP row), then the paper's five columns.
+  CBF-QP or run-time filter row; a filter's row adds the share of agent-steps whose command it changed), then the
+  paper's five columns (``-`` for the rows not in the paper, such as the run-time filters').
 * **With obstacles** (not in Table I) and **scalability past Table I**: the same columns as ours above, one row per
   (N, method).
 
@@ -17,7 +18,7 @@ A row label says ``(2 of 3 seeds)`` while some training seeds of its method are 
 from __future__ import annotations
 
 from ..report import md_table, number
-from .paper import LABELS, METHODS, PAPER_TABLE_I, PaperRow
+from .paper import FILTERED, LABELS, METHODS, PAPER_TABLE_I, PaperRow, base_method, method_filter
 from .plan import Cell, SweepConfig
 from .provenance import timing_text
 from .stats import SeedRow, episodes_text, label, partial, scale_text, seed_rows, stat
@@ -54,7 +55,9 @@ def _fmt_ours(rows: list[SeedRow], qp: bool) -> list[str]:
     if qp:
         has = [r for r in rows if "qp_slack_steps" in r.row]
         slack, failed = sum(r.row["qp_slack_steps"] for r in has), sum(r.row.get("qp_failed", 0) for r in has)
-        cells.append(f"{slack} / {failed}" if has else "")
+        active = stat(rows, "filter_active")  # a run-time filter: the agent-steps whose command it changed
+        changed = "" if active is None else f" ({active.text()} % changed)"
+        cells.append(f"{slack} / {failed}{changed}" if has else "")
     return cells
 
 
@@ -81,7 +84,7 @@ def _glance(cfg: SweepConfig, records: dict[Cell, dict], metric: str) -> str:
             planned = sum(c.method == m and c.num_agents == n and c.scale == s and not c.obstacles for c in cfg.cells())
             cells.append(st.text() + partial(len(rows_), planned) if st else ("pending" if planned else ""))
         rows.append([label(cfg, m), *cells])
-        paper = [PAPER_TABLE_I[m].get(n) if not s else None for n, s in sizes]
+        paper = [PAPER_TABLE_I.get(m, {}).get(n) if not s else None for n, s in sizes]
         if any(p is not None for p in paper):
             rows.append([f"{LABELS[m]}, paper", *("-" if p is None else f"{p[index]:g}" for p in paper)])
     return md_table(head, rows)
@@ -122,6 +125,9 @@ def _intro(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
             "solved (their agents brake), summed over every step of every episode (cCBF-QP: one QP per environment "
             "and step; dCBF-QP: one per agent and step; `docs/baselines.md`). "
         )
+    filtered = [m for m in FILTERED if m in cfg.methods]
+    if filtered:
+        text += _filters_text(filtered)
     text += (
         "`step ms`: median wall time of one environment step (controller + simulation; batched steps divided by "
         "their number of environments); it depends on the machine and on what ran beside the cell. "
@@ -130,6 +136,26 @@ def _intro(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
     if timing:
         text += timing + " "
     return text + "`pending`: the cell has not been computed yet.\n"
+
+
+def _filters_text(filtered: list[str]) -> str:
+    """What the rows of the controllers behind a run-time filter are (not in the paper)."""
+    what = []
+    for m in filtered:
+        base, kind = base_method(m), method_filter(m)
+        who = "the nominal controller's command" if base == "nominal" else f"the {LABELS[base]} policy"
+        seeds = "" if base == "nominal" else f", over {LABELS[base]}'s training seeds and checkpoints"
+        what.append(f"{LABELS[m]}: {who} behind the `{kind}` filter (`egcbf eval --filter {kind}`{seeds})")
+    return (
+        "Run-time safety filters (not in the paper; `docs/safety_filters.md`, `egcbf eval --filter`, its default "
+        "settings, recorded in each cell): "
+        + "; ".join(what)
+        + ". Every agent solves one small QP per step over its own acceleration (`dcbf`: the dCBF-QP's hand-crafted "
+        "barriers with the filter's own settings; `cbf`: the checkpoint's learned per-edge barriers; `prior`: the "
+        "untrained barrier, the ablation that shows what the learned CBF adds; `nominal + ...`: the ablation that "
+        "shows what the learned policy adds); their `QP slack / failed` count those agent QPs, and `% changed` is "
+        "the share of agent-steps whose command the filter changed (mean over training seeds). "
+    )
 
 
 def _setting_table(cfg: SweepConfig, records: dict[Cell, dict], settings: list[tuple[int, int, bool]]) -> str:
@@ -172,7 +198,7 @@ def table_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
         found = {m: seed_rows(records, m, 0, int(n), False) for m in METHODS if m in cfg.methods}
         qp = _has_qp(list(found.values()))
         rows = [
-            [label(cfg, m, len(rs)), *_fmt_ours(rs, qp), *_fmt_paper(PAPER_TABLE_I[m].get(int(n)))]
+            [label(cfg, m, len(rs)), *_fmt_ours(rs, qp), *_fmt_paper(PAPER_TABLE_I.get(m, {}).get(int(n)))]
             for m, rs in found.items()
         ]
         parts.append(f"**N = {n}**\n\n" + md_table(["method", *_OURS, *_QP * qp, *_PAPER], rows) + "\n")

@@ -1,12 +1,14 @@
 """Evaluate one cell of ``egcbf reproduce``, and many at once on local processes or Ray.
 
 One cell runs :func:`egcbf.evaluate.evaluate` for a single ``N`` (the same function, seeds and batching as
-``egcbf eval``, so a cell's metrics equal those of ``egcbf eval`` at that ``N``). A backend takes the cells' tasks in
-order (largest ``N`` first) and yields ``(task, result, error)`` as each finishes: ``backend="process"`` over
-``workers`` spawned processes with ``threads`` torch threads each, or Ray tasks (``backend="ray"``, the optional
-``ray`` extra, for a cluster: a task carries the checkpoint's bytes, not its path, so the nodes need no shared file
-system). Either way, the same cell gives the same numbers. A cell that raises yields its traceback text instead of
-stopping the others; closing the backend's iterator (an interruption) stops its workers at once.
+``egcbf eval``, so a cell's metrics equal those of ``egcbf eval`` at that ``N``; a ``METHOD:FILTER`` cell equals
+``egcbf eval --checkpoint ... --filter FILTER``, or ``--controller nominal --filter FILTER``). A backend takes the
+cells' tasks in order (largest ``N`` first) and yields ``(task, result, error)`` as each finishes:
+``backend="process"`` over ``workers`` spawned processes with ``threads`` torch threads each, or Ray tasks
+(``backend="ray"``, the optional ``ray`` extra, for a cluster: a task carries the checkpoint's bytes, not its path,
+so the nodes need no shared file system). Either way, the same cell gives the same numbers. A cell that raises
+yields its traceback text instead of stopping the others; closing the backend's iterator (an interruption) stops its
+workers at once.
 """
 
 from __future__ import annotations
@@ -45,18 +47,26 @@ class CellTask:
 
 
 def _evaluate_cell(task: CellTask) -> dict:
+    from ..algo.filtered import FilterConfig, FilteredController, load_filtered_controller
     from ..control.controllers import make_controller
     from ..evaluate import evaluate
 
+    kind = task.cell.filter  # a run-time filter with `egcbf eval --filter KIND`'s defaults (or "none")
+    config = None if kind == "none" else FilterConfig.for_kind(kind)
     learned, env_overrides = None, None
     with tempfile.TemporaryDirectory(prefix="egcbf-ckpt-") as tmp:
-        if task.checkpoint_files is not None:  # the same loading as `egcbf eval --checkpoint`
+        if task.checkpoint_files is not None:  # the same loading as `egcbf eval --checkpoint [--filter KIND]`
             from ..checkpoint import load_controller
 
             for name, data in task.checkpoint_files.items():
                 (Path(tmp) / name).write_bytes(data)
-            learned, train_cfg = load_controller(tmp, device=task.device, dtype=torch.float32)
+            if config is None:
+                learned, train_cfg = load_controller(tmp, device=task.device, dtype=torch.float32)
+            else:
+                learned, train_cfg = load_filtered_controller(tmp, config, device=task.device, dtype=torch.float32)
             env_overrides = dict(train_cfg.env_overrides)
+        elif config is not None:  # `egcbf eval --controller nominal --filter KIND`
+            learned = FilteredController(None, None, config)
     rows, _ = evaluate(
         (lambda cfg: learned) if learned is not None else (lambda cfg: make_controller(task.cell.method)),
         [task.cell.num_agents],

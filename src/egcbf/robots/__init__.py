@@ -12,16 +12,48 @@ from .base import Robot, rk4_step
 from .quadrotor import Quadrotor
 from .unicycle import Unicycle, UnicycleParams
 
-__all__ = ["ROBOTS", "Quadrotor", "Robot", "Unicycle", "UnicycleParams", "make_robot", "register_robot", "rk4_step"]
+__all__ = [
+    "BUILTIN_ROBOTS",
+    "ROBOTS",
+    "Quadrotor",
+    "Robot",
+    "Unicycle",
+    "UnicycleParams",
+    "make_robot",
+    "register_robot",
+    "rk4_step",
+]
 
 #: robot name -> class (the class is called with its ``params``, or with none for the defaults)
 ROBOTS: dict[str, type[Robot]] = {"quadrotor": Quadrotor, "unicycle": Unicycle}
 
 
-def register_robot(cls: type[Robot]) -> type[Robot]:
-    """Add a :class:`Robot` subclass to :data:`ROBOTS` under its ``name`` (usable as a class decorator)."""
-    if not (isinstance(cls, type) and issubclass(cls, Robot)) or not cls.name:
+#: the robots shipped with egcbf: never replaced by a registration
+BUILTIN_ROBOTS = frozenset(ROBOTS)
+
+
+def register_robot(cls: type[Robot] | None = None, *, replace: bool = False):
+    """Add a :class:`Robot` subclass to :data:`ROBOTS` under its ``name`` (usable as a class decorator, bare or as
+    ``@register_robot(replace=True)``). A name already taken by another class is refused unless ``replace``; the
+    built-in robots' names are always refused (name yours differently). The same class defined again (its module
+    imported or run anew) replaces its earlier self."""
+    if cls is None:
+        return functools.partial(register_robot, replace=replace)
+    if not (isinstance(cls, type) and issubclass(cls, Robot)) or not isinstance(cls.name, str) or not cls.name:
         raise TypeError(f"register_robot needs a Robot subclass with a name, got {cls!r}")
+    taken = ROBOTS.get(cls.name)
+    reloaded = taken is not None and (taken.__module__, taken.__qualname__) == (cls.__module__, cls.__qualname__)
+    if taken is not None and taken is not cls and not reloaded:  # a module run again re-registers its own class
+        if cls.name in BUILTIN_ROBOTS:
+            raise ValueError(
+                f"cannot register {cls.__qualname__} as {cls.name!r}: that is a built-in robot's name "
+                f"({taken.__qualname__}); give your robot another name"
+            )
+        if not replace:
+            raise ValueError(
+                f"a robot named {cls.name!r} is already registered ({taken.__module__}.{taken.__qualname__}); "
+                "rename yours, or pass replace=True to replace it"
+            )
     ROBOTS[cls.name] = cls
     _shared.cache_clear()
     return cls

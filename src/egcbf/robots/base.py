@@ -37,6 +37,14 @@ from groupcanon.groups import Trivial
 __all__ = ["Robot", "rk4_step"]
 
 
+def _not_implemented(robot, method: str) -> NotImplementedError:
+    """The error of a :class:`Robot` plug-in that lacks ``method``, naming the class and the method."""
+    return NotImplementedError(
+        f"{type(robot).__name__} does not implement Robot.{method}(), which a robot plug-in must define "
+        "(docs/robots.md lists what each method returns)"
+    )
+
+
 class Robot:
     """Base class of robots (module doc). Subclasses set the class attributes and implement the methods."""
 
@@ -65,11 +73,11 @@ class Robot:
     # ------------------------------------------------------------------------------------------- dynamics
     def f0(self, x: Tensor) -> Tensor:
         """Drift ``(*batch, state_dim)``."""
-        raise NotImplementedError
+        raise _not_implemented(self, "f0")
 
     def f1(self, x: Tensor) -> Tensor:
         """Input matrix ``(*batch, state_dim, control_dim)``."""
-        raise NotImplementedError
+        raise _not_implemented(self, "f1")
 
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         """``f0(x) + f1(x) u`` ``(*batch, state_dim)``."""
@@ -77,11 +85,11 @@ class Robot:
 
     def step(self, x: Tensor, u: Tensor, dt: float, substeps: int = 1, integrator: str = "rk4") -> Tensor:
         """The state after ``dt`` with ``u`` held (no clipping here: :meth:`clip_control` first)."""
-        raise NotImplementedError
+        raise _not_implemented(self, "step")
 
     def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
         """``lo, hi`` ``(control_dim,)``: the actuator box (dtype and device of ``like``)."""
-        raise NotImplementedError
+        raise _not_implemented(self, "control_bounds")
 
     def clip_control(self, u: Tensor) -> Tensor:
         """``u`` clamped into the actuator box."""
@@ -98,29 +106,29 @@ class Robot:
 
     # ------------------------------------------------------------------------------------------- geometry
     def positions(self, x: Tensor) -> Tensor:
-        raise NotImplementedError
+        raise _not_implemented(self, "positions")
 
     def velocities(self, x: Tensor) -> Tensor:
         """World-frame velocities ``(*batch, dim)``."""
-        raise NotImplementedError
+        raise _not_implemented(self, "velocities")
 
     def heading(self, x: Tensor) -> Tensor:
         """Unit heading ``(*batch, dim)`` (horizontal for 3-D robots): the LiDAR pattern turns with it."""
-        raise NotImplementedError
+        raise _not_implemented(self, "heading")
 
     def frames(self, x: Tensor) -> Tensor:
         """The agents' frames ``(*batch, *group.element_shape)``: ``frames(phi_g x) = g frames(x)``."""
-        raise NotImplementedError
+        raise _not_implemented(self, "frames")
 
     def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
         """Agents at rest at ``positions`` ``(*batch, dim)`` with heading angle ``yaw`` ``(*batch,)``."""
-        raise NotImplementedError
+        raise _not_implemented(self, "rest_state")
 
     # ------------------------------------------------------------------------------------------- features
     @property
     def node_fields(self) -> dict[str, FeatureType]:
         """The agent node's features after the kind one-hot (goals and LiDAR hits hold zeros there)."""
-        raise NotImplementedError
+        raise _not_implemented(self, "node_fields")
 
     def node_type(self, group: Group) -> FieldType:
         """The node features ``kind (3) | node_fields`` declared over ``group`` (the robot's, or the trivial one)."""
@@ -134,18 +142,18 @@ class Robot:
 
     def agent_features(self, x: Tensor) -> Tensor:
         """``(*batch, sum of node_fields dims)``: the agent node's features after the kind one-hot."""
-        raise NotImplementedError
+        raise _not_implemented(self, "agent_features")
 
     # ------------------------------------------------------------------------------------------- control
     def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:
         """The equivariant nominal controller's control ``(*batch, control_dim)`` towards ``goals``
         ``(*batch, dim)``, clipped to the actuator box."""
-        raise NotImplementedError
+        raise _not_implemented(self, "nominal_control")
 
     def command_feature(self, interface: str) -> FeatureType:
         """How the group acts on the normalized command of ``interface`` (one of :attr:`interfaces`): the policy's
         output type (a ``Vector`` for a world-frame command, a ``Scalar`` for an invariant one)."""
-        raise NotImplementedError
+        raise _not_implemented(self, "command_feature")
 
     # ------------------------------------------------------------------------------------------- identity
     def __repr__(self) -> str:

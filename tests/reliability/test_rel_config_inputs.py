@@ -1,0 +1,85 @@
+"""Inputs that used to be accepted and fail later (or be truncated): a training config's evaluation settings, float
+seeds, an arena too large for the neighbour grid, obstacles that leave no room."""
+
+import pytest
+
+from egcbf.config import TrainConfig
+from egcbf.env import EnvConfig
+from egcbf.evaluate import evaluate
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"eval_area_size": -1.0}, r"evaluation environment.*area_size"),
+        ({"eval_num_agents": 0}, r"evaluation environment.*num_agents"),
+        ({"eval_num_agents": 2.5}, r"eval_num_agents must be None or an integer"),
+        ({"eval_max_steps": 0}, r"evaluation environment.*max_steps"),
+        ({"area_sizes": [2.0, 1e12]}, r"training environment.*area_size"),
+        ({"seed": 1.5}, r"seed must be an integer"),
+        ({"seed": True}, r"seed must be an integer"),
+    ],
+)
+def test_train_config_refuses_what_would_fail_later(change, match):
+    with pytest.raises(ValueError, match=match):
+        TrainConfig.preset("egcbf+", "tiny", **change)
+
+
+def test_train_cli_refuses_a_config_with_bad_evaluation_settings_before_training(tmp_path):
+    from typer.testing import CliRunner
+
+    from egcbf.cli import app
+
+    f = tmp_path / "c.json"
+    f.write_text('{"preset": "tiny", "eval_area_size": 0}')
+    res = CliRunner().invoke(app, ["train", "--algo", "egcbf+", "--config", str(f), "--out", str(tmp_path / "run"),
+                                   "--no-progress"])  # fmt: skip
+    assert res.exit_code == 2, res.output
+    assert "evaluation environment" in res.output and "eval_area_size" in res.output
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+@pytest.mark.parametrize(("name", "value"), [("seed", 1.5), ("seed", "0"), ("episodes", 2.0)])
+def test_evaluate_refuses_non_integer_seed_and_episodes(name, value):
+    kw = {"seed": 0, "episodes": 1, name: value}
+    with pytest.raises(TypeError, match=rf"{name} must be an integer"):
+        evaluate(lambda cfg: None, [2], area_size=2.0, show_progress=False, **kw)
+
+
+@pytest.mark.parametrize("sizes", [8, "8", [8.0]])
+def test_evaluate_refuses_sizes_that_are_not_a_list_of_integers(sizes):
+    with pytest.raises(TypeError, match="num_agents must be a sequence of integers"):
+        evaluate(lambda cfg: None, sizes, area_size=2.0, episodes=1, show_progress=False)
+
+
+def test_an_arena_too_large_for_the_neighbour_grid_is_refused():
+    with pytest.raises(ValueError, match=r"area_size must be at most .* comm_radius"):
+        EnvConfig(num_agents=8, area_size=1e9)
+
+
+def test_cli_obstacles_that_leave_no_room_are_a_usage_error(tmp_path):
+    from typer.testing import CliRunner
+
+    from egcbf.cli import app
+
+    res = CliRunner().invoke(
+        app,
+        ["eval", "--controller", "nominal", "--num-agents", "8", "--area", "1", "--obstacles", "5000",
+         "--episodes", "1", "--out", str(tmp_path / "o"), "--no-progress"],
+    )  # fmt: skip
+    assert res.exit_code == 2, res.output
+    assert "--obstacles 5000 leave no room" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "o" / "metrics.json").exists()
+
+
+def test_cli_area_too_large_is_a_usage_error(tmp_path):
+    from typer.testing import CliRunner
+
+    from egcbf.cli import app
+
+    res = CliRunner().invoke(
+        app,
+        ["eval", "--controller", "nominal", "--num-agents", "8", "--area", "1e9", "--episodes", "1",
+         "--out", str(tmp_path / "o"), "--no-progress"],
+    )  # fmt: skip
+    assert res.exit_code == 2 and "area_size must be at most" in res.output, res.output

@@ -34,8 +34,8 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.utils import scatter
 
-from .features import FieldType, Point
-from .group import Group, check_element_shape
+from .features import FeatureType, FieldType, Point
+from .group import Group, check_element_shape, require_group
 from .groups.trivial import Trivial
 
 __all__ = ["Canonicalize", "CanonicalizedLayer", "globalize", "localize"]
@@ -43,13 +43,27 @@ __all__ = ["Canonicalize", "CanonicalizedLayer", "globalize", "localize"]
 _MODES = ("auto", "pair", "ego", "node")
 
 
+def _check_action_args(fn: str, field_type, frames, x) -> None:
+    """Raise a ``TypeError`` / ``ValueError`` naming ``fn``'s argument (``field_type``, ``frames`` or ``x``)."""
+    if not isinstance(field_type, FieldType):
+        raise TypeError(f"{fn}() argument field_type must be a FieldType, got {type(field_type).__name__}")
+    check_element_shape(field_type.group, frames, f"{fn}() argument frames")
+    field_type.check(x, f"{fn}() argument x")
+
+
+def _localize(field_type: FieldType, frames: Tensor, x: Tensor) -> Tensor:
+    return field_type.act(field_type.group.inverse(frames), x)
+
+
 def localize(field_type: FieldType, frames: Tensor, x: Tensor) -> Tensor:
     """Express world-frame features ``x`` ``(N, dim)`` in the node frames ``(N, *element_shape)``: ``rho(g^-1) x``."""
-    return field_type.act(field_type.group.inverse(frames), x)
+    _check_action_args("localize", field_type, frames, x)
+    return _localize(field_type, frames, x)
 
 
 def globalize(field_type: FieldType, frames: Tensor, x: Tensor) -> Tensor:
     """Map features ``x`` ``(N, dim)`` from the node frames back to the world frame: ``rho(g) x``."""
+    _check_action_args("globalize", field_type, frames, x)
     return field_type.act(frames, x)
 
 
@@ -79,6 +93,75 @@ def _detect_mode(layer: nn.Module) -> str:
     return "pair" if any(k in annotation for k in ("Pair", "Tuple", "tuple")) else "ego"
 
 
+def _declared_out_width(layer: nn.Module) -> tuple[int, str] | None:
+    """The output width ``layer`` declares and how, or ``None``: PyG's ``out_channels`` (times ``heads`` when
+    ``concat=True``, times ``len(powers)`` for MixHopConv), torch's ``out_features``; unset or lazy (< 1) is None."""
+    for attr in ("out_channels", "out_features"):
+        value = getattr(layer, attr, None)
+        if isinstance(value, int) and value > 0:
+            width, how = value, f"{attr}={value}"
+            heads = getattr(layer, "heads", None)
+            if getattr(layer, "concat", False) is True and isinstance(heads, int) and heads != 1:
+                width, how = width * heads, f"{how} x heads={heads} (concat=True)"
+            powers = getattr(layer, "powers", None)
+            if isinstance(powers, (list, tuple)) and len(powers) != 1:
+                width, how = width * len(powers), f"{how} x {len(powers)} powers"
+            return width, how
+    return None
+
+
+def _check_declared_widths(layer: nn.Module, spec: Canonicalize) -> None:
+    """Raise a ``ValueError`` if the FieldTypes' widths differ from those ``layer`` declares: PyG's ``in_channels``
+    (an int, or a ``(source, target)`` pair; ``-1`` for lazy is not checked) and output width
+    (:func:`_declared_out_width`), torch's ``in_features`` / ``out_features``. Layers that declare no widths (an
+    ``nn.Sequential``, ``EdgeConv``) are not checked here; a wrong output width still fails at the first call."""
+    name = type(layer).__name__
+    for attr in ("in_channels", "in_features"):
+        declared = getattr(layer, attr, None)
+        if declared is None:
+            continue
+        pair = isinstance(declared, (tuple, list)) and len(declared) == 2
+        widths = tuple(declared) if pair else (declared, declared)
+        for width, ft, side in zip(widths, (spec.src_type, spec.dst_type), ("source", "target")):
+            if isinstance(width, int) and width > 0 and width != ft.dim:
+                what = "in_type" if spec.src_type is spec.dst_type else f"in_type ({side})"
+                raise ValueError(
+                    f"{name} declares {attr}={declared!r}, but {what} {ft!r} has dim {ft.dim}: construct the "
+                    "layer with the FieldType's width"
+                )
+        break
+    out = _declared_out_width(layer)
+    if out is not None and out[0] != spec.out_type.dim:
+        raise ValueError(
+            f"{name} declares {out[1]}, i.e. {out[0]} output channels, but out_type {spec.out_type!r} has dim "
+            f"{spec.out_type.dim}: construct the layer with the FieldType's width"
+        )
+
+
+def _named_inputs(x, frames, pos, edge_attr, kwargs: dict) -> list[tuple[str, Any]]:
+    """The call's inputs as ``(name, value)`` pairs, named as the caller passed them (``x (source)`` for the
+    source part of a pair), for :meth:`CanonicalizedLayer._check_finite` and the layer-failure diagnosis."""
+    named = []
+    for what, value in (("x", x), ("frames", frames), ("pos", pos), ("edge_attr", edge_attr)):
+        if isinstance(value, (tuple, list)) and len(value) == 2:
+            named += [(f"{what} (source)", value[0]), (f"{what} (target)", value[1])]
+        elif value is not None:
+            named.append((what, value))
+    return named + list(kwargs.items())
+
+
+def _check_rows(ft: FieldType, t, what: str, rows: str = "N") -> None:
+    """Raise a clear error naming ``what`` unless ``t`` is a tensor ``(rows, ft.dim)``: one row per node (or edge),
+    no extra batch dimension (batch graphs into one disjoint graph instead, as ``torch_geometric``'s ``Batch``)."""
+    ft.check(t, what)
+    if t.dim() != 2:
+        raise ValueError(
+            f"{what} has shape {tuple(t.shape)}, expected ({rows}, {ft.dim}): one row per "
+            f"{'edge' if rows == 'E' else 'node'} and no batch dimension (put the graphs of a batch into one "
+            "disjoint graph, as torch_geometric's Batch does)"
+        )
+
+
 class Canonicalize:
     """Factory: ``Canonicalize(G, in_type=..., out_type=...)(layer)`` returns an equivariant ``nn.Module``.
 
@@ -88,22 +171,31 @@ class Canonicalize:
         out_type: FieldType of the layer's output rows.
         edge_type: FieldType of ``edge_attr`` if it is *typed* (e.g. a relative position as a ``Vector``); it is
             then expressed in the receiver's frame. ``None`` (default): ``edge_attr`` is invariant, passed as is.
-        pos_type: FeatureType/FieldType of ``pos`` (default ``Point(group.space_dim)``) for layers with positions.
+        pos_type: FeatureType/FieldType of ``pos`` for layers with positions. Default ``Point(group.space_dim)``;
+            for a group that acts on every dimension and has no ``space_dim`` (``Trivial``), ``Point(d)`` with ``d``
+            the width of the ``pos`` given, so that switching a model to ``Trivial()`` needs no other change.
         mode: ``"pair"``, ``"ego"``, ``"node"`` or ``"auto"`` (from the layer's ``forward`` signature).
         self_loops: pair mode only: add one edge per receiver from its own canonicalized features (the
             self loop that GATv2Conv / PointTransformerConv would add by index, which is wrong on the expanded
             graph; construct those layers with ``add_self_loops=False`` and use this instead). A loop's
             ``edge_attr`` is the mean of the receiver's incoming attributes, as PyG's ``fill_value="mean"``.
-        check_finite: raise if ``x``, ``frames`` or ``pos`` hold NaN or inf. Off by default because the check
-            synchronizes with the device; without it non-finite inputs propagate (never silently replaced).
+        check_finite: raise a ``ValueError`` naming the input if any floating-point input holds NaN or inf:
+            ``x``, ``frames``, ``pos``, ``edge_attr`` and the floating tensors among the other keyword arguments
+            (e.g. ``edge_weight``). Off by default because the check synchronizes with the device (once per call);
+            without it non-finite inputs propagate (never silently replaced).
         check_frames: raise a ``ValueError`` if a frame is not a group element up to ``frame_atol``
             (:meth:`Group.check_member`: a non-unit planar rotation, a non-orthogonal or reflected rotation
             matrix, NaN or inf), and if ``edge_index`` points outside the node range. Off by default (it
             synchronizes with the device); without it such frames give wrong, non-equivariant outputs.
         frame_atol: the tolerance of ``check_frames``.
 
-    Always checked (free: shapes and dtypes only): the element shape of ``frames``, one frame per receiving node,
-    ``edge_index`` ``(2, E)`` long, and that ``frames`` and ``x`` have the same floating dtype.
+    Checked when a layer is wrapped: the FieldTypes' widths against those the layer declares (PyG's ``in_channels``
+    and ``out_channels``, times ``heads`` when ``concat=True``; torch's ``in_features`` / ``out_features``).
+    Always checked per call (free: shapes and dtypes only): ``x`` ``(N, in_type.dim)`` (no extra batch dimension),
+    the element shape of ``frames``, one frame per receiving node, ``edge_index`` ``(2, E)`` long, the shapes of
+    ``pos`` and ``edge_attr``, and that ``frames``, ``pos`` and a typed ``edge_attr`` have the floating dtype of
+    ``x``. If the layer itself fails, the wrapper looks for the usual causes (an ``edge_index`` out of range, an
+    input whose dtype differs from the layer's parameters) and raises an error naming that input instead.
     """
 
     def __init__(
@@ -120,27 +212,31 @@ class Canonicalize:
         check_frames: bool = False,
         frame_atol: float = 1e-4,
     ):
-        if not isinstance(group, Group):
-            raise TypeError(f"Canonicalize needs a groupcanon Group, got {type(group).__name__}")
+        require_group(group, "Canonicalize(group, ...): group")
         src_type, dst_type, _ = _as_pair(in_type, "in_type")
-        for name, t in (("in_type", src_type), ("in_type", dst_type), ("out_type", out_type)):
+        for name, t in (("in_type", src_type), ("in_type", dst_type), ("out_type", out_type), ("edge_type", edge_type)):
+            if t is None and name == "edge_type":
+                continue
             if not isinstance(t, FieldType):
-                raise TypeError(f"{name} must be a FieldType, got {type(t).__name__}")
+                raise TypeError(f"Canonicalize: {name} must be a FieldType, got {type(t).__name__}")
             if t.group != group:
                 raise ValueError(f"{name} is a FieldType of {t.group}, but Canonicalize was given {group}")
-        if edge_type is not None and (not isinstance(edge_type, FieldType) or edge_type.group != group):
-            raise ValueError("edge_type must be a FieldType of the same group (or None for invariant edge_attr)")
         if mode not in _MODES:
             raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
         if pos_type is None and group.space_dim is not None:
             pos_type = FieldType(group, [Point(group.space_dim)])
-        elif pos_type is not None and not isinstance(pos_type, FieldType):
+        elif isinstance(pos_type, FeatureType):
             pos_type = FieldType(group, [pos_type])
+        elif pos_type is not None and not isinstance(pos_type, FieldType):
+            raise TypeError(f"Canonicalize: pos_type must be a FeatureType or FieldType, got {type(pos_type).__name__}")
+        elif pos_type is not None and pos_type.group != group:
+            raise ValueError(f"pos_type is a FieldType of {pos_type.group}, but Canonicalize was given {group}")
         self.group = group
         self.src_type, self.dst_type = src_type, dst_type
         self.out_type = out_type
         self.edge_type = edge_type
         self.pos_type = pos_type
+        self._pos_types: dict[int, FieldType] = {}  # pos_type=None: Point(d) per width d, for groups of any dimension
         self.mode = mode
         self.self_loops = bool(self_loops)
         self.check_finite = bool(check_finite)
@@ -148,6 +244,19 @@ class Canonicalize:
             raise ValueError(f"frame_atol must be a number >= 0, got {frame_atol!r}")
         self.check_frames = bool(check_frames)
         self.frame_atol = float(frame_atol)
+
+    def pos_field(self, pos: Tensor) -> FieldType:
+        """The FieldType of positions ``pos`` ``(N, d)``: ``pos_type``, or when none was given and the group has no
+        ``space_dim`` but acts on every dimension (``Trivial``), ``Point(d)`` with ``d = pos.shape[-1]``."""
+        if self.pos_type is not None:
+            return self.pos_type
+        d = pos.shape[-1] if isinstance(pos, Tensor) and pos.dim() else 0
+        if d < 1 or not self.group.acts_on_space(d):
+            raise ValueError(f"{self.group} has no action on positions: give pos_type to Canonicalize")
+        pt = self._pos_types.get(d)
+        if pt is None:
+            pt = self._pos_types[d] = FieldType(self.group, [Point(d)])
+        return pt
 
     def __call__(self, layer: nn.Module) -> CanonicalizedLayer:
         if not isinstance(layer, nn.Module):
@@ -193,6 +302,7 @@ class CanonicalizedLayer(nn.Module):
             )
         if self.mode != "pair" and spec.src_type != spec.dst_type:
             raise ValueError(f"separate source/target in_types need mode='pair', got mode={self.mode!r}")
+        _check_declared_widths(layer, spec)
 
     @property
     def group(self) -> Group:
@@ -250,10 +360,37 @@ class CanonicalizedLayer(nn.Module):
         if edge_index.dtype != torch.long:
             raise ValueError(f"edge_index must have dtype torch.long, got {edge_index.dtype}")
 
-    def _check_finite(self, **tensors) -> None:
-        for name, t in tensors.items():
-            if t is not None and not bool(torch.isfinite(t).all()):
-                raise ValueError(f"{name} contains NaN or inf")
+    @staticmethod
+    def _check_finite(inputs: Sequence[tuple[str, Any]]) -> None:
+        """Raise a ``ValueError`` naming the first floating-point tensor among ``(name, value)`` pairs that holds
+        NaN or inf. One device synchronization for all of them (a second one only to describe a failure)."""
+        tensors = [(n, t) for n, t in inputs if isinstance(t, Tensor) and t.is_floating_point()]
+        if not tensors:
+            return
+        flags = [torch.isfinite(t).all() for _, t in tensors]
+        ok = torch.stack(flags) if len({f.device for f in flags}) == 1 else torch.tensor([bool(f) for f in flags])
+        if bool(ok.all()):
+            return
+        name, t = tensors[int((~ok).nonzero()[0, 0])]
+        bad = ~torch.isfinite(t)
+        raise ValueError(
+            f"{name} contains NaN or inf ({int(bad.sum())} of {t.numel()} entries, the first at index "
+            f"{tuple(bad.nonzero()[0].tolist())})"
+        )
+
+    def _check_layer_dtypes(self, inputs: Sequence[tuple[str, Any]], err: Exception) -> None:
+        """After the layer raised ``err``: raise a ``TypeError`` naming the first floating-point input whose dtype
+        differs from the layer's parameters (torch reports that as a bare ``RuntimeError`` from a matmul)."""
+        dtypes = {p.dtype for p in self.layer.parameters() if p.dtype.is_floating_point}
+        if len(dtypes) != 1:
+            return
+        (want,) = dtypes
+        for name, t in inputs:
+            if isinstance(t, Tensor) and t.is_floating_point() and t.dtype != want:
+                raise TypeError(
+                    f"{name} has dtype {t.dtype}, but the parameters of {type(self.layer).__name__} have dtype "
+                    f"{want}: cast the inputs (.to({want})) or the layer (.to({t.dtype})); the layer failed with: {err}"
+                ) from err
 
     def _finish(self, out: Any, frames: Tensor) -> Any:
         rest = ()
@@ -271,59 +408,96 @@ class CanonicalizedLayer(nn.Module):
     def forward(self, x, edge_index: Tensor | None = None, *, frames: Tensor | None = None, **kwargs):
         if frames is None:
             raise TypeError("frames are required: eq(x, edge_index, frames=frames)")
-        spec = self.spec
         if self.mode == "node":
-            if edge_index is not None:
-                raise TypeError("mode='node' layers take no edge_index: call eq(x, frames=frames)")
-            spec.dst_type.check(x, "x")
-            self._check_frames(frames, x.shape[0], x)
-            if spec.check_finite:
-                self._check_finite(x=x, frames=frames)
-            if self._identity:
-                return self.layer(x, **kwargs)
-            return self._finish(self.layer(localize(spec.dst_type, frames, x), **kwargs), frames)
-
+            return self._forward_node(x, edge_index, frames, kwargs)
+        spec = self.spec
         if edge_index is None:
             raise TypeError("edge_index is required for graph layers")
         self._check_edge_index(edge_index)
         x_src, x_dst, bipartite = _as_pair(x, "x")
-        spec.src_type.check(x_src, "x (source)" if bipartite else "x")
-        spec.dst_type.check(x_dst, "x (target)" if bipartite else "x")
+        names = ("x (source)", "x (target)") if bipartite else ("x", "x")
+        _check_rows(spec.src_type, x_src, names[0])
+        _check_rows(spec.dst_type, x_dst, names[1])
         n_dst = x_dst.shape[0]
         self._check_frames(frames, n_dst, x_dst)
         if spec.check_frames:
             self._check_index_range(edge_index, x_src.shape[0], n_dst)
         pos = kwargs.pop("pos", None)
         edge_attr = kwargs.pop("edge_attr", None)
-        num_edges = edge_index.shape[1]
-        if edge_attr is not None and edge_attr.shape[0] != num_edges:
-            raise ValueError(f"edge_attr has {edge_attr.shape[0]} rows, edge_index has {num_edges} edges")
-        if edge_attr is not None and spec.edge_type is not None:
-            spec.edge_type.check(edge_attr, "edge_attr")
+        if pos is not None:
+            self._check_pos(pos, x_dst)
+        if edge_attr is not None:
+            self._check_edge_attr(edge_attr, edge_index.shape[1], x_dst)
         if spec.check_finite:
-            p_src, p_dst, _ = _as_pair(pos, "pos")
-            self._check_finite(x_src=x_src, x_dst=x_dst, frames=frames, pos_src=p_src, pos_dst=p_dst)
-
-        if self._identity:  # trivial group: every action is the identity; run the raw layer as is
-            if pos is not None:
-                kwargs["pos"] = pos
-            if edge_attr is not None:
-                kwargs["edge_attr"] = edge_attr
-            return self.layer(x=x, edge_index=edge_index, **kwargs)
-
+            self._check_finite(_named_inputs(x, frames, pos, edge_attr, kwargs))
         if self.mode == "ego" and bipartite:
             raise ValueError("mode='ego' takes a single node tensor x, not a (source, target) pair")
+
         try:
+            if self._identity:  # trivial group: every action is the identity; run the raw layer as is
+                if pos is not None:
+                    kwargs["pos"] = pos
+                if edge_attr is not None:
+                    kwargs["edge_attr"] = edge_attr
+                return self.layer(x=x, edge_index=edge_index, **kwargs)
             if self.mode == "pair":
                 out = self._forward_pair(x_src, x_dst, edge_index, frames, pos, edge_attr, kwargs)
             else:
                 out = self._forward_ego(x_dst, edge_index, frames, pos, edge_attr, kwargs)
-        except (IndexError, RuntimeError):
-            self._check_index_range(edge_index, x_src.shape[0], n_dst)  # a clear error if that was the cause
+        except (IndexError, RuntimeError) as err:  # a clear error if the cause is one of these
+            self._check_index_range(edge_index, x_src.shape[0], n_dst)
+            self._check_layer_dtypes(_named_inputs(x, frames, pos, edge_attr, kwargs), err)
             raise
         if kwargs.get("return_attention_weights") and isinstance(out, tuple) and len(out) == 2:
             out = (out[0], self._callers_attention(out[1], edge_index, n_dst))
         return self._finish(out, frames)
+
+    def _forward_node(self, x, edge_index, frames: Tensor, kwargs: dict):
+        """``mode="node"``: ``f_v = rho_out(g_v) M(rho_in(g_v^-1) x_v)`` row by row."""
+        if edge_index is not None:
+            raise TypeError("mode='node' layers take no edge_index: call eq(x, frames=frames)")
+        spec = self.spec
+        _check_rows(spec.dst_type, x, "x")
+        self._check_frames(frames, x.shape[0], x)
+        if spec.check_finite:
+            self._check_finite(_named_inputs(x, frames, None, None, kwargs))
+        try:
+            if self._identity:
+                return self.layer(x, **kwargs)
+            out = self.layer(_localize(spec.dst_type, frames, x), **kwargs)
+        except RuntimeError as err:
+            self._check_layer_dtypes(_named_inputs(x, frames, None, None, kwargs), err)
+            raise
+        return self._finish(out, frames)
+
+    @staticmethod
+    def _check_same_dtype(what: str, t: Tensor, x: Tensor) -> None:
+        if t.dtype != x.dtype and t.is_floating_point() and x.is_floating_point():
+            raise TypeError(f"{what} has dtype {t.dtype} but x has {x.dtype}: cast it with .to(x.dtype)")
+
+    def _check_pos(self, pos, x: Tensor) -> None:
+        """``pos``: ``(N, d)`` or a ``(source, target)`` pair, of the position type's width and the dtype of ``x``."""
+        p_src, p_dst, bipartite = _as_pair(pos, "pos")
+        pt = self.spec.pos_field(p_dst)
+        for name, p in (("pos (source)", p_src), ("pos (target)", p_dst)) if bipartite else (("pos", p_dst),):
+            _check_rows(pt, p, name)
+            self._check_same_dtype(name, p, x)
+
+    def _check_edge_attr(self, edge_attr, num_edges: int, x: Tensor) -> None:
+        """``edge_attr``: ``(E, edge_type.dim)`` in the dtype of ``x`` if typed; ``(E,)`` or ``(E, k)`` if invariant."""
+        if not isinstance(edge_attr, Tensor):
+            raise TypeError(f"edge_attr must be a torch.Tensor, got {type(edge_attr).__name__}")
+        et = self.spec.edge_type
+        if et is not None:
+            _check_rows(et, edge_attr, "edge_attr", rows="E")
+            self._check_same_dtype("edge_attr", edge_attr, x)
+        elif edge_attr.dim() not in (1, 2):
+            raise ValueError(
+                f"edge_attr has shape {tuple(edge_attr.shape)}, expected (E,) or (E, edge_dim): one row per edge "
+                "and no batch dimension"
+            )
+        if edge_attr.shape[0] != num_edges:
+            raise ValueError(f"edge_attr has {edge_attr.shape[0]} rows, edge_index has {num_edges} edges")
 
     def _callers_attention(self, weights, edge_index: Tensor, n_dst: int):
         """``(edge_index, alpha)`` of the internal graph -> the same weights on the caller's ``edge_index`` (with
@@ -348,12 +522,8 @@ class CanonicalizedLayer(nn.Module):
     def _pos_inputs(self, pos, src: Tensor, inv: Tensor, inv_e: Tensor):
         if pos is None:
             return None
-        if self.spec.pos_type is None:
-            raise ValueError(f"{self.group} has no action on positions: give pos_type to Canonicalize")
-        p_src, p_dst, _ = _as_pair(pos, "pos")
-        pt = self.spec.pos_type
-        pt.check(p_src, "pos")
-        pt.check(p_dst, "pos")
+        p_src, p_dst, _ = _as_pair(pos, "pos")  # checked in forward
+        pt = self.spec.pos_field(p_dst)
         return pt.act_gathered(inv_e, p_src, src), pt.act(inv, p_dst)
 
     def _forward_pair(self, x_src, x_dst, edge_index, frames, pos, edge_attr, kwargs):

@@ -30,7 +30,7 @@ from collections.abc import Iterable, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .group import Group, check_element_shape
+from .group import Group, check_element_shape, require_group
 
 __all__ = [
     "FeatureType",
@@ -84,8 +84,7 @@ class _BuiltinType(FeatureType):
         pass
 
     def bind(self, group: Group) -> FeatureType:
-        if not isinstance(group, Group):
-            raise TypeError(f"{self!r} must be bound to a groupcanon Group, got {type(group).__name__}")
+        require_group(group, f"{self!r}.bind(group): group")
         if self.group is not None:
             if self.group != group:
                 raise ValueError(f"{self!r} is already bound to {self.group}, cannot bind it to {group}")
@@ -104,7 +103,7 @@ class _BuiltinType(FeatureType):
 
     def _init_group(self, group: Group | None) -> None:
         if group is not None:
-            self._check(group)
+            self._check(require_group(group, f"{type(self).__name__}(group=...)"))
             self.group = group
 
     def _require_space(self, group: Group, d: int) -> None:
@@ -200,7 +199,10 @@ class Rotation(_BuiltinType):
 
     def _check(self, group: Group) -> None:
         if self.d is None and group.space_dim is None:
-            raise ValueError(f"{group} has no action on a Euclidean space: it cannot act on Rotation()")
+            raise ValueError(
+                f"{group} has no action on a Euclidean space of its own: it cannot act on Rotation(), whose "
+                "dimension comes from the group's space_dim; give the dimension, Rotation(d)"
+            )
         if self.d is not None:
             self._require_space(group, self.d)
 
@@ -269,7 +271,7 @@ class OnFactor(_BuiltinType):
         self.index = int(index)
         self.feature = feature
         if group is not None:
-            self._check(group)
+            self._check(require_group(group, "OnFactor(group=...)"))
             self.group = group
             self.feature = feature.bind(group.groups[self.index])
 
@@ -383,8 +385,7 @@ class FieldType:
     """
 
     def __init__(self, group: Group, features: Sequence[FeatureType] | Mapping[str, FeatureType]):
-        if not isinstance(group, Group):
-            raise TypeError(f"FieldType needs a groupcanon Group, got {type(group).__name__}")
+        require_group(group, "FieldType(group, features): group")
         if isinstance(features, Mapping):
             names = [str(k) for k in features.keys()]
             feats = list(features.values())
@@ -392,10 +393,16 @@ class FieldType:
             feats = list(features)
             names = [None] * len(feats)
         else:
-            raise TypeError("FieldType needs a list (or a dict name -> type) of FeatureTypes")
-        for f in feats:
+            raise TypeError(
+                "FieldType(group, features): features must be a list (or a dict name -> type) of FeatureTypes, "
+                f"got {type(features).__name__}"
+            )
+        for i, f in enumerate(feats):
             if not isinstance(f, FeatureType):
-                raise TypeError(f"FieldType entries must be FeatureTypes, got {type(f).__name__}")
+                raise TypeError(
+                    f"FieldType(group, features): features[{i if names[i] is None else repr(names[i])}] must be a "
+                    f"FeatureType, got {type(f).__name__}"
+                )
         self.group = group
         self.features = tuple(f.bind(group) for f in feats)
         self.names = tuple(names)
@@ -458,8 +465,8 @@ class FieldType:
 
     def act(self, g: Tensor, x: Tensor) -> Tensor:
         """``rho(g) x``: ``x`` ``(*batch, dim)``, ``g`` ``(*batch, *G.element_shape)``; batch dims broadcast."""
-        check_element_shape(self.group, g)
-        self.check(x)
+        check_element_shape(self.group, g, "act() argument g")
+        self.check(x, "act() argument x")
         gb, xb = self.group.batch_shape(g), x.shape[:-1]
         try:
             batch = torch.broadcast_shapes(gb, xb)
@@ -487,8 +494,8 @@ class FieldType:
         the transformed fields are gathered again and acted on (canonicalization gathers every node's features
         once per edge, and most channels are usually invariant).
         """
-        check_element_shape(self.group, g)
-        self.check(x)
+        check_element_shape(self.group, g, "act_gathered() argument g")
+        self.check(x, "act_gathered() argument x")
         if self._planar is not None and not self.invariant:
             return self._planar_combine(g, self._planar_lift(x).index_select(0, index))
         out = x.index_select(0, index)

@@ -4,7 +4,8 @@ A frame ``g_v`` must satisfy ``frame(g . scene) = g . frame(scene)`` for the wra
 Degenerate inputs (a zero heading vector, norm ``<= eps``) have no well-defined frame; these helpers then fall
 back to a fixed axis, which is finite and differentiable but not equivariant at that measure-zero configuration.
 Non-finite inputs (NaN or inf) are never replaced: the frame they give is NaN, so the error shows downstream (or
-at once with ``Canonicalize(..., check_frames=True)``) instead of silently turning into the identity.
+at once with ``Canonicalize(..., check_frames=True)``) instead of silently turning into the identity. An argument
+that is not a tensor, or whose last dimension is too small, raises an error naming the helper and the argument.
 """
 
 from __future__ import annotations
@@ -13,6 +14,17 @@ import torch
 from torch import Tensor
 
 __all__ = ["planar_frame", "rotation_from_vectors", "se2xr_frame", "se3_frame"]
+
+
+def _check_vectors(fn: str, what: str, v, width: int, exact: bool = True) -> None:
+    """Raise a ``TypeError`` / ``ValueError`` naming ``fn``'s argument ``what`` unless ``v`` is a tensor
+    ``(*batch, width)`` (``(*batch, >= width)`` when not ``exact``). Shapes only: no device synchronization."""
+    if not isinstance(v, Tensor):
+        raise TypeError(f"{fn}() argument {what} must be a torch.Tensor, got {type(v).__name__}")
+    n = v.shape[-1] if v.dim() else 0
+    if n != width if exact else n < width:
+        want = f"(*batch, {width})" if exact else f"(*batch, >= {width})"
+        raise ValueError(f"{fn}() argument {what} has shape {tuple(v.shape)}, expected {want}")
 
 
 def _safe_normalize(v: Tensor, fallback: Tensor, eps: float) -> Tensor:
@@ -26,6 +38,7 @@ def _safe_normalize(v: Tensor, fallback: Tensor, eps: float) -> Tensor:
 
 def planar_frame(heading: Tensor, eps: float = 1e-12) -> Tensor:
     """SO(2) elements ``(*batch, 2) = (cos, sin)`` from planar heading vectors ``(*batch, 2)`` (first 2 used)."""
+    _check_vectors("planar_frame", "heading", heading, 2, exact=False)
     fallback = heading.new_tensor([1.0, 0.0])
     return _safe_normalize(heading[..., :2], fallback, eps)
 
@@ -36,6 +49,8 @@ def se2xr_frame(heading: Tensor, position: Tensor, eps: float = 1e-12) -> Tensor
     For a quadrotor with attitude ``R`` (body to world), ``heading = R[..., :, 0]`` (the body x axis) gives the
     yaw frame; it is equivariant because a rotation about z rotates the horizontal part of the body x axis.
     """
+    _check_vectors("se2xr_frame", "heading", heading, 2, exact=False)
+    _check_vectors("se2xr_frame", "position", position, 3)
     return torch.cat((planar_frame(heading, eps), position), dim=-1)
 
 
@@ -44,6 +59,8 @@ def rotation_from_vectors(a: Tensor, b: Tensor, eps: float = 1e-12) -> Tensor:
 
     The third axis is the cross product, so ``det = +1`` always (never a reflection).
     """
+    _check_vectors("rotation_from_vectors", "a", a, 3)
+    _check_vectors("rotation_from_vectors", "b", b, 3)
     e1 = _safe_normalize(a, a.new_tensor([1.0, 0.0, 0.0]), eps)
     b_perp = b - (b * e1).sum(-1, keepdim=True) * e1
     # fallback second axis: any unit vector orthogonal to e1
@@ -56,4 +73,5 @@ def rotation_from_vectors(a: Tensor, b: Tensor, eps: float = 1e-12) -> Tensor:
 
 def se3_frame(a: Tensor, b: Tensor, position: Tensor, eps: float = 1e-12) -> Tensor:
     """SE3 elements ``(*batch, 3, 4)`` from two direction vectors and a position."""
+    _check_vectors("se3_frame", "position", position, 3)
     return torch.cat((rotation_from_vectors(a, b, eps), position.unsqueeze(-1)), dim=-1)

@@ -27,11 +27,21 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["Group", "check_element_shape", "default_dtype"]
+__all__ = ["Group", "check_element_shape", "default_dtype", "require_group"]
 
 
 def default_dtype(dtype: torch.dtype | None) -> torch.dtype:
     return torch.get_default_dtype() if dtype is None else dtype
+
+
+def require_group(value, what: str) -> Group:
+    """Return ``value`` if it is a :class:`Group`, else raise a ``TypeError`` naming ``what`` (the argument) and the
+    type given; for an object that has a group (a ``FieldType``) the message points to its ``.group``."""
+    if isinstance(value, Group):
+        return value
+    inner = getattr(value, "group", None)
+    hint = f" (pass its .group, {inner}, instead)" if isinstance(inner, Group) else ""
+    raise TypeError(f"{what} must be a groupcanon Group, got {type(value).__name__}{hint}")
 
 
 def check_element_shape(group: Group, g: Tensor, what: str = "group element") -> None:
@@ -196,7 +206,7 @@ class Group(abc.ABC):
         non-finite elements, else the largest entry of ``|R^T R - I|`` of the rotation part, plus
         ``|det R - 1|`` for orientation-preserving groups (0 for groups without a rotation part)."""
         self.check(g, "g")
-        flat = g.reshape(*self.batch_shape(g), -1)
+        flat = g.reshape(*self.batch_shape(g), self.element_numel)  # not -1: ambiguous for an empty batch
         finite = torch.isfinite(flat).all(-1)  # all() of an empty row is True
         res = torch.zeros(finite.shape, dtype=g.dtype if g.is_floating_point() else torch.float64, device=g.device)
         if self.space_dim is not None:
@@ -218,6 +228,7 @@ class Group(abc.ABC):
         Opt-in (it synchronizes with the device): :class:`~groupcanon.Canonicalize` calls it on every frame when
         constructed with ``check_frames=True``.
         """
+        self.check(g, what)
         res = self.membership_residual(g)
         bad = ~(res <= atol)  # NaN counts as bad
         if bool(bad.any()):

@@ -60,6 +60,12 @@ LAYERS = {
     "PointTransformerConv": LayerSpec(
         lambda i, o, d, e: PointTransformerConv(i, o, pos_nn=nn.Linear(d, o), add_self_loops=False), "pair", pos=True
     ),
+    "PointTransformerConv+self_loops": LayerSpec(
+        lambda i, o, d, e: PointTransformerConv(i, o, pos_nn=nn.Linear(d, o), add_self_loops=False),
+        "pair",
+        pos=True,
+        canon={"self_loops": True},
+    ),
     "EdgeConv": LayerSpec(lambda i, o, d, e: EdgeConv(_mlp(2 * i, o)), "pair"),
     "SAGEConv": LayerSpec(lambda i, o, d, e: SAGEConv(i, o), "pair"),
     "GraphConv": LayerSpec(lambda i, o, d, e: GraphConv(i, o), "pair"),
@@ -466,6 +472,45 @@ def test_trivial_group_is_exactly_the_raw_layer(name):
         assert not torch.allclose(got, raw(x=x, edge_index=ei, **kw), atol=1e-6)
     else:
         assert torch.equal(got, raw(x=x, edge_index=ei, **kw))
+
+
+def _model(G, d: int, name: str):
+    """The construction code of a user model: dimensions spelled out, group as a parameter, no pos_type."""
+    spec = LAYERS[name]
+    t_in = FieldType(G, {"s": Scalar(2), "v": Vector(d), "p": Point(d)})
+    t_out = FieldType(G, {"s": Scalar(3), "v": Vector(d, n=2), "p": Point(d)})
+    et = FieldType(G, {"dist": Scalar(1), "disp": Vector(d)}) if spec.typed_edges else None
+    torch.manual_seed(0)
+    raw = spec.make(t_in.dim, t_out.dim, d, None if et is None else et.dim).double()
+    return raw, Canonicalize(G, t_in, t_out, edge_type=et, **spec.canon)(raw), t_in, et
+
+
+@pytest.mark.parametrize("G", GROUPS, ids=group_id)
+@pytest.mark.parametrize("name", list(LAYERS))
+def test_trivial_is_a_drop_in_replacement(name, G):
+    """The code of a working G model with G replaced by Trivial() (positions included, no pos_type) runs, and gives
+    the G model's output at identity frames; in pair mode that is the unwrapped layer's output (with its own self
+    loops where the wrapper adds them), in ego mode the layer on the ego graphs (documented)."""
+    d, n = G.space_dim, 14
+    T = gg.Trivial()
+    _, eq_g, t_in, et = _model(G, d, name)
+    raw, eq, _, _ = _model(T, d, name)
+    ei = fixed_graph(n, degree=4)
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(n, t_in.dim, generator=gen, dtype=F64)
+    kw = {}
+    if LAYERS[name].pos:
+        kw["pos"] = torch.randn(n, d, generator=gen, dtype=F64)
+    if et is not None:
+        kw["edge_attr"] = torch.randn(ei.shape[1], et.dim, generator=gen, dtype=F64)
+    got = eq(x, ei, frames=T.identity(n, dtype=F64), **kw)
+    expected = eq_g(x, ei, frames=G.identity(n, dtype=F64), **kw)
+    assert got.shape == expected.shape == (n, eq.spec.out_type.dim)
+    assert torch.allclose(got, expected, atol=1e-12, rtol=0)
+    if eq.mode == "pair":
+        if LAYERS[name].canon.get("self_loops"):
+            raw.add_self_loops = True  # the wrapper's self_loops=True is the layer's own add_self_loops=True
+        assert torch.allclose(got, raw(x=x, edge_index=ei, **kw), atol=1e-12, rtol=0)
 
 
 def test_trivial_node_mode_is_exactly_the_raw_module():

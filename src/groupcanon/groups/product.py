@@ -56,7 +56,7 @@ class Product(Group):
 
     def pack(self, parts) -> Tensor:
         """Inverse of :meth:`factor`: concatenate factor elements (their batch dims broadcast)."""
-        flat = [p.reshape(*p.shape[: p.dim() - len(G.element_shape)], -1) for p, G in zip(parts, self.groups)]
+        flat = [p.reshape(*G.batch_shape(p), G.element_numel) for p, G in zip(parts, self.groups)]  # not -1: empty
         batch = torch.broadcast_shapes(*(f.shape[:-1] for f in flat))
         return torch.cat([f.expand(*batch, f.shape[-1]) for f in flat], dim=-1)
 

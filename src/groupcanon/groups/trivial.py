@@ -1,6 +1,8 @@
 """The trivial group {e}: everything is invariant. Element shape ``(0,)``.
 
-Wrapping a model with ``Trivial()`` gives the non-equivariant baseline with the same code.
+Wrapping a model with ``Trivial()`` gives the non-equivariant baseline with the same code: it acts (as the identity)
+on every feature type of any dimension, and :class:`~groupcanon.Canonicalize` takes positions as ``Point(d)`` of the
+width ``d`` of the ``pos`` given, so no ``pos_type`` is needed.
 """
 
 from __future__ import annotations

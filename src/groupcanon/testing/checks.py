@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from ..features import FeatureType, FieldType
-from ..group import Group
+from ..group import Group, require_group
 
 __all__ = [
     "assert_equivariant",
@@ -74,6 +74,7 @@ def check_group_axioms(
     ``elements`` may supply the triple ``(a, b, c)`` (each ``(n, *element_shape)``), e.g. from
     :func:`groupcanon.testing.strategies.elements`.
     """
+    require_group(group, "check_group_axioms() argument group")
     tol = default_atol(dtype) if atol is None else atol
     if elements is None:
         gen = generator or torch.Generator(device=device or "cpu").manual_seed(0)
@@ -158,6 +159,10 @@ def check_group_axioms(
 
 
 def _bind(group: Group, ft: FeatureType | FieldType) -> FieldType:
+    if not isinstance(ft, (FeatureType, FieldType)):
+        raise TypeError(
+            f"check_action_laws() argument feature_type must be a FeatureType or FieldType, got {type(ft).__name__}"
+        )
     if isinstance(ft, FieldType):
         if ft.group != group:
             raise ValueError(f"FieldType is over {ft.group}, not {group}")
@@ -180,6 +185,7 @@ def check_action_laws(
     """Check that ``feature_type.act`` is a group action: ``act(e, x) = x``, ``act(a, act(b, x)) = act(a.b, x)``,
     ``act(a^-1, act(a, x)) = x``, and that it keeps shape, dtype and broadcasts a single element over a batch.
     """
+    require_group(group, "check_action_laws() argument group")
     tol = default_atol(dtype) if atol is None else atol
     ft = _bind(group, feature_type)
     gen = generator or torch.Generator(device=device or "cpu").manual_seed(0)
@@ -234,6 +240,24 @@ def _transform(group: Group, spec: TypeSpec, value: Any, g: Tensor) -> Any:
     return spec.act(g, value)
 
 
+def _check_type_specs(what: str, specs: Any) -> None:
+    """Raise a ``TypeError`` naming the entry of ``in_types`` / ``out_types`` that is not a :data:`TypeSpec`."""
+    if what == "in_types" and not isinstance(specs, Mapping):
+        raise TypeError(
+            f"in_types must be a mapping (argument position or keyword -> type), got {type(specs).__name__}"
+        )
+    if isinstance(specs, Mapping):
+        items = specs.items()
+    elif isinstance(specs, (tuple, list)):
+        items = enumerate(specs)
+    else:
+        items = [(None, specs)]
+    for key, spec in items:
+        if spec is not None and not isinstance(spec, (FieldType, FeatureType, Group)):
+            where = what if key is None else f"{what}[{key!r}]"
+            raise TypeError(f"{where} must be a FieldType, FeatureType, Group or None, got {type(spec).__name__}")
+
+
 def _outputs(out: Any) -> tuple:
     return tuple(out) if isinstance(out, (tuple, list)) else (out,)
 
@@ -260,6 +284,11 @@ def equivariance_error(
         out_types: the same for the outputs (a sequence for tuple outputs). ``None``: invariant output.
         g: one element ``(*element_shape)`` or a batch ``(k, *element_shape)`` of global transforms to test.
     """
+    require_group(group, "equivariance_error() argument group")
+    if not callable(fn):
+        raise TypeError(f"equivariance_error() argument fn must be callable, got {type(fn).__name__}")
+    _check_type_specs("in_types", in_types)
+    _check_type_specs("out_types", out_types)
     kwargs = dict(kwargs or {})
     args = list(args)
     if g is None:

@@ -564,6 +564,7 @@ def reproduce(
     SCALE-SIZES at fixed density, resumably (finished cells are kept; stop and rerun the same command), and write
     REPORT."""
     from .checkpoint import read_config
+    from .filter_names import split_method
     from .reproduce import (
         CellsFailed,
         SweepConfig,
@@ -613,8 +614,10 @@ def reproduce(
         "--seed-methods": (seed_methods, "gcbf+,egcbf+", "seed_methods"),
         "--scale-methods": (scale_methods, _REPRO_METHODS, "scale_methods"),
     }
+    run_bases = {split_method(m)[0] for m in sweep_cfg["methods"]}  # a filtered method runs its base's seeds
     for flag, (text, default, field) in given.items():
-        extra = [m for m in sweep_cfg[field] if m not in sweep_cfg["methods"]]
+        runs_it = run_bases if field == "seed_methods" else set(sweep_cfg["methods"])
+        extra = [m for m in sweep_cfg[field] if m not in runs_it]
         if text != default and extra:
             runs = ",".join(sweep_cfg["methods"])
             usage_error(f"{flag} names {', '.join(extra)}, which --methods does not run (--methods {runs}); add "

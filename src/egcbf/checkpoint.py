@@ -27,6 +27,7 @@ leaves a complete directory (the new one or the previous one); every reader reco
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -420,6 +421,43 @@ def load_learner(path: str | Path, device=None, dtype=None, config: TrainConfig 
             stacklevel=2,
         )
     return learner
+
+
+def warm_start(learner: GraphCBFLearner, path: str | Path, sha: str | None = None) -> tuple[Path, str]:
+    """Load the network weights of checkpoint ``path`` (a checkpoint or run directory; a run's ``best/``) into
+    ``learner`` (CBF, target CBF, policy; optimizers, buffers and update count stay fresh). Returns the checkpoint
+    directory and the SHA-256 of its weights.
+
+    Raises :class:`CheckpointError` if the checkpoint is another method, group or interface, if its networks'
+    configuration (``model``) differs from ``learner.config.model`` (naming the fields), or if ``sha`` is given and
+    is not the hash of its weights."""
+    ckpt = find_checkpoint(path, prefer_best=True)
+    cfg = read_config(ckpt)
+    weights_path = ckpt / "model.safetensors"
+    weights = read_tensors(weights_path)
+    check_identity(ckpt, cfg)
+    want = learner.config
+    if identity(cfg) != identity(want):
+        raise CheckpointError(
+            f"{ckpt} holds {cfg.algo} weights ({cfg.group}, {cfg.model.interface} interface); this run trains "
+            f"{want.algo} ({want.group}, {want.model.interface} interface): warm-start from a checkpoint of the same "
+            "method"
+        )
+    ours, theirs = dataclasses.asdict(want.model), dataclasses.asdict(cfg.model)
+    differ = sorted(k for k in ours if ours[k] != theirs.get(k))
+    if differ:
+        pairs = ", ".join(f"{k}: {theirs.get(k)!r} there, {ours[k]!r} here" for k in differ)
+        raise CheckpointError(f"{ckpt}: the networks differ from this run's model config ({pairs})")
+    digest = sha256(weights_path)
+    if sha is not None and sha != digest:
+        raise CheckpointError(
+            f"{weights_path} has SHA-256 {digest}, but the config's init_sha256 is {sha}: the weights changed since "
+            "the run was configured"
+        )
+    _load_state_dict(
+        ckpt, lambda: learner.load_weights({k: v.to(learner.device, learner.dtype) for k, v in weights.items()})
+    )
+    return ckpt, digest
 
 
 def load_network(

@@ -388,6 +388,13 @@ def train(
     robot: Annotated[
         RobotName | None, typer.Option(help="the robot (default: quadrotor; the unicycle has the presets cpu and tiny)")
     ] = None,
+    init_from: Annotated[
+        Path | None,
+        typer.Option(
+            help="warm start: the networks' weights from this checkpoint (or run: its best/), fresh optimizers; "
+            "the model config must match (fine-tuning)"
+        ),
+    ] = None,
 ) -> None:
     """Train GCBF, GCBF+, EGCBF or EGCBF+ (one learner; the group and the reference controller differ)."""
     from .checkpoint import CheckpointError, checkpoint_step
@@ -411,7 +418,8 @@ def train(
     if resume:
         if algo is not None:
             usage_error("--algo cannot change a resumed run (its method is in OUT/config.json); drop --algo")
-        if config is not None or preset is not None or seed is not None or device is not None or robot is not None:
+        if (config is not None or preset is not None or seed is not None or device is not None or robot is not None
+                or init_from is not None):  # fmt: skip
             usage_error("--resume continues the saved config: only --steps, --threads and --tensorboard may change")
         current = checkpoint_step(out)
         if steps is not None and current is not None and steps < current:
@@ -448,6 +456,8 @@ def train(
 
     require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
     require(name in PRESETS, f"--preset must be one of {PRESETS}, got {name!r}")
+    if init_from is not None:
+        fields["init_from"], fields["init_sha256"] = str(init_from), None
     for key, value in (("steps", steps), ("device", device), ("seed", seed), ("num_threads", threads)):
         if value is not None:
             fields[key] = value
@@ -461,6 +471,10 @@ def train(
         run_training(cfg, out, progress=progress, tensorboard=tensorboard)
     except FileExistsError as err:
         usage_error(f"--out {out}: {err}", err)
+    except (FileNotFoundError, CheckpointError) as err:
+        if cfg.init_from is None:
+            raise
+        usage_error(f"--init-from {cfg.init_from}: {err}", err)
 
 
 def _parse_methods(text: str, option: str) -> tuple[str, ...]:

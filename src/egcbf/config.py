@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -95,6 +96,11 @@ class TrainConfig:
     (periodic evaluation rollouts; ``eval_*=None``: the training values, 256-step episodes),
     ``checkpoint_interval``, ``keep_checkpoints`` (0: keep all), ``save_buffers`` (store the replay buffers in
     checkpoints so that ``--resume`` continues bit for bit).
+
+    Warm start (fine-tuning): ``init_from`` (a checkpoint or run directory; a run's ``best/``) gives the networks'
+    starting weights (CBF, its target copy and policy; fresh optimizers, buffers and update count), and
+    ``init_sha256`` the SHA-256 of its ``model.safetensors``: recorded by :func:`egcbf.train.train` when ``None``,
+    checked when given, so a config beside a checkpoint says exactly which weights the run started from.
     """
 
     algo: str = "egcbf+"
@@ -158,6 +164,8 @@ class TrainConfig:
     checkpoint_interval: int = 25
     keep_checkpoints: int = 3
     save_buffers: bool = True
+    init_from: str | None = None
+    init_sha256: str | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.model, dict):
@@ -198,6 +206,11 @@ class TrainConfig:
             v = self.max_wall_minutes
             need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, "max_wall_minutes", "None or > 0")
         need(self.control_loss in ("squared", "norm"), "control_loss", "'squared' or 'norm'")
+        need(self.init_from is None or (isinstance(self.init_from, str) and self.init_from.strip() != ""),
+             "init_from", "None or a checkpoint path")  # fmt: skip
+        sha = self.init_sha256
+        need(sha is None or (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha) is not None),
+             "init_sha256", "None or a hex SHA-256")  # fmt: skip
         need(self.command_model in ("ideal", "closed_loop"), "command_model", "'ideal' or 'closed_loop'")
         if self.area_sizes is not None:
             ok = isinstance(self.area_sizes, (list, tuple)) and len(self.area_sizes) > 0

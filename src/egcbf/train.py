@@ -53,6 +53,7 @@ from .checkpoint import (
     save_best,
     save_checkpoint,
     set_aside,
+    warm_start,
 )
 from .config import TrainConfig
 from .evaluate import episode_seed, run_episodes
@@ -249,8 +250,16 @@ def train(
         if steps is not None:
             config = config.replace(steps=steps)
         saved = _setup_torch(config)
+        try:
+            learner = GraphCBFLearner(config)
+            if config.init_from is not None:
+                ckpt, digest = warm_start(learner, config.init_from, config.init_sha256)
+                config = learner.config = config.replace(init_sha256=digest)
+                log(f"[{config.algo}] warm start from {ckpt} (weights {digest[:12]})")
+        except BaseException:
+            _restore_torch(saved)
+            raise
         out.mkdir(parents=True, exist_ok=True)
-        learner = GraphCBFLearner(config)
         wall0 = 0.0
     write_json_atomic(out / "config.json", config.to_dict())  # a kill never leaves a half-written config
     logger = _Logger(out, learner.step, tensorboard)

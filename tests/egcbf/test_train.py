@@ -8,7 +8,7 @@ import torch
 from typer.testing import CliRunner
 
 from egcbf.algo import GraphCBFLearner
-from egcbf.checkpoint import find_checkpoint, load_controller, load_learner
+from egcbf.checkpoint import CheckpointError, find_checkpoint, load_controller, load_learner
 from egcbf.cli import app
 from egcbf.config import LEARNED_METHODS, TrainConfig
 from egcbf.env import SwarmEnv
@@ -194,3 +194,40 @@ def test_max_wall_minutes_stops_with_a_final_evaluation_and_checkpoint(tmp_path)
     assert TrainConfig.preset("egcbf+", "cpu").max_wall_minutes == 60.0
     with pytest.raises(ValueError, match="max_wall_minutes"):
         TrainConfig.preset("gcbf", "tiny", max_wall_minutes=0)
+
+
+def test_warm_start_from_a_checkpoint(tmp_path):
+    """``init_from`` starts a fresh run (update 0, fresh optimizers) from another run's networks and records the
+    weights' SHA-256; another method, other networks or a changed file are refused, naming what differs."""
+    first = tmp_path / "first"
+    _quiet(TrainConfig.preset("egcbf+", "tiny", steps=2), first)
+    source = find_checkpoint(first, prefer_best=True)
+    cfg = TrainConfig.preset("egcbf+", "tiny", steps=1, num_agents=4, init_from=str(first))
+    learner = GraphCBFLearner(cfg)
+    from egcbf.checkpoint import sha256, warm_start
+
+    ckpt, digest = warm_start(learner, first)
+    assert ckpt == source and digest == sha256(source / "model.safetensors")
+    want = load_learner(source).weights()
+    assert all(torch.equal(v, want[k]) for k, v in learner.weights().items())
+    assert learner.step == 0 and not learner.opt_policy.state  # fresh optimizers
+    second = tmp_path / "second"
+    trained = _quiet(cfg, second)
+    saved = TrainConfig.from_json(second / "config.json")
+    assert saved.init_from == str(first) and saved.init_sha256 == digest and trained.step == 1
+    # what the run started from is checked when the config says it
+    with pytest.raises(CheckpointError, match="init_sha256"):
+        _quiet(cfg.replace(init_sha256="0" * 64), tmp_path / "third")
+    with pytest.raises(CheckpointError, match="hidden: 16 there, 8 here"):
+        warm_start(GraphCBFLearner(cfg.replace(model={**cfg.model.__dict__, "hidden": 8})), first)
+    with pytest.raises(CheckpointError, match="holds egcbf\\+ weights"):
+        warm_start(GraphCBFLearner(TrainConfig.preset("gcbf+", "tiny")), first)
+    with pytest.raises(ValueError, match="init_sha256"):
+        cfg.replace(init_sha256="not a hash")
+    # the CLI names the option
+    base = ["train", "--algo", "egcbf+", "--preset", "tiny", "--steps", "1", "--no-progress", "--init-from"]
+    r = CliRunner().invoke(app, [*base, str(tmp_path / "missing"), "--out", str(tmp_path / "cli")])
+    assert r.exit_code == 2 and "--init-from" in r.output, r.output
+    r = CliRunner().invoke(app, [*base, str(first), "--out", str(tmp_path / "cli2")])
+    assert r.exit_code == 0, r.output
+    assert TrainConfig.from_json(tmp_path / "cli2" / "config.json").init_sha256 == digest

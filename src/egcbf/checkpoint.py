@@ -340,10 +340,20 @@ def no_checkpoint(out: str | Path) -> FileNotFoundError:
     return FileNotFoundError(f"no checkpoint in {out} (expected {out}/{CHECKPOINTS_DIR}/step_*/model.safetensors)")
 
 
+def _check_path(path, func: str) -> None:
+    """A :class:`TypeError` naming ``func``'s argument ``path`` unless it is a ``str`` or ``os.PathLike``."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(
+            f"{func}() argument path must be a checkpoint or run directory (str or pathlib.Path), got "
+            f"{type(path).__name__}"
+        )
+
+
 def find_checkpoint(path: str | Path, prefer_best: bool = False) -> Path:
     """A checkpoint directory: ``path`` itself if it holds one, else, of the run ``path``, its ``best/`` (the
     checkpoint selected on validation episodes) if ``prefer_best`` and it exists, else its newest checkpoint
     (what resuming needs)."""
+    _check_path(path, "find_checkpoint")
     p = recover_dir(Path(path))
     if (p / "model.safetensors").exists() and (p / "config.json").exists():
         return p
@@ -399,6 +409,7 @@ def load_learner(path: str | Path, device=None, dtype=None, config: TrainConfig 
     """The learner of checkpoint ``path`` (a checkpoint or run directory): weights, optimizers, RNG, buffers."""
     from .algo.learner import GraphCBFLearner
 
+    _check_path(path, "load_learner")
     ckpt = find_checkpoint(path)
     cfg = config or read_config(ckpt)
     weights = read_tensors(ckpt / "model.safetensors")
@@ -467,6 +478,7 @@ def load_network(
     the training config; needs only ``config.json`` and ``model.safetensors`` (the ``<part>.*`` weights)."""
     from .nn import CBFNet, PolicyNet
 
+    _check_path(path, "load_network")
     nets = {"policy": PolicyNet, "cbf": CBFNet}
     if part not in nets:
         raise ValueError(f"part must be one of {sorted(nets)}, got {part!r}")
@@ -489,5 +501,6 @@ def load_controller(
     its ``config.json`` and ``model.safetensors``. Returns the controller and the training config."""
     from .algo.learner import LearnedController
 
+    _check_path(path, "load_controller")
     policy, cfg = load_network(path, "policy", device, dtype)
     return LearnedController(policy, cfg.model), cfg

@@ -152,6 +152,11 @@ def evaluate(
     record (or ``None``): the CLI writes its results there, so that a later failure loses no finished size.
     ``robot`` (:mod:`egcbf.robots`) sets the environment's defaults (:meth:`EnvConfig.for_robot`).
     """
+    if not callable(make_controller):
+        raise TypeError(
+            "evaluate: make_controller must be a callable EnvConfig -> controller (e.g. lambda cfg: controller), got "
+            f"{type(make_controller).__name__}"
+        )
     for name, value in (("seed", seed), ("episodes", episodes)):  # a float would be truncated silently below
         if not isinstance(value, numbers.Integral) or isinstance(value, bool):
             raise TypeError(f"evaluate: {name} must be an integer, got {value!r}")

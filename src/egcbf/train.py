@@ -236,6 +236,10 @@ def train(
         tensorboard: also log to TensorBoard (``OUT/tb``); needs the ``tensorboard`` extra
             (:func:`require_tensorboard` raises an ``ImportError`` saying how to install it).
     """
+    if not isinstance(config, TrainConfig):
+        raise TypeError(f"train() argument config must be a TrainConfig, got {type(config).__name__}")
+    if not isinstance(out, (str, os.PathLike)) or str(out) == "":
+        raise TypeError(f"train() argument out must be a run directory (str or pathlib.Path), got {out!r}")
     if tensorboard:
         require_tensorboard()  # before any work
     out = Path(out)

@@ -257,3 +257,13 @@ def test_legacy_checkpoint_with_complete_state_json_still_loads(run):
     st.update(format_version=1, weights_sha256=sha256(best / "model.safetensors"))
     (best / "state.json").write_text(json.dumps(st))
     load_controller(best)
+
+
+@pytest.mark.parametrize("load", [load_controller, load_learner, find_checkpoint], ids=lambda f: f.__name__)
+@pytest.mark.parametrize("bad", [None, 3, ["best"]], ids=["None", "int", "list"])
+def test_a_path_of_the_wrong_type_names_the_function_and_argument(load, bad):
+    with pytest.raises(TypeError, match=rf"^{load.__name__}\(\) argument path must be a checkpoint or run directory "
+                                        rf"\(str or pathlib.Path\), got {type(bad).__name__}$"):  # fmt: skip
+        load(bad)
+    with pytest.raises(TypeError, match=r"^load_network\(\) argument path"):
+        load_network(bad, "policy")

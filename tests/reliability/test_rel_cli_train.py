@@ -213,3 +213,73 @@ def test_sweep_that_cannot_fit_is_refused_with_the_number(cli, tmp_path, monkeyp
               "--report", tmp_path / "r.md", "--no-progress")  # fmt: skip
     assert_usage_error(res, "largest learned cell (N = 128", "--workers")
     assert not (tmp_path / "cells").exists()
+
+
+# ------------------------------------------------------------------------------------------------ labels and lists
+@pytest.fixture(scope="module")
+def gcbf_plus_run(tmp_path_factory):
+    """A finished ``tiny`` GCBF+ run of 2 updates (the other method's weights, for the swapped-folders case)."""
+    from egcbf.config import TrainConfig
+    from egcbf.train import train
+
+    out = tmp_path_factory.mktemp("gcbf_plus_run")
+    train(TrainConfig.preset("gcbf+", "tiny", steps=2), out, progress=False, log=lambda s: None)
+    return out
+
+
+def test_demo_with_swapped_method_folders_is_refused_not_mislabelled(cli, tmp_path, tiny_run, gcbf_plus_run):
+    """GCBF+ weights under checkpoints/egcbf+ (and EGCBF+ weights under gcbf+) are never labelled "EGCBF+ (learned,
+    equivariant)": the label comes from the weights' own header, also when config.json and state.json are
+    relabelled to match the folder."""
+    root = tmp_path / "ck"
+    shutil.copytree(gcbf_plus_run / "best", root / "egcbf+")
+    shutil.copytree(tiny_run / "best", root / "gcbf+")
+    args = ["--compare", "gcbf+", "--num-agents", "3", "--area", "1.5", "--obstacles", "0", "--episodes", "1"]
+    res = cli("demo", "--checkpoints", root, "--out", tmp_path / "demo", "--no-progress", "--max-steps", "3", *args)
+    assert_usage_error(res, "holds gcbf+ weights", "not egcbf+", str(root / "egcbf+"))
+    assert not (tmp_path / "demo").exists()
+    best = root / "egcbf+"  # relabel the GCBF+ checkpoint's JSON files to say EGCBF+, consistently
+    group = json.loads((tiny_run / "best" / "config.json").read_text())["model"]["group"]
+    cfg = json.loads((best / "config.json").read_text())
+    cfg["algo"], cfg["model"]["group"] = "egcbf+", group
+    (best / "config.json").write_text(json.dumps(cfg))
+    st = json.loads((best / "state.json").read_text())
+    st.update(algo="egcbf+", group=group)
+    (best / "state.json").write_text(json.dumps(st))
+    res = cli("demo", "--checkpoints", root, "--out", tmp_path / "demo", "--no-progress", "--max-steps", "3", *args)
+    assert_usage_error(res, "model.safetensors holds weights of algo 'gcbf+'")
+    assert not (tmp_path / "demo").exists()
+
+
+_REPRO_TINY = ["--area", "1.5", "--episodes", "1", "--max-steps", "2", "--train-seeds", "0", "--scale-sizes", "none",
+               "--no-progress"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "extra"),
+    [("--obstacle-methods", "nominal,dcbf", "dcbf"), ("--seed-methods", "egcbf+", "egcbf+"),
+     ("--scale-methods", "nominal,ccbf", "ccbf")],
+)  # fmt: skip
+def test_reproduce_method_lists_naming_a_method_not_run_are_refused(cli, tmp_path, flag, value, extra):
+    """An entry of --obstacle-methods / --seed-methods / --scale-methods that --methods does not run is refused,
+    naming it (it used to be dropped silently)."""
+    res = cli("reproduce", "--methods", "nominal", flag, value, "--num-agents", "2", "--out", tmp_path / "cells",
+              "--report", tmp_path / "r.md", "--checkpoints", tmp_path / "ck", *_REPRO_TINY)  # fmt: skip
+    assert_usage_error(res, f"{flag} names {extra}", "which --methods does not run", "--methods nominal")
+    assert not (tmp_path / "r.md").exists() and not (tmp_path / "cells").exists()
+
+
+def test_reproduce_report_only_names_a_truncated_cell_file(cli, tmp_path):
+    """--report-only over a cell file cut short (a kill or a full disk during a copy) names it instead of skipping
+    it silently."""
+    args = ["reproduce", "--methods", "nominal", "--obstacle-methods", "nominal", "--num-agents", "2,3", "--obstacles",
+            "0", "--out", tmp_path / "cells", "--report", tmp_path / "r.md", *_REPRO_TINY]  # fmt: skip
+    res = cli(*args)
+    assert res.exit_code == 0, res.output
+    victim = tmp_path / "cells" / "nominal_obs0" / "N3.json"
+    victim.write_text(victim.read_text()[:40])
+    res = cli(*args, "--report-only")
+    assert res.exit_code == 0, res.output
+    warnings = [line for line in res.output.splitlines() if line.startswith("Warning:")]
+    assert len(warnings) == 1 and "1 cell file(s) cannot be read" in warnings[0], res.output
+    assert str(victim) in warnings[0] and "Traceback" not in res.output

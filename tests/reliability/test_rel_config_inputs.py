@@ -83,3 +83,46 @@ def test_cli_area_too_large_is_a_usage_error(tmp_path):
          "--out", str(tmp_path / "o"), "--no-progress"],
     )  # fmt: skip
     assert res.exit_code == 2 and "area_size must be at most" in res.output, res.output
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "words"),
+    [
+        ("seed", 1.5, "SweepConfig.seed must be an integer, got 1.5"),
+        ("episodes", 2.0, "SweepConfig.episodes must be an integer, got 2.0"),
+        ("train_seeds", (0, 1.5), "SweepConfig.train_seeds must be a tuple of integers"),
+        ("num_agents", (8, 16.5), "SweepConfig.num_agents must be a tuple of integers"),
+        ("num_agents", 8, "SweepConfig.num_agents must be a tuple of integers (e.g. (8, 16)), got 8"),
+        ("methods", "egcbf+", "SweepConfig.methods must be a tuple of method names (e.g. ('egcbf+',)), got 'egcbf+'"),
+        ("max_steps", 2.5, "SweepConfig.max_steps must be an integer or None, got 2.5"),
+        ("area", "4", "SweepConfig.area must be a finite number, got '4'"),
+    ],
+)
+def test_sweep_config_refuses_floats_that_would_be_truncated_and_wrong_types(field, value, words):
+    """The reproduce API: a float seed or size is refused (``int()`` ran seed 1.5 as seed 1), and a string or a bare
+    number where a tuple belongs is named (``methods="egcbf+"`` was read as its characters)."""
+    from egcbf.reproduce import SweepConfig
+
+    with pytest.raises(TypeError) as info:
+        SweepConfig(**{field: value})
+    assert words in str(info.value), str(info.value)
+    SweepConfig(seed=3, train_seeds=[0, 1], num_agents=[8])  # integers, in a list or a tuple: fine
+
+
+def test_evaluate_names_a_controller_factory_that_is_not_callable():
+    with pytest.raises(TypeError, match=r"^evaluate: make_controller must be a callable EnvConfig -> controller"):
+        evaluate(None, [2], area_size=2.0, episodes=1, show_progress=False)
+    with pytest.raises(TypeError, match=r"make_controller .* got str"):
+        evaluate("nominal", [2], area_size=2.0, episodes=1, show_progress=False)
+
+
+def test_train_names_an_argument_of_the_wrong_type(tmp_path):
+    from egcbf.train import train
+
+    with pytest.raises(TypeError, match=r"^train\(\) argument config must be a TrainConfig, got dict"):
+        train({"algo": "egcbf+"}, tmp_path)
+    with pytest.raises(TypeError, match=r"^train\(\) argument out must be a run directory .*got 3"):
+        train(TrainConfig.preset("egcbf+", "tiny"), 3)
+    with pytest.raises(TypeError, match=r"argument out must be a run directory .*got ''"):
+        train(TrainConfig.preset("egcbf+", "tiny"), "")
+    assert not any(tmp_path.iterdir())  # refused before anything was written

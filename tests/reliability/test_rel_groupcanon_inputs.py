@@ -264,3 +264,24 @@ def test_edge_attr_that_is_not_a_tensor():
     x, f = _inputs()
     with pytest.raises(TypeError, match=r"^edge_attr must be a torch\.Tensor, got list"):
         eq(x, EI, frames=f, edge_attr=[[0.0] * 4] * EI.shape[1])
+
+
+# ------------------------------------------------------------------------------------ Trivial as a drop-in
+def test_trivial_is_a_drop_in_for_a_layer_with_positions():
+    """A working SE2xR model switched to ``groups.Trivial()`` with nothing else changed (no ``pos_type``) runs with
+    positions, and computes the unwrapped layer: the docs' "the same code with groups.Trivial()"."""
+
+    def model(group):
+        t_in = FieldType(group, [Scalar(2), Vector(3), Point(3)])
+        t_out = FieldType(group, [Scalar(3), Vector(3, n=2), Point(3)])
+        torch.manual_seed(0)
+        return Canonicalize(group, t_in, t_out)(PointTransformerConv(8, 12, add_self_loops=False).double())
+
+    x, f = _inputs()
+    pos = torch.randn(N, 3, dtype=F64)
+    model(G)(x, EI, frames=f, pos=pos)  # the working equivariant model
+    T = gg.Trivial()
+    eq = model(T)
+    out = eq(x, EI, frames=T.identity(N, dtype=F64), pos=pos)
+    assert out.shape == (N, 12)
+    assert torch.allclose(out, eq.layer(x=x, edge_index=EI, pos=pos), atol=1e-12, rtol=0)

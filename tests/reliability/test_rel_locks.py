@@ -125,3 +125,37 @@ def test_resume_on_a_read_only_run_is_a_clear_error(tiny_run, tmp_path):
     finally:
         run.chmod(0o755)
     assert res.exit_code == 2 and "is not writable" in res.output, res.output
+
+
+def _read_only_mount_works() -> bool:
+    """Whether this process may bind-mount a folder read-only in a private mount namespace (root, ``unshare``)."""
+    import shutil as sh
+    import tempfile
+
+    if os.geteuid() != 0 or sh.which("unshare") is None or sh.which("mount") is None:
+        return False
+    with tempfile.TemporaryDirectory() as d:
+        script = f"mount --bind {d} {d} && mount -o remount,bind,ro {d} {d} && ! touch {d}/x 2>/dev/null"
+        probe = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True, timeout=30)
+    return probe.returncode == 0
+
+
+@pytest.mark.skipif(not _read_only_mount_works(), reason="needs root and unshare -m (a real read-only mount)")
+def test_resume_on_read_only_storage_is_a_clear_error(tiny_run, tmp_path):
+    """Read-only storage as root meets it (chmod does not stop root): the run folder bind-mounted read-only in a
+    private mount namespace; --resume stops with one error line naming the folder, and the run is unchanged."""
+    import shlex
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    before = sorted(str(p.relative_to(run)) for p in run.rglob("*"))
+    cmd = shlex.join([*EGCBF, "train", "--out", str(run), "--resume", "--steps", "6", "--no-progress"])
+    q = shlex.quote(str(run))
+    script = f"mount --bind {q} {q} && mount -o remount,bind,ro {q} {q} && exec {cmd}"
+    res = subprocess.run(["unshare", "-m", "sh", "-c", script], env=ENV, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2, res.stderr
+    errors = [line for line in res.stderr.splitlines() if line.startswith("Error:")]
+    assert len(errors) == 1 and f"--out {run} is not writable" in errors[0], res.stderr
+    assert "Read-only file system" in errors[0] and "Traceback" not in res.stderr
+    assert sorted(str(p.relative_to(run)) for p in run.rglob("*")) == before

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -55,6 +56,34 @@ class Cell(NamedTuple):
         written ``METHOD_FILTER``: ``OUT/egcbf+_dcbf-s2_obs0/N512.json``)."""
         base = Path(out) / "scale" if self.scale else Path(out)
         return base / f"{path_name(self.run)}_obs{self.obstacles}" / f"N{self.num_agents}.json"
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _check_types(cfg: SweepConfig) -> None:
+    """A :class:`TypeError` naming the field for a value of the wrong type: a float where an integer belongs (it would
+    be truncated: a seed of 1.5 run as seed 1), a string where a sequence belongs (``methods="egcbf+"`` read as its
+    characters), a bare number where a sequence belongs."""
+    for name in ("seed", "obstacles", "episodes", "scale_reference", "scale_agent_episodes", "workers", "threads"):
+        value = getattr(cfg, name)
+        if not _is_int(value):
+            raise TypeError(f"SweepConfig.{name} must be an integer, got {value!r}")
+    for name in ("baseline_episodes", "max_steps"):
+        value = getattr(cfg, name)
+        if value is not None and not _is_int(value):
+            raise TypeError(f"SweepConfig.{name} must be an integer or None, got {value!r}")
+    if not isinstance(cfg.area, numbers.Real) or isinstance(cfg.area, bool) or not math.isfinite(cfg.area):
+        raise TypeError(f"SweepConfig.area must be a finite number, got {cfg.area!r}")
+    for name in ("methods", "obstacle_methods", "seed_methods", "scale_methods"):
+        value = getattr(cfg, name)
+        if isinstance(value, str) or not isinstance(value, (tuple, list)) or not all(isinstance(m, str) for m in value):
+            raise TypeError(f"SweepConfig.{name} must be a tuple of method names (e.g. ('egcbf+',)), got {value!r}")
+    for name in ("num_agents", "train_seeds", "scale_sizes"):
+        value = getattr(cfg, name)
+        if isinstance(value, str) or not isinstance(value, (tuple, list)) or not all(_is_int(v) for v in value):
+            raise TypeError(f"SweepConfig.{name} must be a tuple of integers (e.g. (8, 16)), got {value!r}")
 
 
 def _positive_ints(name: str, values) -> None:
@@ -115,6 +144,7 @@ class SweepConfig:
     backend: str = "process"
 
     def __post_init__(self) -> None:
+        _check_types(self)
         for name in ("methods", "obstacle_methods", "scale_methods"):
             bad = [m for m in getattr(self, name) if m not in METHODS]
             if bad:

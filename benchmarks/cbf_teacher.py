@@ -7,19 +7,30 @@ from training, selection and the evaluation seeds of ``egcbf eval`` / ``egcbf re
 
 * ``policy``: the checkpoint's policy (what ``egcbf eval`` runs);
 * ``teacher``: the learned-CBF QP with the checkpoint's target CBF, the QP's ``alpha`` of its config;
-* ``prior`` (``--prior``): the same QP on the untrained soft-min CBF head (closest-approach distance minus 0.15 m),
-  which tells the learned teacher apart from the QP machinery.
+* ``prior`` (``--prior``): the same QP on the untrained soft-min CBF head (closest-approach distance minus the
+  checkpoint's ``cbf_distance``), which tells the learned teacher apart from the QP machinery;
+* ``--edge-teachers``: the nominal command behind the per-agent, per-edge QPs of :mod:`egcbf.algo.edge_qp` (the
+  target of ``qp_constraints = "edges"``): ``edges-cbf`` (the checkpoint's target CBF's edge barriers, the QP
+  target's alpha ``qp_edge_alpha``), ``edges-prior`` (the untrained prior's) and ``dcbf`` (the hand-crafted
+  braking-distance rows of the ``dcbf`` filter), each as a controller.
+
+``--out FILE.json`` also writes the rows (with the command) for the docs.
 
     python benchmarks/cbf_teacher.py --checkpoint checkpoints/egcbf+ --num-agents 64 --area 2 --episodes 2 --prior
+    python benchmarks/cbf_teacher.py --num-agents 128 --area 2.5 --alphas 0.1,1,3 --prior --edge-teachers
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
+import sys
+from pathlib import Path
 
 import torch
 
+from egcbf.algo.filtered import FilterConfig, FilteredController
 from egcbf.algo.interface import solve_command_qp
 from egcbf.checkpoint import load_learner
 from egcbf.evaluate import evaluate
@@ -51,24 +62,42 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=2)
     ap.add_argument("--seed", type=int, default=777)
     ap.add_argument("--prior", action="store_true", help="also the QP on the untrained soft-min head")
+    ap.add_argument("--alphas", default=None, help="comma-separated QP alphas for the teacher (default: the config's)")
+    ap.add_argument("--edge-teachers", action="store_true", help="also the nominal command behind per-edge QPs")
+    ap.add_argument("--out", type=Path, default=None, help="also write the rows to this JSON file")
     args = ap.parse_args()
     torch.set_num_threads(1)
     learner = load_learner(args.checkpoint)
     cfg = learner.config
     if cfg.model.interface != "accel":
         raise SystemExit("the teacher check needs a checkpoint on the acceleration interface")
-    ctrls = {"policy": lambda c: learner.controller(),
-             "teacher": lambda c: LearnedCBFQP(learner.cbf_target, learner.interface, cfg.qp_alpha)}  # fmt: skip
+    alphas = [float(a) for a in args.alphas.split(",")] if args.alphas else [cfg.qp_alpha]
+    ctrls = {"policy": lambda c: learner.controller()}
+    for a in alphas:
+        name = "teacher" if args.alphas is None else f"teacher a={a:g}"
+        ctrls[name] = lambda c, a=a: LearnedCBFQP(learner.cbf_target, learner.interface, a)
     if args.prior:
         torch.manual_seed(0)
         prior = CBFNet(dataclasses.replace(cfg.model, cbf_head="edge_min"))
         ctrls["prior"] = lambda c: LearnedCBFQP(prior, learner.interface, cfg.qp_alpha)
+    if args.edge_teachers:
+        edge = FilterConfig(kind="cbf", alpha=cfg.qp_edge_alpha)
+        ctrls["edges-cbf"] = lambda c: FilteredController(None, cfg.model, edge, learner.cbf_target)
+        ctrls["edges-prior"] = lambda c: FilteredController(None, cfg.model, dataclasses.replace(edge, kind="prior"))
+        ctrls["dcbf"] = lambda c: FilteredController(None, cfg.model, FilterConfig.for_kind("dcbf"))
     print(f"{args.checkpoint}: {args.episodes} episodes, N = {args.num_agents}, l = {args.area}, seed {args.seed}")
+    results = []
     for name, make in ctrls.items():
         rows, _ = evaluate(make, [args.num_agents], area_size=args.area, episodes=args.episodes, seed=args.seed,
                            show_progress=False, env_overrides=cfg.env_overrides or None)  # fmt: skip
         r = rows[0]
-        print(f"  {name:8s} safe {100 * r['safe_rate']:5.1f} %  reach {100 * r['reach_rate']:5.1f} %")
+        print(f"  {name:14s} safe {100 * r['safe_rate']:5.1f} %  reach {100 * r['reach_rate']:5.1f} %", flush=True)
+        results.append({"teacher": name, **{k: r[k] for k in ("safe_rate", "reach_rate", "success_rate")}})
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        meta = {k: getattr(args, k) for k in ("checkpoint", "num_agents", "area", "episodes", "seed")}
+        cmd = "python " + " ".join(sys.argv)
+        args.out.write_text(json.dumps({"command": cmd, **meta, "rows": results}, indent=2) + "\n")
 
 
 if __name__ == "__main__":

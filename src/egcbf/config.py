@@ -87,6 +87,10 @@ class TrainConfig:
     QP target (:mod:`egcbf.algo.qp`): ``qp_alpha`` (the constraint's class-K slope; GCBF+ uses 0.1 alpha),
     ``qp_slack_linear``/``qp_slack_quadratic`` (slack cost ``w1 s + w2 s^2 / 2``), ``qp_tol``, ``qp_max_iter``,
     ``qp_chunk`` (environments per batched solve), ``target_tau`` (soft update of the target CBF after each update).
+    ``qp_constraints``: ``"cbf"`` (the paper's and GCBF+'s: one centralized QP per scene, one condition per agent on
+    its ``h_i``) or ``"edges"`` (one QP per agent over its own command, one condition per barrier of an edge it
+    senses, pair conditions halved: :mod:`egcbf.algo.edge_qp`; needs the soft-min CBF head and the acceleration
+    interface), with the class-K gain ``qp_edge_alpha`` (1/s, per-edge barriers in m).
 
     Run: ``steps`` (updates), ``max_wall_minutes`` (stop earlier, after the first update that ends past this much
     training wall time, with a final evaluation and checkpoint; ``None``: no limit), ``seed``, ``device``,
@@ -146,6 +150,8 @@ class TrainConfig:
     qp_tol: float = 1e-8
     qp_max_iter: int = 50
     qp_chunk: int = 1024
+    qp_constraints: str = "cbf"
+    qp_edge_alpha: float = 1.0
     target_tau: float = 0.5
     # run
     steps: int = 1000
@@ -212,6 +218,14 @@ class TrainConfig:
         need(sha is None or (isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha) is not None),
              "init_sha256", "None or a hex SHA-256")  # fmt: skip
         need(self.command_model in ("ideal", "closed_loop"), "command_model", "'ideal' or 'closed_loop'")
+        need(self.qp_constraints in ("cbf", "edges"), "qp_constraints", "'cbf' or 'edges'")
+        v = self.qp_edge_alpha
+        need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, "qp_edge_alpha", "a finite number > 0")
+        if self.qp_constraints == "edges":
+            m = self.model
+            ok = m.interface == "accel" and m.cbf_head == "edge_min" and not m.cbf_z_symmetric
+            need(ok, "qp_constraints", "'cbf' unless the model has the acceleration interface and the soft-min CBF "
+                 "head (interface = 'accel', cbf_head = 'edge_min', cbf_z_symmetric = False)")  # fmt: skip
         if self.area_sizes is not None:
             ok = isinstance(self.area_sizes, (list, tuple)) and len(self.area_sizes) > 0
             ok = ok and all(isinstance(a, (int, float)) and math.isfinite(a) and a > 0 for a in self.area_sizes)

@@ -49,15 +49,14 @@ import torch
 from torch import Tensor
 
 from ..config import TrainConfig
-from ..control.barriers import AccelBounds, BarrierConfig, bound_rows
-from ..control.cbf_qp import DecentralizedCBFQP, brake_acceleration
-from ..control.dense_qp import assemble_decentralized, solve_dense_batch_ipm, verified
+from ..control.barriers import BarrierConfig
+from ..control.cbf_qp import DecentralizedCBFQP
 from ..control.qp import SlackPenalty
 from ..env import EnvConfig, SwarmState
 from ..filter_names import FILTERS
-from ..graph import KIND_AGENT, KIND_GOAL, SwarmGraph, build_graph
-from ..nn.edge_min import EdgeMinHead, closest_approach
-from ..nn.models import CBFNet, ModelConfig, PolicyNet, frames_for
+from ..graph import SwarmGraph, build_graph
+from ..nn.models import CBFNet, ModelConfig, PolicyNet
+from .edge_qp import BRAKE_GAIN, SLACK_TOL, EdgeRows, edge_qp_commands, edge_rows
 from .interface import AccelInterface, make_interface
 from .learner import policy_command
 
@@ -96,8 +95,8 @@ class FilterConfig:
     alpha: float = 1.0
     margin: float = 0.0
     penalty: SlackPenalty = field(default_factory=SlackPenalty)
-    brake_gain: float = 4.0
-    slack_tol: float = 1e-4
+    brake_gain: float = BRAKE_GAIN
+    slack_tol: float = SLACK_TOL
     active_tol: float = 1e-3
     barrier: BarrierConfig = DCBF_FILTER_BARRIER
     lookahead: float = DCBF_FILTER_LOOKAHEAD
@@ -137,61 +136,11 @@ class FilterConfig:
                 raise ValueError(f"FilterConfig.{name} must be > 0, got {getattr(self, name)!r}")
 
 
-@dataclass
-class EdgeRows:
-    """Per-agent rows ``normal[r] . a_{owner[r]} >= rhs[r]`` (world frame, m/s^2) and their barrier values."""
-
-    owner: Tensor  # (R,) receiver row in the graph
-    normal: Tensor  # (R, 3)
-    rhs: Tensor  # (R,)
-    value: Tensor  # (R,) b (m)
-    gain: Tensor  # (R,) |g_v| (s): the row is the edge's condition divided by it (and halved for agent edges)
-    edge: Tensor  # (R,) the row's edge, an index into the graph's edges of kind other than goal
-    dropped: int  # edges whose row was dropped (|g_v| too small to act on)
-
-
-def edge_rows(
-    graph: SwarmGraph, alpha: float, margin: float, cbf: CBFNet | None = None, distance: float = 0.25,
-    horizon: float = 1.0,
-) -> EdgeRows:  # fmt: skip
-    """The ``cbf`` (``cbf`` given) or ``prior`` (``cbf = None``: ``b = d_min - distance``) rows of every agent
-    (module doc), from the agent and LiDAR-hit edges of ``graph``. float64 inside (the rows' gradients)."""
-    sel = graph.edge_kind != KIND_GOAL
-    ei = graph.edge_index[:, sel]
-    kind = graph.edge_kind[sel]
-    dp = graph.edge_attr[sel].detach().to(torch.float64).requires_grad_(True)
-    dv = graph.relative_velocity(ei).detach().to(torch.float64).requires_grad_(True)
-    with torch.enable_grad():
-        if cbf is None:
-            b = closest_approach(dp, dv, horizon)[:, 0] - distance
-        else:
-            head = cbf.head
-            if not isinstance(head, EdgeMinHead) or cbf.config.cbf_z_symmetric:
-                raise ValueError(
-                    "the 'cbf' filter needs the soft-min CBF head (cbf_head = 'edge_min', cbf_z_symmetric = False): "
-                    "it reads the head's per-edge barriers; use --filter prior or dcbf for this checkpoint"
-                )
-            with torch.no_grad():  # z_i: the receiver's neighbourhood summary, held fixed over the step
-                z = cbf.encoder(graph)
-            frames = frames_for(cbf.encoder.group, graph)
-            b, _ = head.edge_values(graph, z, frames, dp.to(z.dtype), dv.to(z.dtype))
-            b = b.to(torch.float64)
-        gp, gv = torch.autograd.grad(b.sum(), (dp, dv))
-    b = b.detach()
-    # db/dt = gp . dv + gv . (a_j - a_i): agent i's own part is -gv . a_i
-    rhs = -alpha * (b - margin) - (gp * dv.detach()).sum(-1)
-    rhs = torch.where(kind == KIND_AGENT, 0.5 * rhs, rhs)
-    norm = gv.norm(dim=-1)
-    keep = norm > 1e-6
-    normal = -gv[keep] / norm[keep, None]
-    edge = keep.nonzero()[:, 0]
-    return EdgeRows(ei[1, keep], normal, rhs[keep] / norm[keep], b[keep], norm[keep], edge, int((~keep).sum()))
-
-
 class FilteredController:
     """A learned policy whose commands pass through a decentralized run-time filter (module doc):
     ``u, info = ctrl(state, env_config)``, the evaluation controller's signature. ``policy = None`` filters the
-    nominal controller's command instead (``dcbf`` or ``prior``: the ablation that shows what the policy adds).
+    nominal controller's command instead (the ablation that shows what the policy adds; ``cbf`` then needs ``cbf``
+    and ``model_config``: the per-edge QP target of ``TrainConfig.qp_constraints = "edges"`` run as a controller).
 
     ``info``: ``u_ref`` (the nominal controller's control, for the reward as for the policy alone), ``qp_ms``,
     ``num_slack`` (agents whose QP needed slack), ``num_failed`` (agents given the braking fallback),
@@ -208,9 +157,12 @@ class FilteredController:
         cbf: CBFNet | None = None,
     ):
         if policy is None:  # the nominal controller's command behind the filter (an ablation: what the policy adds)
-            if config.kind == "cbf":
-                raise ValueError("the 'cbf' filter reads a checkpoint's CBF: it needs a learned policy's checkpoint")
-            model_config = TrainConfig.preset("egcbf+", "cpu").model  # the prior's distance and horizon
+            if config.kind == "cbf" and (cbf is None or model_config is None):
+                raise ValueError(
+                    "the 'cbf' filter reads a checkpoint's CBF: pass its CBF network and model config (cbf=..., "
+                    "model_config=...) to filter the nominal command with it"
+                )
+            model_config = model_config or TrainConfig.preset("egcbf+", "cpu").model  # the prior's D and horizon
         elif model_config.interface != "accel":
             raise ValueError(
                 f"run-time filters act on the acceleration command; this policy's interface is "
@@ -278,33 +230,11 @@ class FilteredController:
 
     def _filter(self, graph: SwarmGraph, s: SwarmState, itf: AccelInterface, a_pi: Tensor) -> tuple[Tensor, dict]:
         cfg, mc = self.config, self.model_config
-        b, n = s.x.shape[:2]
-        m = b * n
-        rows = edge_rows(
-            graph, cfg.alpha, cfg.margin, self.cbf if cfg.kind == "cbf" else None, mc.cbf_distance,
-            mc.closest_approach_horizon,
+        return edge_qp_commands(
+            graph, s.x, itf, a_pi, alpha=cfg.alpha, margin=cfg.margin, cbf=self.cbf if cfg.kind == "cbf" else None,
+            distance=mc.cbf_distance, horizon=mc.closest_approach_horizon, penalty=cfg.penalty,
+            brake_gain=cfg.brake_gain, slack_tol=cfg.slack_tol,
         )  # fmt: skip
-        box = AccelBounds(itf.horizontal, -itf.down, itf.up, polygon=2)  # the interface's yaw-frame box
-        rot = s.x[..., 3:12].reshape(m, 9).detach().to(torch.float64).cpu().numpy()
-        bC, blo, bhi = bound_rows(rot, box)
-        qps = assemble_decentralized(
-            a_pi.reshape(m, 3).cpu().numpy(), rows.owner.cpu().numpy(), rows.normal.cpu().numpy(),
-            rows.rhs.cpu().numpy(), bC, blo, bhi, cfg.penalty,
-        )  # fmt: skip
-        z, ok, _ = solve_dense_batch_ipm(qps, device=a_pi.device)
-        good = verified(qps, z, ok, cfg.slack_tol)
-        a, slack = z[:, :3].copy(), z[:, 3]
-        if not good.all():
-            v = s.x[..., 12:15].reshape(m, 3).detach().to(torch.float64).cpu().numpy()
-            a[~good] = brake_acceleration(v[~good], box, cfg.brake_gain)
-            slack = np.where(good, slack, 0.0)
-        info = {
-            "num_slack": int((slack > cfg.slack_tol).sum()),
-            "num_failed": int((~good).sum()),
-            "max_slack": float(slack.max(initial=0.0)),
-            "rows_dropped": rows.dropped,
-        }
-        return torch.as_tensor(a, dtype=torch.float64, device=a_pi.device).view(b, n, 3), info
 
 
 def load_filtered_controller(

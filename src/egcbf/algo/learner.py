@@ -35,6 +35,7 @@ from ..graph import SwarmGraph, build_graph, refresh_graph
 from ..nn import CBFNet, ModelConfig, PolicyNet
 from ..robots import Robot
 from .buffer import Samples, TrajectoryBuffer, UnsafeBuffer
+from .edge_qp import edge_qp_commands
 from .interface import CommandInterface, make_interface, solve_command_qp
 from .labels import finite_horizon_labels
 from .loss import cbf_loss
@@ -177,6 +178,8 @@ class GraphCBFLearner:
         c_nom = itf.nominal(data.x, data.goals)
         if cfg.reference == "nominal":
             return c_nom, {}
+        if cfg.qp_constraints == "edges":
+            return self._edge_reference(data, c_nom)
         out, stats = [], defaultdict(float)
         t0 = time.perf_counter()
         for k in range(0, len(data), cfg.qp_chunk):
@@ -192,6 +195,26 @@ class GraphCBFLearner:
                 stats[key] += s[key]
             stats["max_slack"] = max(stats["max_slack"], s["max_slack"])
             stats["iterations"] = max(stats["iterations"], res.iterations)
+        stats["ms"] = 1e3 * (time.perf_counter() - t0)
+        return torch.cat(out), dict(stats)
+
+    def _edge_reference(self, data: Samples, c_nom: Tensor) -> tuple[Tensor, dict]:
+        """``qp_constraints = "edges"``: every agent's per-edge QP with the target CBF's edge barriers around its
+        nominal command (:mod:`egcbf.algo.edge_qp`)."""
+        cfg, itf, mc = self.config, self.interface, self.config.model
+        out, stats = [], defaultdict(float)
+        t0 = time.perf_counter()
+        for k in range(0, len(data), cfg.qp_chunk):
+            chunk = data[k : k + cfg.qp_chunk]
+            a_nom = itf.accel_unit * c_nom[k : k + cfg.qp_chunk]
+            a, info = edge_qp_commands(
+                chunk.graph(self.env_config), chunk.x, itf, a_nom, alpha=cfg.qp_edge_alpha, margin=0.0,
+                cbf=self.cbf_target, distance=mc.cbf_distance, horizon=mc.closest_approach_horizon,
+            )  # fmt: skip
+            out.append((a / itf.accel_unit).to(self.dtype))
+            for key in ("num_slack", "num_failed", "rows_dropped"):
+                stats[key] += info[key]
+            stats["max_slack"] = max(stats["max_slack"], info["max_slack"])
         stats["ms"] = 1e3 * (time.perf_counter() - t0)
         return torch.cat(out), dict(stats)
 

@@ -1,0 +1,132 @@
+"""Per-edge CBF-QPs: every agent's QP over its own acceleration, one row per barrier of an edge it senses.
+
+The soft-min CBF head (:class:`egcbf.nn.edge_min.EdgeMinHead`) computes ``h_i`` as a smooth minimum of per-edge
+barriers ``b_ij`` (m). Enforcing the CBF condition on every edge's barrier, instead of on their smooth minimum,
+is the standard treatment of a barrier that is a minimum of several (the condition on each piece implies it on
+the minimum), and it gives each agent one row per threat instead of one row for the worst of them. Each agent
+``i`` solves::
+
+    min  1/2 ||a_i - a_ref,i||^2 + 1/2 w2 s_i^2 + w1 s_i
+    s.t. n_k . a_i + s_i >= r_k      (one row per agent neighbour and LiDAR hit: :func:`edge_rows`)
+         the command box of the interface, in the agent's yaw frame;  s_i >= 0
+
+Pair rows are split in halves (the ``dCBF-QP``'s convention), so no agent needs another's command. All ``B N`` QPs
+are one batch of the dense interior-point solver (:func:`egcbf.control.dense_qp.solve_dense_batch_ipm`); an agent
+whose QP fails or whose solution fails the check brakes. Used by the run-time filters
+(:mod:`egcbf.algo.filtered`, ``cbf`` and ``prior``) and by the learner's per-edge QP target
+(``TrainConfig.qp_constraints = "edges"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..control.barriers import AccelBounds, bound_rows
+from ..control.cbf_qp import brake_acceleration
+from ..control.dense_qp import assemble_decentralized, solve_dense_batch_ipm, verified
+from ..control.qp import SlackPenalty
+from ..graph import KIND_AGENT, KIND_GOAL, SwarmGraph
+from ..nn.edge_min import EdgeMinHead, closest_approach
+from ..nn.models import CBFNet, frames_for
+from .interface import AccelInterface
+
+__all__ = ["BRAKE_GAIN", "SLACK_TOL", "EdgeRows", "edge_qp_commands", "edge_rows"]
+
+#: an agent whose QP fails gets ``a = -BRAKE_GAIN v`` (1/s), within the box's inscribed ball
+BRAKE_GAIN = 4.0
+#: a solution "needs slack" above this (m/s^2); also the tolerance of the solution check
+SLACK_TOL = 1e-4
+
+
+@dataclass
+class EdgeRows:
+    """Per-agent rows ``normal[r] . a_{owner[r]} >= rhs[r]`` (world frame, m/s^2) and their barrier values."""
+
+    owner: Tensor  # (R,) receiver row in the graph
+    normal: Tensor  # (R, 3)
+    rhs: Tensor  # (R,)
+    value: Tensor  # (R,) b (m)
+    gain: Tensor  # (R,) |g_v| (s): the row is the edge's condition divided by it (and halved for agent edges)
+    edge: Tensor  # (R,) the row's edge, an index into the graph's edges of kind other than goal
+    dropped: int  # edges whose row was dropped (|g_v| too small to act on)
+
+
+def edge_rows(
+    graph: SwarmGraph, alpha: float, margin: float, cbf: CBFNet | None = None, distance: float = 0.25,
+    horizon: float = 1.0,
+) -> EdgeRows:  # fmt: skip
+    """The ``cbf`` (``cbf`` given) or ``prior`` (``cbf = None``: ``b = d_min - distance``) rows of every agent
+    (module doc), from the agent and LiDAR-hit edges of ``graph``. float64 inside (the rows' gradients)."""
+    sel = graph.edge_kind != KIND_GOAL
+    ei = graph.edge_index[:, sel]
+    kind = graph.edge_kind[sel]
+    dp = graph.edge_attr[sel].detach().to(torch.float64).requires_grad_(True)
+    dv = graph.relative_velocity(ei).detach().to(torch.float64).requires_grad_(True)
+    with torch.enable_grad():
+        if cbf is None:
+            b = closest_approach(dp, dv, horizon)[:, 0] - distance
+        else:
+            head = cbf.head
+            if not isinstance(head, EdgeMinHead) or cbf.config.cbf_z_symmetric:
+                raise ValueError(
+                    "the 'cbf' filter needs the soft-min CBF head (cbf_head = 'edge_min', cbf_z_symmetric = False): "
+                    "it reads the head's per-edge barriers; use --filter prior or dcbf for this checkpoint"
+                )
+            with torch.no_grad():  # z_i: the receiver's neighbourhood summary, held fixed over the step
+                z = cbf.encoder(graph)
+            frames = frames_for(cbf.encoder.group, graph)
+            b, _ = head.edge_values(graph, z, frames, dp.to(z.dtype), dv.to(z.dtype))
+            b = b.to(torch.float64)
+        gp, gv = torch.autograd.grad(b.sum(), (dp, dv))
+    b = b.detach()
+    # db/dt = gp . dv + gv . (a_j - a_i): agent i's own part is -gv . a_i
+    rhs = -alpha * (b - margin) - (gp * dv.detach()).sum(-1)
+    rhs = torch.where(kind == KIND_AGENT, 0.5 * rhs, rhs)
+    norm = gv.norm(dim=-1)
+    keep = norm > 1e-6
+    normal = -gv[keep] / norm[keep, None]
+    edge = keep.nonzero()[:, 0]
+    return EdgeRows(ei[1, keep], normal, rhs[keep] / norm[keep], b[keep], norm[keep], edge, int((~keep).sum()))
+
+
+def edge_qp_commands(
+    graph: SwarmGraph, x: Tensor, itf: AccelInterface, a_ref: Tensor, *, alpha: float, margin: float,
+    cbf: CBFNet | None, distance: float, horizon: float, penalty: SlackPenalty | None = None,
+    brake_gain: float = BRAKE_GAIN, slack_tol: float = SLACK_TOL,
+) -> tuple[Tensor, dict]:  # fmt: skip
+    """Every agent's per-edge QP (module doc) around ``a_ref`` ``(B, N, 3)`` (world accelerations, m/s^2) for the
+    swarm states ``x`` ``(B, N, 18)`` whose graph is ``graph``; rows from ``cbf``'s per-edge barriers, or from the
+    prior ``d_min - distance`` when ``cbf`` is None (:func:`edge_rows`).
+
+    Returns the accelerations ``(B, N, 3)`` float64 and counts: ``num_slack`` (agents whose QP needed slack above
+    ``slack_tol``), ``num_failed`` (agents given the braking fallback ``a = -brake_gain v``), ``max_slack``,
+    ``rows_dropped``."""
+    penalty = penalty or SlackPenalty()
+    b, n = x.shape[:2]
+    m = b * n
+    rows = edge_rows(graph, alpha, margin, cbf, distance, horizon)
+    box = AccelBounds(itf.horizontal, -itf.down, itf.up, polygon=2)  # the interface's yaw-frame box
+    rot = x[..., 3:12].reshape(m, 9).detach().to(torch.float64).cpu().numpy()
+    bC, blo, bhi = bound_rows(rot, box)
+    qps = assemble_decentralized(
+        a_ref.reshape(m, 3).detach().to(torch.float64).cpu().numpy(), rows.owner.cpu().numpy(),
+        rows.normal.cpu().numpy(), rows.rhs.cpu().numpy(), bC, blo, bhi, penalty,
+    )  # fmt: skip
+    z, ok, _ = solve_dense_batch_ipm(qps, device=a_ref.device)
+    good = verified(qps, z, ok, slack_tol)
+    a, slack = z[:, :3].copy(), z[:, 3]
+    if not good.all():
+        v = x[..., 12:15].reshape(m, 3).detach().to(torch.float64).cpu().numpy()
+        a[~good] = brake_acceleration(v[~good], box, brake_gain)
+        slack = np.where(good, slack, 0.0)
+    info = {
+        "num_slack": int((slack > slack_tol).sum()),
+        "num_failed": int((~good).sum()),
+        "max_slack": float(slack.max(initial=0.0)),
+        "rows_dropped": rows.dropped,
+    }
+    return torch.as_tensor(a, dtype=torch.float64, device=a_ref.device).view(b, n, 3), info

@@ -31,6 +31,8 @@ def _runs_by_interface() -> dict[str, dict[str, list[Path]]]:
     out: dict[str, dict[str, list[Path]]] = {}
     for d in dirs:
         cfg = json.loads((d / "config.json").read_text())
+        if cfg.get("init_from"):  # a fine-tuned policy: its curves start from another run (docs/gen_finetune.py)
+            continue
         interface = cfg["model"].get("interface", "torque")
         out.setdefault(interface, {}).setdefault(LABELS[cfg["algo"]], []).append((cfg["seed"], d))
     return {

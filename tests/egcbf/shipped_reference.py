@@ -2,7 +2,8 @@
 
 Speed-ups and refactors must not change what a trained network computes. This records, in float64, the policy
 residual, the CBF value and the applied control of ``checkpoints/egcbf+`` and ``checkpoints/gcbf+`` on one fixed
-scene (32 agents, 3 obstacles, after 5 steps of the nominal controller), with each checkpoint's sha256, into
+scene (32 agents, 3 obstacles, after 5 steps of the nominal controller), with the sha256 of each checkpoint's
+weights (the tensors, not the file: the checkpoint format's header may change while the weights do not), into
 ``tests/egcbf/data/shipped_reference.json``. Regenerate it only when a checkpoint is replaced (the test says so
 when the hash differs), never to make a code change pass:
 
@@ -28,7 +29,14 @@ METHODS = ("egcbf+", "gcbf+")
 
 
 def checkpoint_hash(method: str) -> str:
-    return hashlib.sha256((ROOT / "checkpoints" / method / "model.safetensors").read_bytes()).hexdigest()
+    """SHA-256 of the checkpoint's tensors: names, dtypes, shapes and bytes, in name order."""
+    from safetensors.torch import load_file
+
+    h = hashlib.sha256()
+    for name, t in sorted(load_file(str(ROOT / "checkpoints" / method / "model.safetensors")).items()):
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.contiguous().view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
 
 
 @torch.no_grad()

@@ -24,10 +24,14 @@ def test_the_command_interface_methods_are_at_the_top_level():
 @pytest.mark.parametrize("path", SHIPPED, ids=[str(p.relative_to(ROOT)) for p in SHIPPED])
 def test_shipped_checkpoint_loads_and_acts(path):
     cfg = TrainConfig.from_json(path / "config.json")
-    algo = path.name.split("-s")[0] if path.parent.name == "seeds" else path.name
-    assert cfg.algo == algo
-    if path.parent.name == "seeds":
-        assert cfg.seed == int(path.name.rsplit("-s", 1)[1])
+    name, _, seed = path.name.rpartition("-s")
+    seeded = bool(name) and seed.isdigit()  # <algo>-s<k>: training seed k (seeds/, edge-qp/)
+    assert cfg.algo == (name if seeded else path.name)
+    if seeded:
+        assert cfg.seed == int(seed)
+    if cfg.init_from is not None:  # a fine-tuned policy names the shipped weights it started from
+        start = Path(__file__).resolve().parents[2] / cfg.init_from
+        assert json.loads((start / "state.json").read_text())["weights_sha256"] == cfg.init_sha256
     for name in ("metrics.csv", "state.json"):
         assert (path / name).exists(), name
     assert json.loads((path / "state.json").read_text())["step"] >= 0

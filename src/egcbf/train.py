@@ -227,7 +227,7 @@ def train(
     """Train ``config`` into the run directory ``out`` (module doc); returns the learner.
 
     Args:
-        config: the run's configuration (with ``resume``, the checkpoint's config is used instead).
+        config: the run's configuration (with ``resume``, the checkpoint's config is used instead; may be None).
         out: the run directory; a fresh run refuses a directory that already holds checkpoints.
         resume: continue from the newest checkpoint in ``out``.
         steps: train up to this many updates (default ``config.steps``; with ``resume`` it may extend the run).
@@ -236,7 +236,7 @@ def train(
         tensorboard: also log to TensorBoard (``OUT/tb``); needs the ``tensorboard`` extra
             (:func:`require_tensorboard` raises an ``ImportError`` saying how to install it).
     """
-    if not isinstance(config, TrainConfig):
+    if not isinstance(config, TrainConfig) and not (resume and config is None):  # resume reads the run's config
         raise TypeError(f"train() argument config must be a TrainConfig, got {type(config).__name__}")
     if not isinstance(out, (str, os.PathLike)) or str(out) == "":
         raise TypeError(f"train() argument out must be a run directory (str or pathlib.Path), got {out!r}")

@@ -83,7 +83,8 @@ class EnvConfig:
 
         need(_is_int(self.num_agents) and self.num_agents >= 1, "num_agents", "an integer >= 1")
         need(_is_num(self.area_size) and self.area_size > 0, "area_size", "a finite number > 0")
-        need(self.area_size <= MAX_AREA_CELLS * self.comm_radius if _is_num(self.comm_radius) else True, "area_size",
+        comm_ok = _is_num(self.comm_radius) and self.comm_radius > 0  # else the comm_radius check below names it
+        need(self.area_size <= MAX_AREA_CELLS * self.comm_radius if comm_ok else True, "area_size",
              f"at most {MAX_AREA_CELLS:g} x comm_radius (the neighbour search's grid keys would overflow)")  # fmt: skip
         need(_is_int(self.num_obstacles) and self.num_obstacles >= 0, "num_obstacles", "an integer >= 0")
         rr = self.obstacle_radius_range

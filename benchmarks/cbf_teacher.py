@@ -65,6 +65,7 @@ def main() -> None:
     ap.add_argument("--alphas", default=None, help="comma-separated QP alphas for the teacher (default: the config's)")
     ap.add_argument("--edge-teachers", action="store_true", help="also the nominal command behind per-edge QPs")
     ap.add_argument("--out", type=Path, default=None, help="also write the rows to this JSON file")
+    ap.add_argument("--only", default=None, help="comma-separated controller names to run (default: all selected)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     learner = load_learner(args.checkpoint)
@@ -85,6 +86,12 @@ def main() -> None:
         ctrls["edges-cbf"] = lambda c: FilteredController(None, cfg.model, edge, learner.cbf_target)
         ctrls["edges-prior"] = lambda c: FilteredController(None, cfg.model, dataclasses.replace(edge, kind="prior"))
         ctrls["dcbf"] = lambda c: FilteredController(None, cfg.model, FilterConfig.for_kind("dcbf"))
+    if args.only:
+        keep = args.only.split(",")
+        unknown = sorted(set(keep) - set(ctrls))
+        if unknown:
+            raise SystemExit(f"--only names {unknown}; the controllers are {sorted(ctrls)}")
+        ctrls = {k: v for k, v in ctrls.items() if k in keep}
     print(f"{args.checkpoint}: {args.episodes} episodes, N = {args.num_agents}, l = {args.area}, seed {args.seed}")
     results = []
     for name, make in ctrls.items():

@@ -9,8 +9,11 @@ Three paths, each timed as the median of repeated calls (one torch thread):
 * ``env_step``: one environment step of 512 agents with the nominal controller.
 
 ``--base REV`` checks REV out into a temporary git worktree and runs the same measurement there, alternating
-base / this checkout ``--rounds`` times (each round a fresh process per side), and reports the ratio of medians
-(this / base; > 1: slower). Results go to ``docs/benchmarks.md`` (section ``hot-paths``) unless ``--no-write``.
+base / this checkout ``--rounds`` times (each round a fresh process per side, each side first in every other
+round: process-to-process spread on a 2-core VM is about 10 %, so take several rounds), and reports the ratio of medians
+(this / base; > 1: slower); ``canonicalize`` also in one process with both versions of groupcanon, calls
+interleaved (no process-to-process spread). Results go to ``docs/benchmarks.md`` (section ``hot-paths``) unless
+``--no-write``.
 
     .venv/bin/python benchmarks/hot_paths.py --base daa1b7c --rounds 3
 """
@@ -20,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -42,15 +46,11 @@ def _median_ms(fn, repeats: int, warmup: int = 3) -> float:
 
 
 def measure(repeats: int) -> dict[str, float]:
-    """The three medians (ms) in this process, for the code on ``sys.path``."""
+    """The three medians (ms) in this process, for the code on ``sys.path``; ``canonicalize`` first, before egcbf
+    is imported (groupcanon alone)."""
     import torch
     from torch_geometric.nn import TransformerConv
 
-    from egcbf.algo.learner import LearnedController
-    from egcbf.config import TrainConfig
-    from egcbf.control.nominal import nominal_control
-    from egcbf.env import EnvConfig, SwarmEnv
-    from egcbf.nn import PolicyNet
     from groupcanon import Canonicalize, FieldType, groups
     from groupcanon.features import Scalar, Vector
 
@@ -67,6 +67,14 @@ def measure(repeats: int) -> dict[str, float]:
 
     def canon():
         layer(x, edge_index, frames=frames).square().sum().backward()
+
+    out = {"canonicalize": _median_ms(canon, repeats)}
+
+    from egcbf.algo.learner import LearnedController
+    from egcbf.config import TrainConfig
+    from egcbf.control.nominal import nominal_control
+    from egcbf.env import EnvConfig, SwarmEnv
+    from egcbf.nn import PolicyNet
 
     torch.manual_seed(2)  # the cpu preset's policy, untrained: the same cost as a trained one, on any commit
     model = TrainConfig.preset("egcbf+", "cpu").model
@@ -86,11 +94,43 @@ def measure(repeats: int) -> dict[str, float]:
     def step():
         env.step(state, u)
 
-    return {
-        "canonicalize": _median_ms(canon, repeats),
-        "policy_step": _median_ms(policy, repeats),
-        "env_step": _median_ms(step, repeats),
-    }
+    out["policy_step"] = _median_ms(policy, repeats)
+    out["env_step"] = _median_ms(step, repeats)
+    return out
+
+
+def canonicalize_ab(base_pkg_dir: str, repeats: int) -> dict[str, float]:
+    """``canonicalize`` of this checkout's groupcanon and of the base's (imported as ``groupcanon_base`` from a copy
+    in ``base_pkg_dir``) in one process, the same wrapped layer and inputs, calls interleaved in alternating order:
+    no process-to-process spread (groupcanon imports itself relatively, so a renamed copy is the base's code)."""
+    import importlib
+
+    import torch
+    from torch_geometric.nn import TransformerConv
+
+    sys.path.insert(0, base_pkg_dir)
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    conv = TransformerConv(64, 64)
+    layers, frames = {}, None
+    for side, name in (("this", "groupcanon"), ("base", "groupcanon_base")):
+        gc = importlib.import_module(name)
+        feats = importlib.import_module(f"{name}.features")
+        g = gc.groups.SE2xR()
+        ft = gc.FieldType(g, [feats.Scalar()] * 16 + [feats.Vector(3)] * 16)
+        layers[side] = gc.Canonicalize(g, in_type=ft, out_type=ft)(conv)
+        frames = g.sample(4096, generator=torch.Generator().manual_seed(1)) if frames is None else frames
+    n, deg = 4096, 16
+    x = torch.randn(n, 64, requires_grad=True)
+    edge_index = torch.stack([torch.randint(0, n, (n * deg,)), torch.arange(n).repeat_interleave(deg)])
+    times: dict[str, list[float]] = {"this": [], "base": []}
+    for i in range(repeats + 2):
+        for side in ("this", "base") if i % 2 else ("base", "this"):
+            t = time.perf_counter()
+            layers[side](x, edge_index, frames=frames).square().sum().backward()
+            if i >= 2:  # warm-up
+                times[side].append(1e3 * (time.perf_counter() - t))
+    return {side: statistics.median(v) for side, v in times.items()}
 
 
 def _run_side(src: Path, repeats: int) -> dict[str, float]:
@@ -107,9 +147,13 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--child-ab", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(measure(args.repeats)))
+        return
+    if args.child_ab:
+        print(json.dumps(canonicalize_ab(args.child_ab, args.repeats)))
         return
     if args.base is None:
         print(json.dumps(_run_side(ROOT, args.repeats), indent=2))
@@ -125,15 +169,29 @@ def main() -> None:
         try:
             runs: dict[str, list[dict[str, float]]] = {"base": [], "this": []}
             for r in range(args.rounds):
-                runs["base"].append(_run_side(base_dir, args.repeats))
-                runs["this"].append(_run_side(ROOT, args.repeats))
+                order = (("base", base_dir), ("this", ROOT))
+                for side, src in order if r % 2 == 0 else order[::-1]:  # each side first in every other round
+                    runs[side].append(_run_side(src, args.repeats))
                 print(f"round {r + 1}/{args.rounds}: base {runs['base'][-1]}  this {runs['this'][-1]}", flush=True)
+            pkg = Path(tmp) / "pkg"
+            shutil.copytree(base_dir / "src" / "groupcanon", pkg / "groupcanon_base")
+            cmd = [
+                sys.executable,
+                str(Path(__file__).resolve()),
+                "--child-ab",
+                str(pkg),
+                "--repeats",
+                str(args.repeats),
+            ]
+            env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "OMP_NUM_THREADS": "1"}
+            ab = json.loads(subprocess.run(cmd, env=env, cwd=ROOT, check=True, capture_output=True, text=True)
+                            .stdout.strip().splitlines()[-1])  # fmt: skip
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(base_dir)], cwd=ROOT, check=False)
     lines = [
         f"`.venv/bin/python benchmarks/hot_paths.py --base {args.base} --rounds {args.rounds}`: this checkout "
-        f"(`{head}`) against `{rev}`, {args.rounds} alternating rounds of {args.repeats} calls each, one thread; "
-        "median over rounds of each round's median.",
+        f"(`{head}`) against `{rev}`, {args.rounds} rounds of {args.repeats} calls each (a fresh process per side "
+        "and round, sides in alternating order), one thread; median over rounds of each round's median.",
         "",
         "| path | base (ms) | this (ms) | this / base |",
         "|---|---|---|---|",
@@ -142,6 +200,17 @@ def main() -> None:
         b = statistics.median(r[key] for r in runs["base"])
         t = statistics.median(r[key] for r in runs["this"])
         lines.append(f"| `{key}` | {b:.2f} | {t:.2f} | {t / b:.3f} |")
+    lines += [
+        "",
+        "The same `canonicalize` call with both versions of groupcanon in one process (the base's imported from a "
+        f"renamed copy), {args.repeats} interleaved calls each: the layer's own cost without the process-to-process "
+        "spread above (which comes from the rest of the process: the same code measured in two fresh processes "
+        "differs by up to ~10 % here).",
+        "",
+        "| path | base (ms) | this (ms) | this / base |",
+        "|---|---|---|---|",
+        f"| `canonicalize`, one process | {ab['base']:.2f} | {ab['this']:.2f} | {ab['this'] / ab['base']:.3f} |",
+    ]
     body = "\n".join(lines) + "\n"
     print(body)
     if not args.no_write:

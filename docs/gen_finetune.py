@@ -28,7 +28,7 @@ RESULTS = ROOT / "results" / "finetune"
 REPRODUCTION = ROOT / "results" / "reproduction"
 FIG = ROOT / "figures" / "finetune.png"
 ALGO_NAMES = {"egcbf+": "EGCBF+", "gcbf+": "GCBF+"}
-TARGETS = {"cbf": "soft-min QP target (the paper's, centralized)", "edges": "per-edge QP target"}
+TARGETS = {"cbf": "soft-min QP target (paper)", "edges": "per-edge QP target"}
 
 
 def _reproduction_cell(algo: str, seed: int, obstacles: int, n: int) -> dict | None:
@@ -92,14 +92,14 @@ def main() -> None:
     if not runs:
         raise SystemExit(f"no fine-tuning runs under {RESULTS}")
     labels = {}
-    for attempt, rs in runs.items():
+    for rs in runs.values():
         cfg = json.loads((rs[0] / "config.json").read_text())
         algo = ALGO_NAMES.get(cfg["algo"], cfg["algo"])
-        labels[f"{algo}, {TARGETS[cfg.get('qp_constraints', 'cbf')]} (`{attempt.name}`)"] = rs
+        labels[f"{algo}, {TARGETS[cfg.get('qp_constraints', 'cbf')]}"] = rs
     training_curves(
         labels,
         FIG,
-        title="Fine-tuning in large arenas: validation (2 episodes x 512 agents, l = 4, the run's own seed)",
+        title="Fine-tuning in large arenas: validation, 2 episodes x 512 agents at l = 4",
     )
     table = [
         "| attempt | training seed | validation safe %: update 0 -> best (update) -> last (update) | evaluation | "
@@ -123,7 +123,7 @@ def main() -> None:
                 if best_safe is not None
                 else f"{curve[0][1]:.1f} -> {curve[-1][1]:.1f} ({curve[-1][0]})"
             )
-            evals = sorted(run.glob("eval-*"))
+            evals = sorted(e for e in run.glob("eval-*") if (e / "metrics.json").exists())  # finished ones
             if not evals:
                 table.append(f"| `{attempt.name}` | {seed} | {val} | not run | | | |")
             for ev in evals:

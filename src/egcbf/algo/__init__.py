@@ -2,7 +2,9 @@
 
 ``labels`` (finite-horizon safe/unsafe labels), ``buffer`` (trajectory and unsafe-graph buffers), ``qp`` (the
 learned-CBF QP target), ``loss`` (the paper's loss), ``learner`` (the update), ``actions`` (normalized controls),
-``interface`` (what the policy, the QP and the loss act on: accelerations or torques).
+``interface`` (what the policy, the QP and the loss act on: accelerations or torques), ``edge_qp`` (per-agent QPs
+with one row per learned edge barrier: the per-edge target and the run-time filters), ``filtered`` (run-time
+safety filters).
 """
 
 from .actions import control_bounds, control_scale, normalize, unnormalize

@@ -91,26 +91,28 @@ def main() -> None:
     runs = {a: rs for a, rs in runs.items() if rs}
     if not runs:
         raise SystemExit(f"no fine-tuning runs under {RESULTS}")
-    labels = {}
+    labels: dict[str, list[Path]] = {}  # one curve per method and target, over its seeds
     for rs in runs.values():
-        cfg = json.loads((rs[0] / "config.json").read_text())
-        algo = ALGO_NAMES.get(cfg["algo"], cfg["algo"])
-        labels[f"{algo}, {TARGETS[cfg.get('qp_constraints', 'cbf')]}"] = rs
+        for run in rs:
+            cfg = json.loads((run / "config.json").read_text())
+            algo = ALGO_NAMES.get(cfg["algo"], cfg["algo"])
+            labels.setdefault(f"{algo}, {TARGETS[cfg.get('qp_constraints', 'cbf')]}", []).append(run)
     training_curves(
         labels,
         FIG,
         title="Fine-tuning in large arenas: validation, 2 episodes x 512 agents at l = 4",
     )
     table = [
-        "| attempt | training seed | validation safe %: update 0 -> best (update) -> last (update) | evaluation | "
-        "safe % before | safe % after | success % after |",
+        "| attempt, method | training seed | validation safe %: update 0 -> best (update) -> last (update) | "
+        "evaluation | safe % before | safe % after | success % after |",
         "|---|---|---|---|---|---|---|",
     ]
-    summary: dict[tuple[str, str], tuple[list[float], list[float]]] = {}
+    summary: dict[tuple[str, str, str], tuple[list[float], list[float]]] = {}
     for attempt, rs in runs.items():
         for run in rs:
             cfg = json.loads((run / "config.json").read_text())
             seed, algo = int(cfg["seed"]), cfg["algo"]
+            who = f"`{attempt.name}`, {ALGO_NAMES.get(algo, algo)}"
             curve = _validation(run)
             best = (
                 json.loads((run / "best_state.json").read_text())["step"]
@@ -125,7 +127,7 @@ def main() -> None:
             )
             evals = sorted(e for e in run.glob("eval-*") if (e / "metrics.json").exists())  # finished ones
             if not evals:
-                table.append(f"| `{attempt.name}` | {seed} | {val} | not run | | | |")
+                table.append(f"| {who} | {seed} | {val} | not run | | | |")
             for ev in evals:
                 meta = json.loads((ev / "run.json").read_text())
                 row = json.loads((ev / "metrics.json").read_text())[0]
@@ -143,16 +145,16 @@ def main() -> None:
                     f"N = {n}, l = {meta['area']:g}, {obstacles} obstacles, seed {meta['seed']}, {meta['episodes']} ep."
                 )
                 table.append(
-                    f"| `{attempt.name}` | {seed} | {val} | {what} | {'-' if b is None else f'{b:.1f}'} | {a:.1f} | "
+                    f"| {who} | {seed} | {val} | {what} | {'-' if b is None else f'{b:.1f}'} | {a:.1f} | "
                     f"{100 * row['success_rate']:.1f} |"
                 )
                 if b is not None:
-                    s = summary.setdefault((attempt.name, what), ([], []))
+                    s = summary.setdefault((who, algo, what), ([], []))
                     s[0].append(b)
                     s[1].append(a)
-    for (attempt, what), (before, after) in summary.items():
+    for (who, _, what), (before, after) in summary.items():
         table.append(
-            f"| **`{attempt}`, mean (min-max) over {len(after)} seeds** | | | {what} | {_spread(before)} | "
+            f"| **{who}, mean (min-max) over {len(after)} seeds** | | | {what} | {_spread(before)} | "
             f"**{_spread(after)}** | |"
         )
     body = "\n".join(

@@ -24,11 +24,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import sys
-from pathlib import Path
 
 import torch
+from validation_scene import add_scene_arguments, write_record
 
 from egcbf.algo.filtered import FilterConfig, FilteredController
 from egcbf.algo.interface import solve_command_qp
@@ -56,15 +54,10 @@ class LearnedCBFQP:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--checkpoint", default="checkpoints/egcbf+")
-    ap.add_argument("--num-agents", type=int, default=64)
-    ap.add_argument("--area", type=float, default=2.0)
-    ap.add_argument("--episodes", type=int, default=2)
-    ap.add_argument("--seed", type=int, default=777)
+    add_scene_arguments(ap, num_agents=64, area=2.0, episodes=2)
     ap.add_argument("--prior", action="store_true", help="also the QP on the untrained soft-min head")
     ap.add_argument("--alphas", default=None, help="comma-separated QP alphas for the teacher (default: the config's)")
     ap.add_argument("--edge-teachers", action="store_true", help="also the nominal command behind per-edge QPs")
-    ap.add_argument("--out", type=Path, default=None, help="also write the rows to this JSON file")
     ap.add_argument("--only", default=None, help="comma-separated controller names to run (default: all selected)")
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -100,11 +93,7 @@ def main() -> None:
         r = rows[0]
         print(f"  {name:14s} safe {100 * r['safe_rate']:5.1f} %  reach {100 * r['reach_rate']:5.1f} %", flush=True)
         results.append({"teacher": name, **{k: r[k] for k in ("safe_rate", "reach_rate", "success_rate")}})
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        meta = {k: getattr(args, k) for k in ("checkpoint", "num_agents", "area", "episodes", "seed")}
-        cmd = "python " + " ".join(sys.argv)
-        args.out.write_text(json.dumps({"command": cmd, **meta, "rows": results}, indent=2) + "\n")
+    write_record(args, rows=results)
 
 
 if __name__ == "__main__":

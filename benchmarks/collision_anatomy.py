@@ -11,12 +11,10 @@ distances to their goals just before. Prints quartiles; ``--out FILE.json`` writ
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
-import sys
-from pathlib import Path
 
 import torch
+from validation_scene import add_scene_arguments, write_record
 
 from egcbf.checkpoint import load_controller
 from egcbf.env import EnvConfig, SwarmEnv
@@ -55,12 +53,7 @@ def contacts(checkpoint: str, num_agents: int, area: float, episodes: int, seed:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--checkpoint", default="checkpoints/egcbf+")
-    ap.add_argument("--num-agents", type=int, default=512)
-    ap.add_argument("--area", type=float, default=4.0)
-    ap.add_argument("--episodes", type=int, default=1)
-    ap.add_argument("--seed", type=int, default=777)
-    ap.add_argument("--out", type=Path, default=None, help="also write the quartiles to this JSON file")
+    add_scene_arguments(ap, num_agents=512, area=4.0, episodes=1)
     args = ap.parse_args()
     torch.set_num_threads(1)
     found = contacts(args.checkpoint, args.num_agents, args.area, args.episodes, args.seed)
@@ -74,16 +67,7 @@ def main() -> None:
             quartiles[key] = [min(values), *q, max(values)]
             qs = " ".join(f"{x:6.2f}" for x in q)
             print(f"  {key:10s} min {min(values):6.2f}  quartiles {qs}  max {max(values):6.2f}")
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        meta = {k: getattr(args, k) for k in ("checkpoint", "num_agents", "area", "episodes", "seed")}
-        record = {
-            "command": "python " + " ".join(sys.argv),
-            **meta,
-            "contacts": len(found),
-            "min_q1_q2_q3_max": quartiles,
-        }
-        args.out.write_text(json.dumps(record, indent=2) + "\n")
+    write_record(args, contacts=len(found), min_q1_q2_q3_max=quartiles)
 
 
 if __name__ == "__main__":

@@ -21,14 +21,20 @@ from egcbf.report import pct, replace_section
 ROOT = Path(__file__).parent
 RESULTS = ROOT / "results" / "filters"
 REPRODUCTION = ROOT / "results" / "reproduction"
+PAPER_TARGET = ROOT / "results" / "paper-target"
 DOC = ROOT / "safety_filters.md"
-#: the reproduction's controllers shown beside the filtered ones: (label, runs averaged)
+#: the reproduction's controllers shown beside the filtered ones: (label, cell folder, runs averaged). The filtered
+#: evaluations of docs/results/filters ran the policies trained with the paper's QP target (checkpoints/paper-target),
+#: whose cells are in docs/results/paper-target; the shipped, per-edge fine-tuned policies' cells are in
+#: docs/results/reproduction (shown where computed).
 BESIDE = (
-    ("EGCBF+ policy alone (3 seeds)", ("egcbf+", "egcbf+-s1", "egcbf+-s2")),
-    ("GCBF+ policy alone (3 seeds)", ("gcbf+", "gcbf+-s1", "gcbf+-s2")),
-    ("dCBF-QP", ("dcbf",)),
-    ("cCBF-QP", ("ccbf",)),
-    ("nominal", ("nominal",)),
+    ("EGCBF+ policy alone, paper's target (3 seeds)", PAPER_TARGET, ("egcbf+", "egcbf+-s1", "egcbf+-s2")),
+    ("GCBF+ policy alone, paper's target (3 seeds)", PAPER_TARGET, ("gcbf+", "gcbf+-s1", "gcbf+-s2")),
+    ("EGCBF+ policy alone, shipped: per-edge fine-tuned (3 seeds)", REPRODUCTION, ("egcbf+", "egcbf+-s1", "egcbf+-s2")),
+    ("GCBF+ policy alone, shipped: per-edge fine-tuned (3 seeds)", REPRODUCTION, ("gcbf+", "gcbf+-s1", "gcbf+-s2")),
+    ("dCBF-QP", REPRODUCTION, ("dcbf",)),
+    ("cCBF-QP", REPRODUCTION, ("ccbf",)),
+    ("nominal", REPRODUCTION, ("nominal",)),
 )
 
 
@@ -67,9 +73,10 @@ def _table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def _reproduction_row(run: str, obstacles: int, n: int, area: float) -> dict | None:
-    """The reproduction's cell of ``run`` (Table I at l = 4, else the scalability study), if computed."""
-    base = REPRODUCTION if abs(area - 4.0) < 1e-9 else REPRODUCTION / "scale"
+def _reproduction_row(cells: Path, run: str, obstacles: int, n: int, area: float) -> dict | None:
+    """The reproduction's cell of ``run`` in the folder ``cells`` (Table I at l = 4, else the scalability study), if
+    computed."""
+    base = cells if abs(area - 4.0) < 1e-9 else cells / "scale"
     path = base / f"{run}_obs{obstacles}" / f"N{n}.json"
     if not path.exists():
         return None
@@ -118,8 +125,8 @@ def _beside(rows: list[dict]) -> str:
             )
         if seed != 0:
             continue
-        for label, runs in BESIDE:
-            cells = [c for c in (_reproduction_row(x, obstacles, n, area) for x in runs) if c is not None]
+        for label, folder, runs in BESIDE:
+            cells = [c for c in (_reproduction_row(folder, x, obstacles, n, area) for x in runs) if c is not None]
             if not cells:
                 continue
             name = label if len(cells) == len(runs) else f"{label} ({len(cells)} of {len(runs)} seeds)"
@@ -129,9 +136,11 @@ def _beside(rows: list[dict]) -> str:
             )
     lines += [
         "",
-        "Bold: a learned policy behind the filter (`<method>-s<training seed>-<filter>`); `nominal-dcbf`: the "
-        "nominal command behind the same filter. The other rows are the cells of docs/results/reproduction (the "
-        "same evaluation seed, episodes and arenas; mean (min-max) over training seeds).",
+        "Bold: a learned policy behind the filter (`<method>-s<training seed>-<filter>`): the policies trained with "
+        "the paper's QP target, now `checkpoints/paper-target/` (see the commands); `nominal-dcbf`: the nominal "
+        "command behind the same filter. The other rows are the reproduction's cells (docs/results/paper-target for "
+        "the paper's target, docs/results/reproduction for the shipped policies and the baselines; the same "
+        "evaluation seed, episodes and arenas; mean (min-max) over training seeds).",
     ]
     return "\n".join(lines)
 

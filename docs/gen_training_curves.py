@@ -4,7 +4,8 @@ Each shipped checkpoint directory holds the selected policy (``config.json``, ``
 ``state.json`` with the update it was selected at and its evaluation row) and the ``metrics.csv`` of its whole
 training run (evaluations every 10 updates), copied from the run directory. Layout (checkpoints/README.md):
 ``checkpoints/<algo>/`` (training seed 0), ``checkpoints/seeds/<algo>-s<k>/`` (further seeds) and
-``checkpoints/torque/<algo>/`` (the previous release's torque recipe). Directories are grouped by the interface
+``checkpoints/torque/<algo>/`` (the previous release's torque recipe); the fine-tuned EGCBF+ and GCBF+ (their
+config names ``init_from``) are skipped here, and the runs they started from, in ``checkpoints/paper-target/``, drawn. Directories are grouped by the interface
 of their config (the acceleration command of the ``cpu`` recipe, or torque) and by method; several seeds of a
 method are drawn as their mean with a min / max band.
 
@@ -86,7 +87,9 @@ def main() -> None:
         title = "cpu recipe (acceleration command): validation (4 episodes x 64 agents, l = 2, 8 per m^3)"
         training_curves({k: v if len(v) > 1 else v[0] for k, v in runs.items()}, FIG, title=title)
         body += (
-            "**Command interface (`cpu` recipe, this release): `checkpoints/<algo>/`, `checkpoints/seeds/`:**\n\n"
+            "**Command interface (`cpu` recipe, this release): `checkpoints/<algo>/`, `checkpoints/seeds/`; the "
+            "EGCBF+ and GCBF+ runs are those of `checkpoints/paper-target/`, which the shipped `egcbf+/`, `gcbf+/` "
+            "and `seeds/` fine-tune (their fine-tuning curves: docs/gen_finetune.py):**\n\n"
             f"![training curves](figures/{FIG.name})\n\n" + "\n".join(_table(runs)) + "\n\n"
         )
     if "torque" in groups:

@@ -25,7 +25,7 @@ def test_the_command_interface_methods_are_at_the_top_level():
 def test_shipped_checkpoint_loads_and_acts(path):
     cfg = TrainConfig.from_json(path / "config.json")
     name, _, seed = path.name.rpartition("-s")
-    seeded = bool(name) and seed.isdigit()  # <algo>-s<k>: training seed k (seeds/, edge-qp/)
+    seeded = bool(name) and seed.isdigit()  # <algo>-s<k>: training seed k (seeds/, paper-target/)
     assert cfg.algo == (name if seeded else path.name)
     if seeded:
         assert cfg.seed == int(seed)
@@ -43,7 +43,7 @@ def test_shipped_checkpoint_loads_and_acts(path):
     assert u.shape == (1, 4, k) and torch.isfinite(u).all() and info["num_failed"] == 0
 
 
-@pytest.mark.parametrize("method", ["egcbf+", "gcbf+"])
+@pytest.mark.parametrize("method", ["egcbf+", "gcbf+", "paper-target/egcbf+", "paper-target/gcbf+"])
 def test_shipped_policy_outputs_are_unchanged(method):
     """Regression: the shipped networks compute what they computed when recorded (tests/egcbf/shipped_reference.py;
     recorded by the code before the performance work). float64, 1e-9: only rounding may differ."""

@@ -104,7 +104,7 @@ def scalability_section(cfg: SweepConfig, records: dict[Cell, dict], report: Pat
     """The rates-against-N figure and its caption."""
     if not records:
         return "No cells computed yet."
-    png = scalability_figure(cfg, records, figures / "reproduction_scalability.png")
+    png = scalability_figure(cfg, records, figures / f"{report.stem}_scalability.png")
     text = (
         f"![safety and success rate against N]({_rel(png, report)})\n\nSafety and success rates against the number "
         f"of agents: at l = {cfg.area:g} m up to N = {max(cfg.num_agents)} (the density grows with N, Table I)"
@@ -137,7 +137,7 @@ def convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
     if not runs:
         return f"Training curves: no `{cfg.checkpoints}/<method>/metrics.csv` (copy each run's metrics.csv there)."
     try:
-        png = training_curves(runs, figures / "reproduction_convergence.png")
+        png = training_curves(runs, figures / f"{report.stem}_convergence.png")
     except Exception as err:  # a figure must not lose a finished sweep's report
         return f"Training curves failed: `{type(err).__name__}: {err}`."
     return (
@@ -159,7 +159,7 @@ def contour_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
             continue
     if not ckpts:
         return f"CBF contour figure: no EGCBF+ or GCBF+ checkpoint under `{cfg.checkpoints}`."
-    png = figures / "reproduction_contour.png"
+    png = figures / f"{report.stem}_contour.png"
     try:
         diffs = cbf_contour_figure(ckpts, png)
     except Exception as err:  # a figure must not lose a finished sweep's report

@@ -64,7 +64,9 @@ def write_report(
     *,
     regenerate_command: str | None = None,
 ) -> Path:
-    """Write (or update) the markdown ``report`` and its figures (default: ``<report dir>/figures``).
+    """Write (or update) the markdown ``report`` and its figures (default: ``<report dir>/figures``), named after the
+    report (``reproduction.md``: ``figures/reproduction_scalability.png``, ``_convergence.png``, ``_contour.png``), so
+    two reports in one folder keep their own figures.
 
     ``regenerate_command`` is the command the intro gives for regenerating this report (default: the one
     :func:`egcbf.reproduce.provenance.regenerate_command` builds from ``cfg`` and ``report``)."""

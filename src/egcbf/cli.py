@@ -48,6 +48,7 @@ from .cli_choices import (
     Preset,
     RobotName,
     SafetyFilter,
+    SceneName,
     choice_error,
 )
 from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval, say_run_checkpoint
@@ -196,6 +197,17 @@ def eval_cmd(
         float | None,
         typer.Option(help="clearance (m): the barrier offset of cbf and prior (default 0); dcbf's margin (0.02)"),
     ] = None,
+    scene: Annotated[
+        SceneName,
+        typer.Option(
+            help="where starts and goals are drawn: uniform (the arena; the paper's) or crossing (starts in x < l/2, "
+            "goals in x > l/2); never taken from the checkpoint"
+        ),
+    ] = SceneName.uniform,
+    scene_yaw: Annotated[
+        float,
+        typer.Option(help="rotate every sampled scene by this many degrees about the arena's vertical centre axis"),
+    ] = 0.0,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)
@@ -222,6 +234,8 @@ def eval_cmd(
             filter=filter.value,
             filter_alpha=filter_alpha,
             filter_margin=filter_margin,
+            scene=scene.value,
+            scene_yaw=scene_yaw,
         )
 
 

@@ -105,6 +105,7 @@ def check_env_flags(
     ``--obstacles``, ``--max-steps``, ``--num-agents``) if any of them is invalid or cannot be sampled."""
     from .env import EnvConfig
     from .env.sampling import packing_feasible
+    from .env.scenes import scene_boxes
 
     require(math.isfinite(area) and area > 0, f"--area must be a finite number > 0 (metres), got {area:g}")
     require(obstacles >= 0, f"--obstacles must be >= 0, got {obstacles}")
@@ -119,7 +120,16 @@ def check_env_flags(
         except (TypeError, ValueError) as err:
             usage_error(f"--num-agents {n}, --area {area:g}, --obstacles {obstacles}: {err}", err)
         sep = cfg.start_separation * cfg.agent_radius
-        if not packing_feasible(n, area, sep, dim=cfg.dim):
+        boxes = scene_boxes(cfg.scene, area, cfg.dim)
+        if boxes is not None:  # starts (and goals) in part of the arena
+            extents = tuple(hi - lo for lo, hi in boxes[0])
+            require(
+                packing_feasible(n, area, sep, dim=cfg.dim, extents=extents),
+                f"--num-agents {n} cannot be placed in the {cfg.scene} scene's start region of --area {area:g} "
+                f"({' x '.join(f'{e:g}' for e in extents)} m, agents {sep:g} m apart); use a larger --area or fewer "
+                "agents",
+            )
+        elif not packing_feasible(n, area, sep, dim=cfg.dim):
             usage_error(
                 f"--num-agents {n} cannot be placed in --area {area:g} (agents {sep:g} m apart: at most "
                 f"{max_agents(area, sep, cfg.dim)} fit); use a larger --area or fewer agents"

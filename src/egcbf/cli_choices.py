@@ -22,6 +22,7 @@ __all__ = [
     "Preset",
     "RobotName",
     "SafetyFilter",
+    "SceneName",
     "choice_error",
 ]
 
@@ -41,6 +42,13 @@ class SafetyFilter(str, Enum):
     cbf = "cbf"
     prior = "prior"
     dcbf = "dcbf"
+
+
+class SceneName(str, Enum):
+    """A scene layout (``egcbf.env.scenes.SCENES``): ``egcbf eval --scene``."""
+
+    uniform = "uniform"
+    crossing = "crossing"
 
 
 class LearnedMethod(str, Enum):
@@ -68,6 +76,8 @@ class Preset(str, Enum):
     """A training preset (``egcbf.config.PRESETS``): ``egcbf train --preset``."""
 
     cpu = "cpu"
+    paper_cpu = "paper-cpu"
+    paper_cpu_mlp = "paper-cpu-mlp"
     cpu_torque = "cpu-torque"
     paper = "paper"
     tiny = "tiny"

@@ -3,6 +3,7 @@ writing each finished swarm size at once (atomically), and print the table."""
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -135,6 +136,8 @@ def run_eval(
     filter: str = "none",
     filter_alpha: float | None = None,
     filter_margin: float | None = None,
+    scene: str = "uniform",
+    scene_yaw: float = 0.0,
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -195,6 +198,9 @@ def run_eval(
             f"--controller {controller}: the hand-crafted CBF-QPs and the run-time filters are written for the "
             f"quadrotor, not a {robot}"
         )
+    require(math.isfinite(scene_yaw), f"--scene-yaw must be a finite number of degrees, got {scene_yaw}")
+    if scene != "uniform" or scene_yaw != 0:  # else the environment's defaults, as every earlier run recorded them
+        env_overrides = {**(env_overrides or {}), "scene": scene, "scene_yaw": float(scene_yaw)}
     configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides, robot)
     if checkpoint is not None:
         check_policy_memory(configs, episodes, batch, train_cfg.model.hidden, dev)
@@ -212,6 +218,7 @@ def run_eval(
         "complete": False,
         "area": area,
         "obstacles": obstacles,
+        **({"scene": scene, "scene_yaw": float(scene_yaw)} if scene != "uniform" or scene_yaw != 0 else {}),
         "episodes": episodes,
         "seed": seed,
         "wall_s": 0.0,

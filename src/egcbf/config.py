@@ -46,7 +46,7 @@ def method_group(algo: str, robot: str = "quadrotor") -> str:
     return make_robot(robot).group_name if group == "equivariant" else group
 
 
-PRESETS = ("cpu", "cpu-torque", "paper", "tiny")
+PRESETS = ("cpu", "paper-cpu", "paper-cpu-mlp", "cpu-torque", "paper", "tiny")
 
 
 @dataclass
@@ -63,7 +63,10 @@ class TrainConfig:
     :class:`egcbf.env.EnvConfig` field, e.g. ``{"comm_radius": 1.0}``); the episode length of the rollouts is
     ``rollout_steps``. ``area_sizes`` (a list, or ``None``): the rollout of update ``k`` uses
     ``area_sizes[k % len(area_sizes)]`` instead of ``area_size``, so that training covers several densities
-    (the agent count, and so the shape of the replay buffers, stays ``num_agents``).
+    (the agent count, and so the shape of the replay buffers, stays ``num_agents``). ``scene``
+    (:data:`egcbf.env.scenes.SCENES`): where the rollouts' and the validation's starts and goals are drawn
+    (``"crossing"``: a training distribution with a preferred direction, for the rotated-world test); it is the
+    run's own, never inherited by ``egcbf eval`` (which takes ``--scene``), so it is not an ``env_overrides`` key.
 
     Command model (``model.interface == "accel"`` only, :mod:`egcbf.algo.interface`): ``command_model``,
     ``"ideal"`` (the double integrator the acceleration command defines) or ``"closed_loop"`` (one step through the
@@ -116,6 +119,7 @@ class TrainConfig:
     num_obstacles: int = 5
     area_sizes: list[float] | None = None
     env_overrides: dict[str, Any] = field(default_factory=dict)
+    scene: str = "uniform"
     command_model: str = "ideal"
     # data
     rollout_envs: int = 4
@@ -190,6 +194,10 @@ class TrainConfig:
             if not ok:
                 raise ValueError(f"TrainConfig.{name} must be {what}, got {getattr(self, name)!r}")
 
+        scene_keys = sorted({"scene", "scene_yaw"} & set(self.env_overrides or {}))
+        need(not scene_keys, "env_overrides", f"free of {scene_keys} (set TrainConfig.scene; evaluation takes "
+             "--scene and --scene-yaw)")  # fmt: skip
+
         for name in ("rollout_envs", "rollout_steps", "buffer_trajectories", "unsafe_buffer_size", "epochs",
                      "batch_size", "steps", "eval_interval", "eval_episodes", "checkpoint_interval", "qp_max_iter",
                      "qp_chunk"):  # fmt: skip
@@ -239,7 +247,7 @@ class TrainConfig:
             need(v is None or (isinstance(v, int) and not isinstance(v, bool)), name, "None or an integer")
         # the training and evaluation environments are built now, not at the first rollout or evaluation
         for what, fields, build in (
-            ("training", "num_agents, area_size(s), num_obstacles, env_overrides", self._every_training_env),
+            ("training", "num_agents, area_size(s), num_obstacles, scene, env_overrides", self._every_training_env),
             ("evaluation", "eval_num_agents, eval_area_size, eval_num_obstacles, eval_max_steps", self.eval_env_config),
         ):
             try:
@@ -272,6 +280,7 @@ class TrainConfig:
         """The training environment's :class:`EnvConfig` (``num_envs = rollout_envs``), with ``changes``."""
         kw = dict(self.env_overrides)
         kw.update(
+            scene=self.scene,
             num_agents=self.num_agents,
             area_size=self.area_size,
             num_obstacles=self.num_obstacles,
@@ -303,6 +312,11 @@ class TrainConfig:
           relative positions and velocities, the edge-sum policy head; learning rates 3e-4 (CBF) / 1e-3 (policy),
           the paper's loss constants, ``eta_c = 0.1`` for GCBF / EGCBF, 1 for GCBF+ / EGCBF+; validation on 4
           episodes of 64 agents at ``l = 2``; 60 minutes of wall time;
+        * ``"paper-cpu"``: the paper's training regime (its Section V-C: 8 agents, ``l = 2``, 5 obstacles) with the
+          ``cpu`` recipe's network, validated on that distribution (8 episodes), 30 minutes of wall time: the
+          zero-shot setting of the paper's generalization claim (docs/equivariance.md);
+        * ``"paper-cpu-mlp"``: the same with the paper's heads (MLP CBF and policy heads on the graph transformer,
+          no closest-approach edge features);
         * ``"cpu-torque"``: the previous CPU recipe on body torque and thrust (8 agents, ``l = 2``, 5 obstacles;
           4 environments x 128 steps per update, 2 epochs of ~10 minibatches of 128 graphs; learning rates 3e-4
           (CBF) / 1e-4 (policy), the paper's loss constants; a CBF that reads neither the body rates nor the goal
@@ -328,7 +342,7 @@ class TrainConfig:
             return cls._planar_preset(algo, name, robot, **changes)
         model = {"group": method_group(algo, robot)}
         base: dict[str, Any] = {"num_threads": 1}  # small matrices: one thread is as fast, and never oversubscribes
-        if name == "cpu":
+        if name in ("cpu", "paper-cpu", "paper-cpu-mlp"):
             # the command interface (docs/learning.md, "Command interface"): the policy, the learned-CBF QP and the
             # loss act on a desired acceleration tracked by the attitude loop; the CBF reads relative positions and
             # velocities only (the states the ideal model moves); agents that sense nothing keep the nominal command
@@ -351,6 +365,14 @@ class TrainConfig:
             )  # fmt: skip
             if reference == "nominal":
                 base.update(eta_c=0.1)
+        if name in ("paper-cpu", "paper-cpu-mlp"):
+            # the paper's training distribution; validation on it (the run never sees the evaluation's densities)
+            base.update(
+                num_agents=8, area_size=2.0, area_sizes=None, num_obstacles=5, max_wall_minutes=30.0,
+                eval_num_agents=8, eval_area_size=2.0, eval_num_obstacles=5, eval_episodes=8,
+            )  # fmt: skip
+            if name == "paper-cpu-mlp":
+                model.update(cbf_head="mlp", policy_head="mlp", edge_closest_approach=False)
         if name == "cpu-torque":
             # the previous CPU recipe on body torque and thrust (kept for the interface comparison)
             # the CBF does not read the body rates and the torque residual is small (docs/learning.md, "cpu-torque

@@ -29,6 +29,7 @@ from .metrics import EpisodeStats, summarize
 
 __all__ = [
     "MAX_AGENTS_PER_BATCH",
+    "PER_EPISODE_KEYS",
     "EpisodeRecord",
     "concat_states",
     "episode_batch",
@@ -42,6 +43,9 @@ Controller = Callable[[SwarmState, EnvConfig], tuple[Tensor, dict]]
 
 #: episodes of one swarm size are simulated together, up to this many agents in all (``batch`` unset)
 MAX_AGENTS_PER_BATCH = 4096
+
+#: the per-episode values a row keeps (``row["per_episode"][key]``, one per episode, in episode order)
+PER_EPISODE_KEYS = ("safe_rate", "reach_rate", "success_rate", "cost", "reward")
 
 
 def episode_batch(num_agents: int, episodes: int, max_agents_per_batch: int = MAX_AGENTS_PER_BATCH) -> int:
@@ -145,8 +149,9 @@ def evaluate(
     on_size: Callable[[list[dict], EpisodeRecord | None], None] | None = None,
     robot: str = "quadrotor",
 ) -> tuple[list[dict], dict[int, EpisodeRecord]]:
-    """Evaluate a controller at each swarm size; returns one metrics row per size (see ``docs/metrics.md``) and
-    the recorded first episode per size (if ``record``).
+    """Evaluate a controller at each swarm size; returns one metrics row per size (see ``docs/metrics.md``; its
+    ``per_episode`` holds the lists of :data:`PER_EPISODE_KEYS` over the episodes, in episode order) and the recorded
+    first episode per size (if ``record``).
 
     ``on_size(rows, record)`` is called as soon as each size is finished, with the rows so far and that size's
     record (or ``None``): the CLI writes its results there, so that a later failure loses no finished size.
@@ -198,6 +203,8 @@ def evaluate(
         bar.close()
         pooled = {k: torch.cat([p[k] for p in per_episode]) for k in per_episode[0]}
         row = summarize(pooled, num_agents=n)
+        # each episode's own values, in episode order: what a confidence interval over episodes resamples
+        row["per_episode"] = {k: pooled[k].double().tolist() for k in PER_EPISODE_KEYS}
         row["step_ms_median"] = statistics.median(timing["step_ms"])
         if timing["qp_ms"] and max(timing["qp_ms"]) > 0:  # controllers without a QP report 0
             row["qp_ms_median"] = statistics.median(timing["qp_ms"])

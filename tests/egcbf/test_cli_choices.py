@@ -17,11 +17,13 @@ from egcbf.cli_choices import (
     Preset,
     RobotName,
     SafetyFilter,
+    SceneName,
     choice_error,
 )
 from egcbf.cli_eval import DTYPES
 from egcbf.config import LEARNED_METHODS, PRESETS
 from egcbf.control.controllers import CONTROLLERS
+from egcbf.env.scenes import SCENES
 from egcbf.reproduce.plan import BACKENDS
 from egcbf.robots import ROBOTS
 
@@ -29,6 +31,7 @@ OPTIONS = [  # (command, flag, enum)
     ("eval", "--controller", Controller),
     ("eval", "--dtype", Dtype),
     ("eval", "--filter", SafetyFilter),
+    ("eval", "--scene", SceneName),
     ("demo", "--method", DemoMethod),
     ("train", "--algo", LearnedMethod),
     ("train", "--preset", Preset),
@@ -49,7 +52,8 @@ def test_the_choices_are_the_library_registries():
     assert _values(Backend) == list(BACKENDS)
     assert _values(RobotName) == list(ROBOTS)
     assert _values(SafetyFilter) == list(FILTERS)
-    for enum in (Controller, LearnedMethod, DemoMethod, Preset, Dtype, Backend, RobotName, SafetyFilter):
+    assert _values(SceneName) == list(SCENES)
+    for enum in (Controller, LearnedMethod, DemoMethod, Preset, Dtype, Backend, RobotName, SafetyFilter, SceneName):
         assert all(isinstance(m, str) and json.dumps(m) == json.dumps(m.value) for m in enum)
 
 

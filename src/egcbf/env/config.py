@@ -9,6 +9,7 @@ from typing import Any
 
 from ..dynamics import quadrotor as dyn
 from ..robots import Robot, make_robot
+from .scenes import SCENES
 
 __all__ = ["EnvConfig"]
 
@@ -50,6 +51,10 @@ class EnvConfig:
         clip_control: clip controls to the actuator box (``dynamics.clip_control``) before integrating.
         start_separation, obstacle_clearance: sampling separations in units of ``agent_radius`` (GCBF+: 4 and 4).
         max_sampling_rounds: bound on the rejection-sampling rounds before ``reset`` gives up with ``ValueError``.
+        scene: where starts and goals are drawn (:data:`egcbf.env.scenes.SCENES`): ``"uniform"`` (the arena; GCBF+'s
+            and the paper's) or ``"crossing"`` (starts in ``x < l / 2``, goals in ``x > l / 2``).
+        scene_yaw: degrees; the sampled scene (starts, goals, obstacles, yaws) rotated about the vertical axis
+            through the arena's centre (:mod:`egcbf.env.scenes`), for the rotated-world test.
         robot: the robot's name (:data:`egcbf.robots.ROBOTS`); ``make_robot()`` builds it.
         params: the robot's parameters (``None``: its defaults; for the quadrotor a ``QuadrotorParams``).
     """
@@ -73,6 +78,8 @@ class EnvConfig:
     start_separation: float = 4.0
     obstacle_clearance: float = 4.0
     max_sampling_rounds: int = 200
+    scene: str = "uniform"
+    scene_yaw: float = 0.0
     params: Any = None
     robot: str = "quadrotor"
 
@@ -116,6 +123,8 @@ class EnvConfig:
             "max_sampling_rounds",
             "an integer >= 1",
         )
+        need(self.scene in SCENES, "scene", f"one of {SCENES}")
+        need(_is_num(self.scene_yaw), "scene_yaw", "a finite number (degrees)")
         try:
             robot = make_robot(self.robot, self.params)
         except (ValueError, TypeError) as err:

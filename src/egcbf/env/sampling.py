@@ -36,9 +36,11 @@ def _check_dim(dim: int) -> int:
     return int(dim)
 
 
-def packing_feasible(num_points: int, area_size: float, min_separation: float, dim: int = 3) -> bool:
-    """Whether ``num_points`` points pairwise farther apart than ``min_separation`` can fit in ``[0, l]^dim`` by
-    the densest-packing bound (a necessary condition, checked before any sampling).
+def packing_feasible(
+    num_points: int, area_size: float, min_separation: float, dim: int = 3, extents: tuple[float, ...] | None = None
+) -> bool:
+    """Whether ``num_points`` points pairwise farther apart than ``min_separation`` can fit in ``[0, l]^dim`` (or in
+    a box of sides ``extents``) by the densest-packing bound (a necessary condition, checked before any sampling).
 
     Points separated by ``sep`` have disjoint balls (``dim = 3``) or discs (``dim = 2``) of radius ``sep / 2``
     inside the cube/square ``[-sep/2, l + sep/2]^dim`` of side ``l + sep``. Translating that finite packing by the
@@ -46,12 +48,15 @@ def packing_feasible(num_points: int, area_size: float, min_separation: float, d
     at most the densest packing density: ``pi / (3 sqrt 2)`` for balls (Kepler's conjecture, Hales) and
     ``pi / (2 sqrt 3)`` for discs (Thue, Fejes Toth). The bound compares the summed *volume*
     ``N (4/3) pi (sep/2)^3`` with ``0.7405 (l + sep)^3`` in 3-D, and the summed *area* ``N pi (sep/2)^2`` with
-    ``0.9069 (l + sep)^2`` in 2-D.
+    ``0.9069 (l + sep)^2`` in 2-D. A box of sides ``e_i`` tiles space the same way, with ``prod_i (e_i + sep)`` in
+    place of ``(l + sep)^dim``.
     """
     sep, l = float(min_separation), float(area_size)
-    if _check_dim(dim) == 2:
-        return num_points * math.pi * (sep / 2) ** 2 <= _DENSEST_DISC_PACKING * (l + sep) ** 2
-    return num_points * (4 / 3) * math.pi * (sep / 2) ** 3 <= _DENSEST_PACKING * (l + sep) ** 3
+    dim = _check_dim(dim)
+    cell = (l + sep) ** dim if extents is None else math.prod(float(e) + sep for e in extents)
+    if dim == 2:
+        return num_points * math.pi * (sep / 2) ** 2 <= _DENSEST_DISC_PACKING * cell
+    return num_points * (4 / 3) * math.pi * (sep / 2) ** 3 <= _DENSEST_PACKING * cell
 
 
 def sample_separated_points(
@@ -67,9 +72,10 @@ def sample_separated_points(
     dtype: torch.dtype = torch.float64,
     max_rounds: int = 200,
     dim: int = 3,
+    box: tuple[tuple[float, float], ...] | None = None,
 ) -> Tensor:
-    """Sample ``(num_envs, num_sets, num_points, dim)`` points in ``[0, l]^dim`` (world frame); each set of each
-    environment is separated.
+    """Sample ``(num_envs, num_sets, num_points, dim)`` points in ``[0, l]^dim`` (world frame), or in ``box`` (``dim``
+    pairs ``(low, high)``, metres) if given; each set of each environment is separated.
 
     ``dim`` is 3 (the default; the quadrotor) or 2 (a planar swarm); ``obstacles`` must be ``dim``-dimensional
     (spheres or discs, centres ``(num_envs, K, dim)``). With ``dim = 3`` the generator is consumed exactly as it
@@ -84,20 +90,29 @@ def sample_separated_points(
     b, s, n = int(num_envs), int(num_sets), int(num_points)
     sep, l = float(min_separation), float(area_size)
     dim = _check_dim(dim)
+    extents = None
+    if box is not None:
+        if len(box) != dim or any(len(b) != 2 or not float(b[0]) < float(b[1]) for b in box):
+            raise ValueError(f"box must be {dim} pairs (low, high) with low < high, got {box!r}")
+        low = torch.tensor([float(b[0]) for b in box], dtype=dtype)
+        extents = tuple(float(b[1]) - float(b[0]) for b in box)
+        width = torch.tensor(extents, dtype=dtype)
     if obstacles.dim != dim:
         raise ValueError(
             f"obstacles must be {dim}-D (centers (B, K, {dim})) to sample {dim}-D points, got centers "
             f"{tuple(obstacles.centers.shape)}"
         )
 
+    region = f"[0, {l:g}]^{dim}" if box is None else " x ".join(f"[{b[0]:g}, {b[1]:g}]" for b in box)
+
     def fail(reason: str) -> ValueError:
         return ValueError(
-            f"cannot place N={n} agents (and goals) in the area [0, {l:g}]^{dim} with pairwise separation > "
+            f"cannot place N={n} agents (and goals) in the area {region} with pairwise separation > "
             f"{sep:g} and obstacle clearance {obstacle_margin:g}: {reason}. Use a larger area_size, fewer agents "
             "or obstacles, or a smaller agent_radius."
         )
 
-    if not packing_feasible(n, l, sep, dim):
+    if not packing_feasible(n, l, sep, dim, extents):
         raise fail(f"even the densest {'sphere' if dim == 3 else 'disc'} packing cannot hold them")
     obstacles = obstacles.to(dtype=dtype, device="cpu")
     total = b * s * n
@@ -115,7 +130,8 @@ def sample_separated_points(
         # candidates per unplaced slot: 1 while most are unplaced, up to 64 for the last few (bounded work)
         per = int(min(64, max(1, -(-total // u))))
         cand_slot = todo.repeat_interleave(per)
-        cand = torch.rand(u * per, dim, generator=generator, dtype=dtype) * l
+        cand = torch.rand(u * per, dim, generator=generator, dtype=dtype)
+        cand = cand * l if box is None else low + cand * width
         pi, _ = obstacles.near_pairs_flat(cand, env[cand_slot], obstacle_margin)
         clear = torch.ones(u * per, dtype=torch.bool)
         clear[pi] = False

@@ -37,6 +37,7 @@ from .config import EnvConfig, _is_int
 from .lidar import LidarScan, lidar_scan
 from .obstacles import Obstacles, sample_obstacles
 from .sampling import sample_separated_points
+from .scenes import rotate_about_center, scene_boxes, wrap_angle
 
 __all__ = [
     "NonFiniteInputError",
@@ -271,23 +272,22 @@ class SwarmEnv:
         obstacles = sample_obstacles(
             c.num_envs, c.num_obstacles, c.area_size, c.obstacle_radius_range, generator=gen, dtype=f64, dim=d
         )
-        pts = sample_separated_points(
-            c.num_envs,
-            2,
-            c.num_agents,
-            c.area_size,
-            c.start_separation * c.agent_radius,
-            obstacles,
-            c.obstacle_clearance * c.agent_radius,
-            generator=gen,
-            dtype=f64,
-            max_rounds=c.max_sampling_rounds,
-            dim=d,
-        )
+        boxes = scene_boxes(c.scene, c.area_size, d)
+        sampling = dict(generator=gen, dtype=f64, max_rounds=c.max_sampling_rounds, dim=d)
+        args = (c.area_size, c.start_separation * c.agent_radius, obstacles, c.obstacle_clearance * c.agent_radius)
+        if boxes is None:  # starts and goals drawn together (the generator stream of every earlier release)
+            pts = sample_separated_points(c.num_envs, 2, c.num_agents, *args, **sampling)
+        else:
+            sets = [sample_separated_points(c.num_envs, 1, c.num_agents, *args, box=b, **sampling) for b in boxes]
+            pts = torch.cat(sets, 1)
         if c.random_yaw:
             yaw = (torch.rand(c.num_envs, c.num_agents, generator=gen, dtype=f64) * 2 - 1) * math.pi
         else:
             yaw = torch.zeros(c.num_envs, c.num_agents, dtype=f64)
+        if c.scene_yaw != 0:
+            pts = rotate_about_center(pts, c.scene_yaw, c.area_size)
+            obstacles = Obstacles(rotate_about_center(obstacles.centers, c.scene_yaw, c.area_size), obstacles.radii)
+            yaw = wrap_angle(yaw + math.radians(c.scene_yaw))
         x = self.robot.rest_state(pts[:, 0], yaw)
         state = SwarmState(x, pts[:, 1], obstacles, 0, self.robot)
         return state.to(device=self.device, dtype=self.dtype)

@@ -52,6 +52,7 @@ from .cli_choices import (
     choice_error,
 )
 from .cli_eval import EVAL_RESULTS, format_table, load_policy, run_eval, say_run_checkpoint
+from .cli_study import study_cmd
 from .threads import choose_threads
 
 __all__ = ["app", "format_table", "main"]
@@ -709,6 +710,9 @@ def _sweep_flags(message: str) -> str:
     """``message`` with SweepConfig's field names written as the flags that set them."""
     fields = "|".join(_SWEEP_FIELDS)
     return re.sub(rf"(?<![-\w])({fields})\b", lambda m: "--" + m.group(1).replace("_", "-"), message)
+
+
+app.command("study")(study_cmd)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -1,0 +1,261 @@
+"""docs/equivariance.md: the equivariance study's tables, figures, effects with 95 % intervals and verdicts, written
+from the result files under ``docs/results/equivariance`` (nothing is computed here).
+
+Each claim's verdict is a rule on its effects (EGCBF(+) minus GCBF(+), :mod:`egcbf.bootstrap` intervals):
+``supported`` when every effect's interval lies above 0, ``not supported`` when none does (``the world-frame method
+is better`` when one lies below 0 and none above), ``mixed`` otherwise, and ``pending`` while a cell it needs is not
+computed. The sections between ``<!-- name:begin/end -->`` markers are regenerated; text around them is kept.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..atomic import write_text_atomic
+from ..bootstrap import Interval, difference_ci, mean_ci
+from ..report import md_table, pct, replace_block
+from .figures import LABELS, curves_figure, rotated_figure, zero_shot_figure
+from .plan import ARMS, ROOT, Arm, arm, rotated_cells
+from .results import arm_cells, auc, curve, difference, method_mean, per_episode, rotated_rows, updates_to
+
+__all__ = ["verdict", "write_report"]
+
+_SECTIONS = (
+    ("status", "## What is computed"),
+    ("generalization", "## Claim 1: zero-shot generalization to larger, denser swarms"),
+    ("convergence", "## Claim 2: faster convergence and fewer samples"),
+    ("rotated", "## Claim 3: transfer to transformed states (the rotated-world test)"),
+    ("ablation", "## Our heads: do they close the gap?"),
+)
+_PAIRS = (("egcbf+", "gcbf+"), ("egcbf", "gcbf"))
+
+
+def verdict(effects: list[Interval | None]) -> str:
+    """The one-word verdict on a claim from its effects (module doc)."""
+    if not effects or any(e is None for e in effects):
+        return "pending"
+    above = [e.low > 0 for e in effects]
+    below = [e.high < 0 for e in effects]
+    if all(above):
+        return "supported"
+    if not any(above):
+        return "not supported (the world-frame method is better)" if any(below) else "not supported"
+    return "mixed"
+
+
+def _iv(e: Interval | None, scale: float = 100.0) -> str:
+    return "pending" if e is None else e.text(scale)
+
+
+def _mean(e: Interval | None) -> str:
+    return "pending" if e is None else f"{pct(e.estimate)} [{pct(e.low)}, {pct(e.high)}]"
+
+
+# ------------------------------------------------------------------------------------------------ the sections
+def _status(root: Path) -> str:
+    rows = []
+    for a in ARMS:
+        runs = a.all_runs()
+        trained = [r for r in runs if (r.checkpoint_dir(root) / "model.safetensors").exists()]
+        if a.evaluation == "rotated":
+            done = sum(len(rotated_rows(r, root)) for r in trained)
+            total = len(runs) * len(rotated_cells())
+        else:
+            from .driver import sweep_config
+
+            done, total = len(arm_cells(a, root)), len(sweep_config(a, root).cells())
+        rows.append([a.name, a.claim, f"`{a.preset}` {a.overrides or ''}", f"{a.minutes:g}",
+                     f"{len(trained)} of {len(runs)}", f"{done} of {total}"])  # fmt: skip
+    return (
+        md_table(["arm", "tests", "recipe", "minutes per run", "runs trained", "cells evaluated"], rows)
+        + "\n\nRuns: `egcbf study --arms ARM` (two at a time, one thread each, resumable); evaluation seed 0, "
+        "20 episodes per N at l = 4, the scalability cells at the density of N = 512 with 10 240 agent-episodes each."
+    )
+
+
+def _pair_effects(a: Arm, cells: dict, n: int, scale: bool) -> list[tuple[str, Interval | None]]:
+    out = []
+    for e, g in _PAIRS:
+        if e in a.algos() and g in a.algos():
+            out.append((f"{LABELS[e]} - {LABELS[g]}", difference(cells, e, g, a.seeds(e), a.seeds(g), n, scale)))
+    return out
+
+
+def _generalization(root: Path, figures: Path, report: Path) -> tuple[str, str]:
+    arms = [arm("paper-cpu"), arm("paper-cpu-mlp")]
+    cells = {a.name: arm_cells(a, root) for a in arms}
+    lines, effects = [], []
+    for a in arms:
+        c = cells[a.name]
+        head = [
+            "method (seeds)",
+            *[f"N = {n}" for n in a.table_sizes],
+            *[f"N = {n} (fixed density)" for n in a.scale_sizes],
+        ]
+        rows = []
+        for algo in a.algos():
+            seeds = a.seeds(algo)
+            vals = [_mean(method_mean(c, algo, seeds, n, False, "safe_rate")) for n in a.table_sizes]
+            vals += [_mean(method_mean(c, algo, seeds, n, True, "safe_rate")) for n in a.scale_sizes]
+            rows.append([f"{LABELS[algo]} ({len(seeds)})", *vals])
+        lines += [f"**{a.name}** (safe %, 95 % interval over seeds and episodes):", "", md_table(head, rows), ""]
+        points = [(512, False)] + [(n, True) for n in a.scale_sizes if n == 4096]
+        for n, sc in points:
+            for name, e in _pair_effects(a, c, n, sc):
+                lines.append(f"- {a.name}, N = {n}: {name} = {_iv(e)} safe-rate points")
+                if name.startswith("EGCBF+"):
+                    effects.append(e)
+        lines.append("")
+    if any(cells.values()):
+        png = zero_shot_figure(arms, cells, figures / "equivariance_zero_shot.png")
+        lines += [f"![zero-shot safety against N]({_rel(png, report)})", ""]
+    v = verdict(effects)
+    lines.append(f"**Verdict: {v}** (EGCBF+ minus GCBF+ at N = 512 under both heads, and at N = 4096).")
+    return "\n".join(lines), v
+
+
+def _convergence(root: Path, figures: Path, report: Path) -> tuple[str, str]:
+    arms = [arm("paper-cpu"), arm("paper-cpu-mlp"), arm("low-data")]
+    curves = {a.name: [(r, c) for r in a.all_runs() if (c := curve(r, root)) is not None] for a in arms}
+    lines, effects = [], []
+    rows = []
+    for a in arms[:2]:
+        got = {(r.algo, r.seed): c for r, c in curves[a.name]}
+        upto = min((c["step"][-1] for c in got.values()), default=None)
+        for e, g in _PAIRS:
+            se, sg = a.seeds(e), a.seeds(g)
+            if not all((e, s) in got for s in se) or not all((g, s) in got for s in sg):
+                rows.append([a.name, f"{LABELS[e]} - {LABELS[g]}", "pending", "pending", "pending"])
+                if e == "egcbf+":
+                    effects.append(None)
+                continue
+            ae = [[auc(got[(e, s)], "success_rate", upto)] for s in se]
+            ag = [[auc(got[(g, s)], "success_rate", upto)] for s in sg]
+            d = difference_ci(ae, ag)
+            t90 = [updates_to(got[(x, s)], "success_rate", 0.9) for x, ss in ((e, se), (g, sg)) for s in ss]
+            rows.append([a.name, f"{LABELS[e]} - {LABELS[g]}", f"{upto:g}", _iv(d), ", ".join(str(t) for t in t90)])
+            if e == "egcbf+":
+                effects.append(d)
+    lines += [
+        md_table(
+            [
+                "arm",
+                "effect",
+                "updates compared",
+                "mean validation success over them, points (95 %)",
+                "first update at 90 % success (E seeds, then G seeds)",
+            ],
+            rows,
+        ),
+        "",
+    ]
+    low = arm("low-data")
+    c = arm_cells(low, root)
+    for name, e in _pair_effects(low, c, 512, False):
+        lines.append(
+            f"- low-data (a quarter of the rollouts per update), N = 512 zero-shot: {name} = {_iv(e)} safe points"
+        )
+        if name.startswith("EGCBF+"):
+            effects.append(e)
+    if any(curves.values()):
+        png = curves_figure({k: v for k, v in curves.items() if v}, figures / "equivariance_curves.png")
+        lines += ["", f"![validation curves]({_rel(png, report)})"]
+    v = verdict(effects)
+    lines += ["", f"**Verdict: {v}** (EGCBF+ minus GCBF+: validation success over training under both heads, and the "
+              "low-data run's zero-shot safety at N = 512)."]  # fmt: skip
+    return "\n".join(lines), v
+
+
+def _rotated(root: Path, figures: Path, report: Path) -> tuple[str, str]:
+    a = arm("crossing")
+    head = ["run", "cell", "yaw 0", "yaw 90", "yaw 180", "uniform", "90 - 0 (points)", "180 - 0 (points)"]
+    rows, points, changes = [], {}, {}
+    for run in a.all_runs():
+        got = rotated_rows(run, root)
+        for n in sorted({c.num_agents for c in rotated_cells()}):
+            at = {(c.scene, c.yaw): got.get(c) for c in rotated_cells() if c.num_agents == n}
+            ests = {k: None if r is None else mean_ci([per_episode(r, "success_rate")]) for k, r in at.items()}
+            diffs = []
+            for yaw in (90.0, 180.0):
+                r0, r1 = at.get(("crossing", 0.0)), at.get(("crossing", yaw))
+                d = None if r0 is None or r1 is None else difference_ci([per_episode(r1, "success_rate")],
+                                                                        [per_episode(r0, "success_rate")])  # fmt: skip
+                diffs.append(d)
+                changes.setdefault(run.algo, []).append(d)
+            cell = next(c for c in rotated_cells() if c.num_agents == n)
+            rows.append([run.name, f"N = {n}, l = {cell.area:g}, {cell.obstacles} obst.",
+                         *[_mean(ests.get(k)) for k in (("crossing", 0.0), ("crossing", 90.0), ("crossing", 180.0),
+                                                         ("uniform", 0.0))],
+                         *[_iv(d) for d in diffs]])  # fmt: skip
+            if n == 8:
+                points[run.name] = [(k[1], e.estimate, e.low, e.high) for k, e in ests.items()
+                                    if e is not None and k[0] == "crossing"]  # fmt: skip
+    lines = ["Success % (95 % interval over episodes), trained on `crossing` scenes (every agent travels along +x):",
+             "", md_table(head, rows), ""]  # fmt: skip
+    if any(points.values()):
+        png = rotated_figure({k: v for k, v in points.items() if v}, figures / "equivariance_rotated.png")
+        lines += [f"![success against rotation]({_rel(png, report)})", ""]
+    eq, wf = changes.get("egcbf+", []), changes.get("gcbf+", [])
+    if not eq or not wf or any(d is None for d in eq + wf):
+        v = "pending"
+    elif any(d.excludes_zero() for d in eq):
+        v = "not constant for EGCBF+: a bug to find (equivariance makes it constant by construction)"
+    elif any(d.high < 0 for d in wf):
+        v = "supported"
+    else:
+        v = "not supported (the world-frame method transfers as well)"
+    lines.append(f"**Verdict: {v}** (EGCBF+ must be constant under rotation; GCBF+'s change is the effect).")
+    return "\n".join(lines), v
+
+
+def _ablation(root: Path) -> str:
+    names = ("cpu-20", "no-closest", "mlp-cbf", "mlp-policy")
+    rows = []
+    for name in names:
+        a = arm(name)
+        c = arm_cells(a, root)
+        e = difference(c, "egcbf+", "gcbf+", (0,), (0,), 512)
+        means = [_mean(method_mean(c, algo, (0,), 512, False, "safe_rate")) for algo in ("egcbf+", "gcbf+")]
+        rows.append([name, a.claim, *means, _iv(e)])
+    return md_table(["arm", "what", "EGCBF+ safe % at N = 512", "GCBF+", "EGCBF+ - GCBF+ (points, 95 %)"], rows) + (
+        "\n\nOne training seed per cell, so the intervals cover the episodes only, not the training seeds."
+    )
+
+
+def _rel(path: Path, report: Path) -> str:
+    import os
+
+    return Path(os.path.relpath(path, report.parent)).as_posix()
+
+
+def write_report(report: str | Path = "docs/equivariance.md", root: str | Path = ROOT) -> tuple[Path, dict]:
+    """Write (or update) ``report`` and its figures (``<report dir>/figures/equivariance_*.png``); returns the path
+    and the verdicts ``{claim: verdict}``."""
+    report, root = Path(report), Path(root)
+    figures = report.parent / "figures"
+    gen, v1 = _generalization(root, figures, report)
+    conv, v2 = _convergence(root, figures, report)
+    rot, v3 = _rotated(root, figures, report)
+    verdicts = {"generalization": v1, "convergence": v2, "transfer": v3}
+    bodies = {"status": _status(root), "generalization": gen, "convergence": conv, "rotated": rot,
+              "ablation": _ablation(root)}  # fmt: skip
+    text = report.read_text() if report.exists() else _TEMPLATE
+    for name, heading in _SECTIONS:
+        text = replace_block(text, name, bodies[name], heading=heading)
+    summary = "\n".join(f"- **{k}**: {v}" for k, v in verdicts.items())
+    text = replace_block(text, "verdicts", summary, heading="## Verdicts")
+    report.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(report, text)
+    return report, verdicts
+
+
+_TEMPLATE = """# What equivariance buys: the paper's three claims, tested
+
+Generated by `egcbf study --report-only` from the result files under `docs/results/equivariance/`
+(`egcbf.study`); the sections between the markers are regenerated, text around them is kept.
+
+## Verdicts
+
+<!-- verdicts:begin -->
+<!-- verdicts:end -->
+"""

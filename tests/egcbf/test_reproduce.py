@@ -830,3 +830,26 @@ def test_report_only_names_a_truncated_cell_file(first, tmp_path):
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     assert "1 cell file(s) cannot be read" in res.output and str(victim) in res.output, res.output
+
+
+def test_convergence_draws_the_run_a_fine_tuned_checkpoint_started_from(checkpoints, tmp_path, monkeypatch):
+    """A checkpoint whose config names ``init_from`` (fine-tuned) is drawn with the curve of the run it started
+    from (its whole training), and the caption says so; without ``init_from`` its own metrics.csv is drawn."""
+    from egcbf import curves
+    from egcbf.reproduce.figures import convergence_section
+
+    ckpts = tmp_path / "checkpoints"
+    shutil.copytree(checkpoints, ckpts)
+    start = tmp_path / "start"
+    shutil.copytree(checkpoints / "egcbf+", start)
+    cfg_file = ckpts / "egcbf+" / "config.json"
+    cfg_file.write_text(json.dumps({**json.loads(cfg_file.read_text()), "init_from": str(start)}))
+    drawn = []
+    monkeypatch.setattr(curves, "training_curves", lambda runs, png: drawn.append(runs) or png)
+    cfg = _cfg(ckpts, tmp_path / "out")
+    text = convergence_section(cfg, tmp_path / "r.md", tmp_path / "figures")
+    assert drawn[-1]["EGCBF+"][0] == start
+    assert "EGCBF+: the runs the shipped policies were fine-tuned from" in text
+    cfg_file.write_text(json.dumps({k: v for k, v in json.loads(cfg_file.read_text()).items() if k != "init_from"}))
+    text = convergence_section(cfg, tmp_path / "r.md", tmp_path / "figures")
+    assert drawn[-1]["EGCBF+"][0] == ckpts / "egcbf+" and "fine-tuned from" not in text

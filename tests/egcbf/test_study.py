@@ -109,8 +109,9 @@ def _write_curve(run: Run, a: Arm, root: Path, level: float) -> None:
 
 def test_report_reads_effects_and_verdicts_from_result_files(tmp_path):
     """Synthetic results with known answers: EGCBF+ 99 % against GCBF+ 90 % safe at every N (claim 1 supported),
-    identical validation curves and low-data safety (claim 2 not supported), EGCBF+ constant under rotation while GCBF+ drops (claim 3
-    supported). The report says so, draws its figures, and keeps hand-written text on a rewrite."""
+    identical validation curves and low-data safety (claim 2 not supported), EGCBF+ constant under rotation while
+    GCBF+ drops (claim 3 supported). The report says so, draws its figures, and keeps hand-written text on a
+    rewrite."""
     rng = np.random.default_rng(0)
     root, report = tmp_path / "res", tmp_path / "docs" / "equivariance.md"
     safe = {"egcbf+": 0.99, "gcbf+": 0.90, "egcbf": 0.95, "gcbf": 0.95}

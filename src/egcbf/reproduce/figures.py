@@ -4,6 +4,7 @@ GCBF+. A figure that cannot be drawn leaves a sentence saying why, never a lost 
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -118,11 +119,21 @@ def scalability_section(cfg: SweepConfig, records: dict[Cell, dict], report: Pat
     return text + ". Lines are means over training seeds, bands their min-max."
 
 
+def _fine_tuned_from(path: Path) -> Path | None:
+    """The checkpoint a fine-tuned checkpoint started from (its config's ``init_from``, relative to the working
+    directory), if it names one that still has its ``metrics.csv``; else ``None``."""
+    try:
+        start = json.loads((path / "config.json").read_text()).get("init_from")
+    except (OSError, ValueError):
+        return None
+    return Path(start) if start and (Path(start) / "metrics.csv").exists() else None
+
+
 def convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
     """The training curves of every learned checkpoint under ``cfg.checkpoints`` that has its ``metrics.csv``."""
     from ..curves import training_curves
 
-    runs = {}
+    runs, started = {}, set()
     for m in LEARNED:
         dirs = []
         for s in cfg.seeds_for(m):
@@ -130,6 +141,10 @@ def convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
                 path = find_method_checkpoint(cfg.checkpoints, m, s).path
             except (FileNotFoundError, ValueError):
                 continue
+            start = _fine_tuned_from(path)
+            if start is not None:  # a fine-tuned policy: the whole training run is the one it started from
+                path = start
+                started.add(LABELS[m])
             if (path / "metrics.csv").exists():
                 dirs.append(path)
         if dirs:
@@ -144,6 +159,12 @@ def convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
         f"![training curves]({_rel(png, report)})\n\nSafe, reach and success rates of the validation rollouts "
         "during training, against update (top) and wall time (bottom); several training seeds are drawn as their "
         "mean with a min-max band, a single run with a circle at the shipped checkpoint."
+        + (
+            f" {', '.join(sorted(started))}: the runs the shipped policies were fine-tuned from (their configs' "
+            "`init_from`); the fine-tuning's own validations are in their checkpoints' metrics.csv."
+            if started
+            else ""
+        )
     )
 
 

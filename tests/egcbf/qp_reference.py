@@ -3,7 +3,7 @@ solved through qpsolvers, for the regression test in test_cbf_qp.py (``tests/egc
 
 Each entry is a scene (``numpy_rows(seed, n)`` of test_cbf_qp.py), the optimum each solver returned at
 ``eps_abs = 1e-9`` and the same after ``polish_sparse`` (the exact optimum to rounding). Recorded once, by the code
-of commit 3f0c2a1's parent (the adapters), with
+of commit e5a0b87 (the adapters), with
 
     python tests/egcbf/qp_reference.py
 

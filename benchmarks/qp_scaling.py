@@ -7,10 +7,12 @@ constraint and QP assembly, solve, checks; not the attitude loop or the simulato
 reported, with the number of CBF rows, the steps whose QP needed slack and the failed solves.
 
 Solver comparison (centralized QP): on ``--snapshots`` states of the cCBF-QP rollout, the same assembled sparse QP
-is solved by every installed solver (PIQP, ProxQP sparse, OSQP, Clarabel; native Python APIs, same tolerance
-1e-7, no warm start) and the median solve time (setup + solve) is reported, with the largest distance to PIQP's
-solution. The per-agent QPs are solved by the batched interior-point method (torch, on the CPU) and by proxsuite's
-``dense.BatchQP`` + ``solve_in_parallel`` on the same states.
+is solved by every installed solver egcbf tests (``egcbf.control.qp.SOLVERS``, through qpsolvers, same tolerance
+1e-7, no warm start) and the median solve time (conversion + setup + solve) is reported, with the largest distance
+to PIQP's solution. With ``--direct`` the solvers egcbf had before qpsolvers are also called through their old
+hand-written adapters (``benchmarks/qp_direct.py``), alternating with the qpsolvers call on the same QP, and the
+ratio of the medians is qpsolvers' overhead. The per-agent QPs are solved by the batched interior-point method
+(torch, on the CPU) and by proxsuite's ``dense.BatchQP`` + ``solve_in_parallel`` on the same states.
 
     .venv/bin/python benchmarks/qp_scaling.py                 # writes docs/benchmarks.md (a few minutes, 2 cores)
     .venv/bin/python benchmarks/qp_scaling.py --sizes 8 64 --steps 10 --no-write
@@ -38,6 +40,9 @@ from egcbf.control.dense_qp import assemble_decentralized, solve_dense_batch, so
 from egcbf.control.qp import SOLVERS, assemble_centralized, solve_sparse
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.report import replace_section
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from qp_direct import DIRECT, solve_direct  # the pre-qpsolvers adapters, for --direct
 
 BEGIN, END = "<!-- qp-scaling:begin -->", "<!-- qp-scaling:end -->"
 SIZES = (8, 16, 64, 128, 256, 512)
@@ -76,19 +81,28 @@ def rollout(ctrl, n: int, area: float, steps: int, seed: int, snapshots: int):
     )
 
 
-def solver_comparison(ctrl: CentralizedCBFQP, snaps, cfg, solvers) -> dict:
-    """Median solve time per solver on the centralized QPs of ``snaps`` (and the dense per-agent solvers)."""
+def solver_comparison(ctrl: CentralizedCBFQP, snaps, cfg, solvers, direct: bool = False, repeats: int = 3) -> dict:
+    """Median solve time per solver on the centralized QPs of ``snaps`` (and the dense per-agent solvers); with
+    ``direct``, also ``"<solver>:direct"`` (the pre-qpsolvers adapter) and ``"<solver>:qpsolvers"``, each call
+    timed ``repeats`` times, alternating the two."""
     times = {s: [] for s in solvers}
     dev = {s: 0.0 for s in solvers}
     dense = {"ipm": [], "proxsuite-batch": []}
+    pairs = {f"{s}:{k}": [] for s in solvers if direct and s in DIRECT for k in ("direct", "qpsolvers")}
     for state in snaps:
         prep = ctrl._prepare(state, cfg)
         cons = build_constraints(prep.p[0], prep.v[0], prep.barrier, bounds=prep.bounds)
         qp = assemble_centralized(prep.a_nom[0], cons, prep.bC[0], prep.blo[0], prep.bhi[0], ctrl.config.penalty)
         ref = None
         for s in solvers:
+            t0 = time.perf_counter()
             res = solve_sparse(qp, s, eps_abs=1e-7, max_iter=1000)
-            times[s].append(res.solve_ms if res.ok else float("nan"))
+            times[s].append(1e3 * (time.perf_counter() - t0) if res.ok else float("nan"))
+            for _ in range(repeats if f"{s}:direct" in pairs else 0):
+                pairs[f"{s}:direct"].append(solve_direct(qp, s, eps_abs=1e-7, max_iter=1000)[2])
+                t0 = time.perf_counter()
+                solve_sparse(qp, s, eps_abs=1e-7, max_iter=1000)
+                pairs[f"{s}:qpsolvers"].append(1e3 * (time.perf_counter() - t0))
             if ref is None and res.ok:
                 ref = res.x
             elif res.ok:
@@ -107,11 +121,13 @@ def solver_comparison(ctrl: CentralizedCBFQP, snaps, cfg, solvers) -> dict:
         del n
     out = {s: (statistics.median(v) if v else float("nan"), dev[s]) for s, v in times.items()}
     out.update({k: (statistics.median(v), 0.0) for k, v in dense.items() if v})
+    out.update({k: (statistics.median(v), 0.0) for k, v in pairs.items() if v})
     return out
 
 
 def installed_solvers() -> list[str]:
-    mods = {"piqp": "piqp", "proxsuite": "proxsuite", "osqp": "osqp", "clarabel": "clarabel"}
+    mods = {"piqp": "piqp", "proxsuite": "proxsuite", "osqp": "osqp", "clarabel": "clarabel", "highs": "highspy",
+            "qpalm": "qpalm"}  # fmt: skip
     return [s for s in SOLVERS if importlib.util.find_spec(mods[s]) is not None]
 
 
@@ -152,6 +168,21 @@ def render(rows: list[dict], comp: dict[int, dict], args, solvers) -> str:
                 t, dv = c.get(s, (float("nan"), 0.0))
                 cells.append(f"{t:.1f}" + (f" ({dv:.0e})" if s in solvers and s != solvers[0] else ""))
             lines.append(f"| {n} | " + " | ".join(cells) + " |")
+        direct = [s for s in solvers if any(f"{s}:direct" in c for c in comp.values())]
+        if direct:
+            lines += [
+                "",
+                "qpsolvers' overhead (`--direct`): median ms per solve through qpsolvers and through the hand-written "
+                "adapter egcbf had before it (`benchmarks/qp_direct.py`), the two calls alternating on the same QPs "
+                "(conversion + setup + solve):",
+                "",
+                "| N | solver | adapter ms | qpsolvers ms | qpsolvers / adapter |",
+                "|---|---|---|---|---|",
+            ]
+            for n, c in comp.items():
+                for s in direct:
+                    a, q = c[f"{s}:direct"][0], c[f"{s}:qpsolvers"][0]
+                    lines.append(f"| {n} | {s} | {a:.1f} | {q:.1f} | {q / a:.2f} |")
         missing = [s for s in SOLVERS if s not in solvers]
         if missing:
             lines += ["", f"Not installed here, so not compared: {', '.join(missing)} (`pip install -e '.[solvers]'`)."]
@@ -171,6 +202,7 @@ def main(argv=None) -> int:
     ap.add_argument("--snapshots", type=int, default=3, help="states per N for the solver comparison (0: skip)")
     ap.add_argument("--compare-sizes", type=int, nargs="+", default=[64, 256, 512])
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--direct", action="store_true", help="also time the pre-qpsolvers adapters (the overhead)")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"))
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
@@ -185,7 +217,7 @@ def main(argv=None) -> int:
         rows.append({"N": n, "ccbf": c, "dcbf": d})
         print(f"N={n}: ccbf {c}  dcbf {d}", flush=True)
         if snaps:
-            comp[n] = solver_comparison(cc, snaps, cfg, solvers)
+            comp[n] = solver_comparison(cc, snaps, cfg, solvers, direct=args.direct)
             print(f"  solvers: {comp[n]}", flush=True)
     body = render(rows, comp, args, solvers)
     print(body)

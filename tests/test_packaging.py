@@ -28,7 +28,7 @@ RUNTIME = {"torch": "torch", "torch-geometric": "torch_geometric", "roma": "roma
 #: imports allowed in one module only, from the extra that provides them
 EXTRA_IMPORTS = {"testing/strategies.py": {"hypothesis"}, "compat/escnn.py": {"escnn", "numpy"}}
 #: egcbf's own dependencies that a groupcanon user must not need (tqdm is one of torch-geometric's)
-NOT_NEEDED = ("egcbf", "hypothesis", "proxsuite", "piqp", "typer", "matplotlib", "scipy", "safetensors")
+NOT_NEEDED = ("egcbf", "hypothesis", "proxsuite", "piqp", "qpsolvers", "typer", "matplotlib", "scipy", "safetensors")
 
 
 def _pyproject(path: Path) -> dict:

@@ -106,8 +106,10 @@ class CBFQPConfig:
         barrier: the barrier (its ``agent_radius`` is replaced by the environment's at call time).
         bounds: acceleration bounds; ``None``: :func:`default_bounds` of the environment's quadrotor.
         penalty: slack cost ``1/2 w2 s^2 + w1 s`` (s in m/s^2).
-        solver: centralized sparse solver: ``"piqp"`` (default, fastest measured), ``"proxsuite"``, ``"osqp"``,
-            ``"clarabel"``. ``fallback_solver`` is tried when it fails.
+        solver: centralized sparse solver, any of ``qpsolvers.available_solvers`` (through qpsolvers,
+            :mod:`egcbf.control.sparse_solvers`): ``"piqp"`` (default, fastest measured), ``"proxsuite"`` (qpsolvers'
+            ``"proxqp"``), ``"osqp"``, ``"clarabel"``, ``"highs"``, ``"qpalm"``, ... ``fallback_solver`` is tried
+            when it fails.
         dcbf_solver: per-agent QPs: ``"ipm"`` (batched interior point + polishing, on the state's device; default,
             fastest measured at N = 512) or ``"proxsuite"`` (``dense.BatchQP`` + ``solve_in_parallel``).
         eps_abs: absolute primal/dual tolerance (m/s^2). ``max_iter``: iteration cap per solve.

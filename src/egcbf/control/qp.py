@@ -1,4 +1,5 @@
-"""The centralized CBF-QP (cCBF-QP baseline): sparse assembly, the external sparse solvers, active-set polishing.
+"""The centralized CBF-QP (cCBF-QP baseline): sparse assembly, solving (any sparse solver, through qpsolvers:
+:mod:`egcbf.control.sparse_solvers`), active-set polishing.
 
 Centralized QP of one environment (``N`` agents, ``S`` CBF rows), variables ``z = [a (3N), s (S)]``:
 
@@ -16,7 +17,6 @@ The decentralized baseline's per-agent QPs (same cost, one slack per agent) are 
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +25,7 @@ import scipy.sparse.linalg as spla
 
 from .barriers import Constraints
 from .ipm import INF
+from .sparse_solvers import SolveResult, require_solver, solve_with_qpsolvers
 
 __all__ = [
     "INF",
@@ -39,7 +40,10 @@ __all__ = [
     "solve_sparse",
 ]
 
-SOLVERS = ("piqp", "proxsuite", "osqp", "clarabel")
+#: the solvers egcbf tests and sets tolerances for (:data:`egcbf.control.sparse_solvers.SETTINGS`; ``"proxsuite"`` is
+#: qpsolvers' ``"proxqp"``): piqp and proxsuite are core dependencies, the others come with the ``solvers`` extra. Any
+#: other solver qpsolvers lists works too, with its own default settings.
+SOLVERS = ("piqp", "proxsuite", "osqp", "clarabel", "highs", "qpalm")
 
 
 @dataclass(frozen=True)
@@ -63,15 +67,6 @@ class SparseQP:
     x_u: np.ndarray
     num_agents: int
     num_slack: int
-
-
-@dataclass
-class SolveResult:
-    x: np.ndarray
-    ok: bool
-    status: str
-    iterations: int
-    solve_ms: float
 
 
 def assemble_centralized(
@@ -156,26 +151,6 @@ def dense_reference(qp: SparseQP) -> tuple[np.ndarray, ...]:
     return qp.H.toarray(), qp.g.copy(), C.toarray(), lo, hi
 
 
-#: the optional solvers and how to get them (piqp and proxsuite are core dependencies)
-_EXTRA_SOLVERS = {"osqp": "osqp>=0.6", "clarabel": "clarabel>=0.7"}
-
-
-def require_solver(name: str) -> None:
-    """Raise ``ValueError`` for an unknown solver name and ``ImportError`` (saying how to install it) for a known
-    solver whose package is missing: ``osqp`` and ``clarabel`` come with the ``solvers`` extra."""
-    import importlib.util
-
-    if name not in SOLVERS:
-        raise ValueError(f"unknown QP solver {name!r}; choose one of {SOLVERS}")
-    if importlib.util.find_spec(name) is None:
-        hint = (
-            f"pip install -e '.[solvers]' (or pip install '{_EXTRA_SOLVERS[name]}')"
-            if name in _EXTRA_SOLVERS
-            else (f"pip install {name}")
-        )
-        raise ImportError(f"QP solver {name!r} is not installed: {hint}")
-
-
 def solve_sparse(
     qp: SparseQP,
     solver: str = "piqp",
@@ -183,115 +158,10 @@ def solve_sparse(
     max_iter: int = 1000,
     x0: np.ndarray | None = None,
 ) -> SolveResult:
-    """Solve a :class:`SparseQP`; never raises on a solver failure (``ok=False`` instead)."""
-    require_solver(solver)
-    t0 = time.perf_counter()
-    try:
-        x, ok, status, it = _SPARSE[solver](qp, eps_abs, max_iter, x0)
-    except ImportError:
-        raise
-    except Exception as exc:  # a solver crash is a failed solve, never an exception for the caller
-        x, ok, status, it = None, False, f"error: {type(exc).__name__}: {exc}", 0
-    ms = 1e3 * (time.perf_counter() - t0)
-    if x is None or x.shape != (qp.H.shape[0],) or not np.all(np.isfinite(x)):
-        return SolveResult(np.full(qp.H.shape[0], np.nan), False, status, it, ms)
-    return SolveResult(x, ok, status, it, ms)
-
-
-def _solve_piqp(qp: SparseQP, eps_abs, max_iter, x0):
-    import piqp
-
-    solver = piqp.SparseSolver()
-    st = solver.settings
-    st.eps_abs = eps_abs
-    st.eps_rel = 0.0
-    st.max_iter = max_iter
-    st.verbose = False
-    inf = np.inf
-    solver.setup(
-        qp.H,
-        qp.g,
-        None,
-        None,
-        qp.C,
-        np.where(qp.l <= -INF / 2, -inf, qp.l),
-        np.where(qp.u >= INF / 2, inf, qp.u),
-        np.where(qp.x_l <= -INF / 2, -inf, qp.x_l),
-        np.where(qp.x_u >= INF / 2, inf, qp.x_u),
-    )
-    status = solver.solve()
-    ok = status == piqp.PIQP_SOLVED
-    return np.array(solver.result.x), ok, str(status).split(".")[-1], int(solver.result.info.iter)
-
-
-def _solve_proxsuite(qp: SparseQP, eps_abs, max_iter, x0):
-    from proxsuite import proxqp
-
-    C, lo, hi = _with_box_rows(qp)
-    n, m = qp.H.shape[0], C.shape[0]
-    solver = proxqp.sparse.QP(n, 0, m)
-    st = solver.settings
-    st.eps_abs = eps_abs
-    st.eps_rel = 0.0
-    st.max_iter = max_iter
-    st.verbose = False
-    solver.init(qp.H, qp.g, None, None, C, lo, hi)
-    if x0 is not None:
-        st.initial_guess = proxqp.InitialGuess.WARM_START
-        solver.solve(x0, None, None)
-    else:
-        solver.solve()
-    res = solver.results
-    status = res.info.status
-    ok = status == proxqp.QPSolverOutput.PROXQP_SOLVED
-    return np.array(res.x), ok, status.name, int(res.info.iter)
-
-
-def _solve_osqp(qp: SparseQP, eps_abs, max_iter, x0):
-    import osqp
-
-    C, lo, hi = _with_box_rows(qp)
-    big = osqp.constant("OSQP_INFTY")
-    prob = osqp.OSQP()
-    prob.setup(
-        P=sp.triu(qp.H, format="csc"),
-        q=qp.g,
-        A=C,
-        l=np.maximum(lo, -big),
-        u=np.minimum(hi, big),
-        eps_abs=eps_abs,
-        eps_rel=0.0,
-        max_iter=max_iter * 20,
-        polishing=True,
-        verbose=False,
-    )
-    if x0 is not None:
-        prob.warm_start(x=x0)
-    res = prob.solve()
-    status = res.info.status
-    return np.asarray(res.x, dtype=np.float64), status == "solved", status, int(res.info.iter)
-
-
-def _solve_clarabel(qp: SparseQP, eps_abs, max_iter, x0):
-    import clarabel
-
-    C, lo, hi = _with_box_rows(qp)
-    up = hi < INF / 2
-    dn = lo > -INF / 2
-    A = sp.vstack([C[up], -C[dn]], format="csc")
-    b = np.concatenate([hi[up], -lo[dn]])
-    st = clarabel.DefaultSettings()
-    st.verbose = False
-    st.tol_feas = eps_abs
-    st.tol_gap_abs = eps_abs
-    st.max_iter = max_iter
-    sol = clarabel.DefaultSolver(sp.triu(qp.H, format="csc"), qp.g, A, b, [clarabel.NonnegativeConeT(b.size)], st)
-    res = sol.solve()
-    status = str(res.status)
-    return np.asarray(res.x, dtype=np.float64), status == "Solved", status, int(res.iterations)
-
-
-_SPARSE = {"piqp": _solve_piqp, "proxsuite": _solve_proxsuite, "osqp": _solve_osqp, "clarabel": _solve_clarabel}
+    """Solve a :class:`SparseQP` with ``solver`` (any of ``qpsolvers.available_solvers``, or ``"proxsuite"``) through
+    :mod:`egcbf.control.sparse_solvers`; never raises on a solver failure (``ok=False`` instead). ``ImportError`` /
+    ``ValueError`` for a solver that is not installed / not known (:func:`require_solver`)."""
+    return solve_with_qpsolvers(qp, solver, eps_abs, max_iter, x0)
 
 
 def polish_sparse(

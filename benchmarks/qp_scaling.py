@@ -125,6 +125,33 @@ def solver_comparison(ctrl: CentralizedCBFQP, snaps, cfg, solvers, direct: bool 
     return out
 
 
+def _adapter_solve(qp, solver, eps_abs=1e-6, max_iter=1000, x0=None):
+    """``solve_sparse`` through the pre-qpsolvers adapter (``benchmarks/qp_direct.py``), as a SolveResult."""
+    from egcbf.control.qp import SolveResult
+
+    t0 = time.perf_counter()
+    try:
+        x, ok, status, it = DIRECT[solver](qp, eps_abs, max_iter, x0)
+    except Exception as exc:
+        x, ok, status, it = None, False, f"error: {exc}", 0
+    ms = 1e3 * (time.perf_counter() - t0)
+    if x is None or not np.all(np.isfinite(x)):
+        return SolveResult(np.full(qp.H.shape[0], np.nan), False, status, it, ms)
+    return SolveResult(x, ok, status, it, ms)
+
+
+def rollout_with_adapters(n: int, args) -> dict:
+    """The cCBF-QP rollout of :func:`rollout` with its solves through the pre-qpsolvers adapters."""
+    import egcbf.control.cbf_qp as ccbf_module
+
+    saved = ccbf_module.solve_sparse
+    ccbf_module.solve_sparse = _adapter_solve
+    try:
+        return rollout(CentralizedCBFQP(), n, args.area, args.steps, args.seed, 0)[0]
+    finally:
+        ccbf_module.solve_sparse = saved
+
+
 def installed_solvers() -> list[str]:
     mods = {"piqp": "piqp", "proxsuite": "proxsuite", "osqp": "osqp", "clarabel": "clarabel", "highs": "highspy",
             "qpalm": "qpalm"}  # fmt: skip
@@ -151,6 +178,19 @@ def render(rows: list[dict], comp: dict[int, dict], args, solvers) -> str:
             f"{c['rows']:.0f} | {c['slack_steps']} | {c['failed']} | {d['ms']:.1f} | {d['p90']:.1f} | "
             f"{d['cpu']:.1f} | {d['slack_steps']} | {d['failed']} |"
         )
+    if any("ccbf_direct" in r for r in rows):
+        lines += [
+            "",
+            "cCBF-QP per step through qpsolvers against the same rollout through the hand-written adapters egcbf had "
+            "before it (`--direct`, `benchmarks/qp_direct.py`; PIQP, falling back to ProxQP):",
+            "",
+            "| N | adapters median ms | qpsolvers median ms | qpsolvers / adapters |",
+            "|---|---|---|---|",
+        ]
+        for r in rows:
+            if "ccbf_direct" in r:
+                a, q = r["ccbf_direct"]["ms"], r["ccbf"]["ms"]
+                lines.append(f"| {r['N']} | {a:.1f} | {q:.1f} | {q / a:.2f} |")
     if comp:
         names = [*solvers, "ipm", "proxsuite-batch"]
         lines += [
@@ -215,6 +255,8 @@ def main(argv=None) -> int:
         c, snaps, cfg = rollout(cc, n, args.area, args.steps, args.seed, snapshots)
         d, _, _ = rollout(DecentralizedCBFQP(), n, args.area, args.steps, args.seed, 0)
         rows.append({"N": n, "ccbf": c, "dcbf": d})
+        if args.direct:  # the same rollout with the pre-qpsolvers adapters (same run: the ratio is the overhead)
+            rows[-1]["ccbf_direct"] = rollout_with_adapters(n, args)
         print(f"N={n}: ccbf {c}  dcbf {d}", flush=True)
         if snaps:
             comp[n] = solver_comparison(cc, snaps, cfg, solvers, direct=args.direct)

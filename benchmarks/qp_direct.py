@@ -15,19 +15,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from egcbf.control.ipm import INF
-from egcbf.control.qp import SparseQP
+from egcbf.control.qp import SparseQP, _with_box_rows
 
 __all__ = ["DIRECT", "solve_direct"]
-
-
-def _with_box_rows(qp: SparseQP) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
-    idx = np.nonzero((qp.x_l > -INF / 2) | (qp.x_u < INF / 2))[0]
-    eye = sp.csc_matrix((np.ones(idx.size), (np.arange(idx.size), idx)), shape=(idx.size, qp.C.shape[1]))
-    return (
-        sp.vstack([qp.C, eye], format="csc"),
-        np.concatenate([qp.l, qp.x_l[idx]]),
-        np.concatenate([qp.u, qp.x_u[idx]]),
-    )
 
 
 def _solve_piqp(qp: SparseQP, eps_abs, max_iter, x0=None):

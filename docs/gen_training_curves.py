@@ -5,9 +5,9 @@ Each shipped checkpoint directory holds the selected policy (``config.json``, ``
 training run (evaluations every 10 updates), copied from the run directory. Layout (checkpoints/README.md):
 ``checkpoints/<algo>/`` (training seed 0), ``checkpoints/seeds/<algo>-s<k>/`` (further seeds) and
 ``checkpoints/torque/<algo>/`` (the previous release's torque recipe); the fine-tuned EGCBF+ and GCBF+ (their
-config names ``init_from``) are skipped here, and the runs they started from, in ``checkpoints/paper-target/``, drawn. Directories are grouped by the interface
-of their config (the acceleration command of the ``cpu`` recipe, or torque) and by method; several seeds of a
-method are drawn as their mean with a min / max band.
+config names ``init_from``) are skipped here, and the runs they started from, in ``checkpoints/paper-target/``,
+drawn. Directories are grouped by the interface of their config (the acceleration command of the ``cpu`` recipe, or
+torque) and by method; several seeds of a method are drawn as their mean with a min / max band.
 
 Run: .venv/bin/python docs/gen_training_curves.py
 """

@@ -25,15 +25,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 
 from .ipm import INF
 
-if TYPE_CHECKING:
-    from .qp import SparseQP
+#: a :class:`egcbf.control.qp.SparseQP` (not imported here: qp imports this module)
+SparseQP = Any
 
 __all__ = [
     "ALIASES",

@@ -12,7 +12,7 @@ import sys
 import egcbf.checkpoint as ckpt
 assert "egcbf.algo.learner" not in sys.modules and "egcbf.nn" not in sys.modules, "metadata needs no networks"
 assert ckpt.read_config(sys.argv[1]).algo == "egcbf+"
-import egcbf.cli, egcbf.cli_demo, egcbf.cli_eval, egcbf.contour, egcbf.reproduce
+import egcbf.cli, egcbf.cli.demo, egcbf.cli.eval, egcbf.contour, egcbf.reproduce
 ctrl, cfg = ckpt.load_controller(sys.argv[1])
 net, _ = egcbf.contour.load_cbf(sys.argv[1])
 assert "egcbf.train" not in sys.modules, sorted(m for m in sys.modules if m.startswith("egcbf"))

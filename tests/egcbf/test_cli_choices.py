@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 from egcbf import cli
 from egcbf.algo.filtered import FILTERS
-from egcbf.cli_choices import (
+from egcbf.cli.choices import (
     Backend,
     Controller,
     DemoMethod,
@@ -20,7 +20,7 @@ from egcbf.cli_choices import (
     SceneName,
     choice_error,
 )
-from egcbf.cli_eval import DTYPES
+from egcbf.cli.eval import DTYPES
 from egcbf.config import LEARNED_METHODS, PRESETS
 from egcbf.control.controllers import CONTROLLERS
 from egcbf.env.scenes import SCENES
@@ -89,14 +89,15 @@ def test_choice_error_reads_the_messages_of_typer_and_click():
 
 def test_the_commands_pass_plain_strings_on(monkeypatch, tmp_path):
     """Library code and the configs saved beside checkpoints get strings, never enum members."""
-    import egcbf.cli_demo
+    import egcbf.cli.demo
+    import egcbf.cli.eval
     import egcbf.reproduce
     import egcbf.train
 
     seen = {}
-    monkeypatch.setattr(cli, "run_eval", lambda **kw: seen.update(eval=kw))
+    monkeypatch.setattr(egcbf.cli.eval, "run_eval", lambda **kw: seen.update(eval=kw))
     monkeypatch.setattr(egcbf.train, "train", lambda config, out, **kw: seen.update(train=config))
-    monkeypatch.setattr(egcbf.cli_demo, "run_demo", lambda sources, **kw: seen.update(demo=sources))
+    monkeypatch.setattr(egcbf.cli.demo, "run_demo", lambda sources, **kw: seen.update(demo=sources))
 
     def sweep_config(**kw):
         seen["reproduce"] = kw

@@ -5,7 +5,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from egcbf.algo import filtered
-from egcbf.cli_demo import describe, out_dir
+from egcbf.cli.demo import describe, out_dir
 from egcbf.filter_names import FILTERS, filter_label, join_method, path_name, split_method
 
 # a method name: anything without ':' (the parser leaves whether the method exists to its caller)

@@ -781,7 +781,7 @@ def test_the_paper_target_archive_is_complete_and_found():
 
 
 def test_reproduce_command_takes_the_filtered_names(filtered, tmp_path):
-    from egcbf.cli import _REPRO_METHODS, _REPRO_OBSTACLE_METHODS
+    from egcbf.cli.reproduce import _REPRO_METHODS, _REPRO_OBSTACLE_METHODS
 
     assert tuple(_REPRO_METHODS.split(",")) == SweepConfig().methods == SweepConfig().scale_methods == rp.METHODS
     assert tuple(_REPRO_OBSTACLE_METHODS.split(",")) == SweepConfig().obstacle_methods

@@ -107,7 +107,7 @@ def test_overwrite_replaces_results_and_old_renders(cli, tmp_path):
 
 
 def test_debug_env_raises_the_underlying_error(cli, tmp_path, monkeypatch):
-    from egcbf.cli_checks import UsageError
+    from egcbf.cli.checks import UsageError
 
     monkeypatch.setenv("EGCBF_DEBUG", "1")
     from typer.testing import CliRunner
@@ -153,7 +153,7 @@ def test_each_size_is_written_and_the_run_marked_complete(cli, tmp_path):
 
 
 def test_a_learned_policy_that_cannot_fit_in_memory_is_refused_with_the_numbers(cli, tmp_path, tiny_run, monkeypatch):
-    import egcbf.cli_checks as checks
+    import egcbf.cli.checks as checks
 
     monkeypatch.setattr(checks, "available_memory", lambda device: 1 << 20)  # 1 MiB free
     out = tmp_path / "ev"
@@ -164,7 +164,7 @@ def test_a_learned_policy_that_cannot_fit_in_memory_is_refused_with_the_numbers(
 
 
 def test_policy_memory_estimate_grows_with_density():
-    from egcbf.cli_checks import policy_memory
+    from egcbf.cli.checks import policy_memory
 
     sparse, _ = policy_memory(1000, 20.0, 1.0, 1, 64)
     dense, edges = policy_memory(100_000, 20.0, 1.0, 1, 64)

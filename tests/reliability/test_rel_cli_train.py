@@ -186,7 +186,7 @@ def test_resume_falls_back_past_a_corrupted_checkpoint_and_says_so(cli, run_copy
 
 # ------------------------------------------------------------------------------------------------ memory estimates
 def test_training_that_cannot_fit_is_refused_with_the_number(cli, tmp_path, monkeypatch):
-    from egcbf import cli_checks
+    from egcbf.cli import checks as cli_checks
 
     monkeypatch.setattr(cli_checks, "available_memory", lambda device: 2**20)  # 1 MiB left
     out = tmp_path / "run"
@@ -196,14 +196,14 @@ def test_training_that_cannot_fit_is_refused_with_the_number(cli, tmp_path, monk
 
 
 def test_training_that_fits_is_not_refused():
-    from egcbf import cli_checks
+    from egcbf.cli import checks as cli_checks
     from egcbf.config import TrainConfig
 
     cli_checks.check_training_memory(TrainConfig.preset("egcbf+", "cpu"), cli_checks.parse_device("cpu"))
 
 
 def test_sweep_that_cannot_fit_is_refused_with_the_number(cli, tmp_path, monkeypatch, tiny_run):
-    from egcbf import cli_checks
+    from egcbf.cli import checks as cli_checks
 
     root = tmp_path / "ck"
     shutil.copytree(tiny_run / "best", root / "egcbf+")

@@ -136,7 +136,7 @@ def test_the_real_machine_has_at_least_free_memory():
 
 # ------------------------------------------------------------------------------------------------- the refusal
 def test_the_refusal_names_the_binding_limit(cli, tmp_path, tiny_run, monkeypatch):
-    import egcbf.cli_checks as checks
+    import egcbf.cli.checks as checks
 
     limit = MemoryLimit("RLIMIT_AS", MiB, "the 1.0 MiB left under the address-space limit (ulimit -v, RLIMIT_AS) of "
                         "2.0 GiB, of which this process already uses 2.0 GiB (VmSize)")  # fmt: skip

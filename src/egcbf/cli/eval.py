@@ -8,12 +8,14 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Annotated
 
 import torch
 import typer
 
-from .atomic import WriteError, write_json_atomic, writing
-from .cli_checks import (
+from ..atomic import WriteError, write_json_atomic, writing
+from ..report import machine_info, number, pct
+from .checks import (
     check_env_flags,
     check_policy_memory,
     parse_device,
@@ -22,7 +24,14 @@ from .cli_checks import (
     require,
     usage_error,
 )
-from .report import machine_info, number, pct
+from .choices import (
+    Controller,
+    Dtype,
+    RobotName,
+    SafetyFilter,
+    SceneName,
+)
+from .root import _THREADS_HELP, _threads, _torch_threads, allocator_setting, app
 
 __all__ = ["DTYPES", "EVAL_RESULTS", "format_table", "load_policy", "render_records", "run_eval", "say_run_checkpoint"]
 
@@ -59,7 +68,7 @@ def format_table(rows: list[dict], title: str = "") -> str:
 def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path]:
     """A GIF and a top-down PNG per recorded swarm size ``{N: EpisodeRecord}``; returns the paths written. A full disk
     or the file-size limit raises :class:`egcbf.atomic.WriteError` naming the image (no partial image is left)."""
-    from .render import render_gif, render_topdown
+    from ..render import render_gif, render_topdown
 
     paths = []
     for n, rec in records.items():
@@ -82,7 +91,7 @@ def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path
 def load_policy(checkpoint: Path, dev: torch.device, dtype: torch.dtype, flag: str = "--checkpoint"):
     """``(checkpoint directory, controller, training config)`` of ``checkpoint`` (of a run directory, its ``best/``
     if it has one, else its newest checkpoint; said on stderr), or a usage error naming it."""
-    from .checkpoint import CheckpointError, find_checkpoint, load_controller
+    from ..checkpoint import CheckpointError, find_checkpoint, load_controller
 
     try:
         ckpt = find_checkpoint(checkpoint, prefer_best=True)
@@ -96,8 +105,8 @@ def load_policy(checkpoint: Path, dev: torch.device, dtype: torch.dtype, flag: s
 def _filtered(ckpt, learned, train_cfg, config, dev, dtype):
     """The checkpoint's policy behind the run-time filter ``config`` (its CBF network for ``cbf``), or a usage
     error saying why this checkpoint cannot be filtered."""
-    from .algo.filtered import FilteredController
-    from .checkpoint import CheckpointError, load_network
+    from ..algo.filtered import FilteredController
+    from ..checkpoint import CheckpointError, load_network
 
     try:
         cbf = load_network(ckpt, "cbf", dev, dtype)[0] if config.kind == "cbf" else None
@@ -146,11 +155,11 @@ def run_eval(
     first episode of each swarm size ``{N: EpisodeRecord}`` if ``render`` or ``record``, else ``{}``. ``robot``: the
     robot of a hand-crafted controller's swarm (a checkpoint's robot is its own; a different ``robot`` is an error).
     """
-    from .algo.filtered import FILTERS, FilterConfig, FilteredController
-    from .control.controllers import CONTROLLERS, make_controller
-    from .evaluate import evaluate
-    from .filter_names import join_method
-    from .robots import ROBOTS
+    from ..algo.filtered import FILTERS, FilterConfig, FilteredController
+    from ..control.controllers import CONTROLLERS, make_controller
+    from ..evaluate import evaluate
+    from ..filter_names import join_method
+    from ..robots import ROBOTS
 
     require(dtype in DTYPES, f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
@@ -271,3 +280,92 @@ def run_eval(
         typer.echo(f"wrote {p}")
     typer.echo(f"wrote {out / 'metrics.json'}")
     return recorded
+
+
+@app.command("eval")
+def eval_cmd(
+    controller: Annotated[
+        Controller | None, typer.Option(help="a hand-crafted controller (default: nominal); not with --checkpoint")
+    ] = None,
+    num_agents: Annotated[str, typer.Option("--num-agents", help="comma-separated swarm sizes")] = "8,16,64",
+    area: Annotated[float, typer.Option(help="side l of the arena [0, l]^3 (m)")] = 4.0,
+    obstacles: Annotated[int, typer.Option(help="number of sphere obstacles")] = 0,
+    episodes: Annotated[int, typer.Option(help="episodes per swarm size")] = 50,
+    seed: Annotated[int, typer.Option(help="evaluation seed")] = 0,
+    out: Annotated[Path, typer.Option(help="output directory (metrics.json, renders)")] = Path("out/eval"),
+    render: Annotated[bool, typer.Option("--render/--no-render", help="write a GIF and a top-down PNG per N")] = False,
+    max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's)")] = None,
+    batch: Annotated[int | None, typer.Option(help="episodes simulated together (default: automatic)")] = None,
+    device: Annotated[str, typer.Option(help="cpu | cuda | cuda:K")] = "cpu",
+    dtype: Annotated[Dtype, typer.Option(help="floating-point type of the simulation and the policy")] = Dtype.float32,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    checkpoint: Annotated[
+        Path | None,
+        typer.Option(
+            help="evaluate a trained policy: a checkpoint directory or a run directory (its best/, else its newest)"
+        ),
+    ] = None,
+    threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="replace the results already in OUT (default: refuse to mix runs)")
+    ] = False,
+    robot: Annotated[
+        RobotName | None,
+        typer.Option(help="the robot of a --controller's swarm (default: quadrotor); a --checkpoint's is its own"),
+    ] = None,
+    filter: Annotated[
+        SafetyFilter,
+        typer.Option(
+            help="run-time safety filter of the --checkpoint's commands (docs/safety_filters.md): none (the policy "
+            "alone), dcbf (hand-crafted pairwise barriers: the recommended one), cbf (the learned per-edge "
+            "barriers), prior (the untrained barrier); with --controller nominal, the nominal command's (dcbf, prior)"
+        ),
+    ] = SafetyFilter.none,
+    filter_alpha: Annotated[
+        float | None,
+        typer.Option(help="class-K gain: alpha (1/s) of cbf and prior (default 1); gamma of dcbf's barrier (50)"),
+    ] = None,
+    filter_margin: Annotated[
+        float | None,
+        typer.Option(help="clearance (m): the barrier offset of cbf and prior (default 0); dcbf's margin (0.02)"),
+    ] = None,
+    scene: Annotated[
+        SceneName,
+        typer.Option(
+            help="where starts and goals are drawn: uniform (the arena; the paper's) or crossing (starts in x < l/2, "
+            "goals in x > l/2); never taken from the checkpoint"
+        ),
+    ] = SceneName.uniform,
+    scene_yaw: Annotated[
+        float,
+        typer.Option(help="rotate every sampled scene by this many degrees about the arena's vertical centre axis"),
+    ] = 0.0,
+) -> None:
+    """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
+    n_threads, reason = _threads(threads)
+    with _torch_threads(n_threads, reason):
+        run_eval(
+            controller=None if controller is None else controller.value,
+            num_agents=num_agents,
+            area=area,
+            obstacles=obstacles,
+            episodes=episodes,
+            seed=seed,
+            out=out,
+            render=render,
+            max_steps=max_steps,
+            batch=batch,
+            device=device,
+            dtype=dtype.value,
+            progress=progress,
+            checkpoint=checkpoint,
+            threads_reason=reason,
+            overwrite=overwrite,
+            allocator=allocator_setting(),
+            robot=None if robot is None else robot.value,
+            filter=filter.value,
+            filter_alpha=filter_alpha,
+            filter_margin=filter_margin,
+            scene=scene.value,
+            scene_yaw=scene_yaw,
+        )

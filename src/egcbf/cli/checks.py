@@ -103,9 +103,9 @@ def check_env_flags(
 ) -> list:
     """The :class:`~egcbf.env.EnvConfig` of every swarm size, or a usage error naming the flag (``--area``,
     ``--obstacles``, ``--max-steps``, ``--num-agents``) if any of them is invalid or cannot be sampled."""
-    from .env import EnvConfig
-    from .env.sampling import packing_feasible
-    from .env.scenes import scene_boxes
+    from ..env import EnvConfig
+    from ..env.sampling import packing_feasible
+    from ..env.scenes import scene_boxes
 
     require(math.isfinite(area) and area > 0, f"--area must be a finite number > 0 (metres), got {area:g}")
     require(obstacles >= 0, f"--obstacles must be >= 0, got {obstacles}")
@@ -135,7 +135,7 @@ def check_env_flags(
                 f"{max_agents(area, sep, cfg.dim)} fit); use a larger --area or fewer agents"
             )
         if obstacles:  # one trial placement (milliseconds): obstacles can crowd out the agents' starts and goals
-            from .env import SwarmEnv
+            from ..env import SwarmEnv
 
             try:
                 SwarmEnv(replace(cfg, num_envs=1)).reset(0)
@@ -164,7 +164,7 @@ def available_memory(device: torch.device) -> int | None:
             return int(torch.cuda.mem_get_info(device)[0])
         except (RuntimeError, AssertionError):
             return None
-    from .allocator import memory_headroom
+    from ..allocator import memory_headroom
 
     return memory_headroom()
 
@@ -194,7 +194,7 @@ def _available(free: int) -> str:
 def check_policy_memory(configs: Sequence, episodes: int, batch: int | None, hidden: int, device: torch.device) -> None:
     """Refuse (usage error, with the numbers) a learned-policy evaluation whose estimated step memory
     (:func:`policy_memory`) exceeds :func:`available_memory`, before anything is allocated."""
-    from .evaluate import episode_batch
+    from ..evaluate import episode_batch
 
     free = available_memory(device)
     if free is None:
@@ -220,7 +220,7 @@ def check_sweep_memory(cells: Sequence[tuple[int, float, int]], workers: int, hi
     """Refuse (usage error, with the numbers) a sweep whose largest learned cells, ``workers`` of them at once,
     would not fit: ``cells`` are ``(num_agents, area, episodes)`` of the learned cells (:func:`policy_memory` of
     each, episodes batched as :func:`egcbf.evaluate.evaluate` batches them)."""
-    from .evaluate import episode_batch
+    from ..evaluate import episode_batch
 
     free = available_memory(device)
     if free is None or not cells:
@@ -244,7 +244,7 @@ def check_training_memory(cfg, device: torch.device) -> None:
     """Refuse (usage error, with the numbers) a training run whose estimated peak memory does not fit: a minibatch
     of ``batch_size`` graphs of ``num_agents`` agents at the densest training area, with gradients
     (:data:`_BACKWARD_FACTOR` times a forward pass), or the rollout of ``rollout_envs`` environments."""
-    from .env import EnvConfig
+    from ..env import EnvConfig
 
     free = available_memory(device)
     if free is None:
@@ -282,7 +282,7 @@ def prepare_out(
     directory are refused. ``lock=False`` (a directory that only receives a report file, e.g. ``--report``'s)
     checks that it is a writable directory, nothing else.
     """
-    from .locks import DirLockedError, hold_dir
+    from ..locks import DirLockedError, hold_dir
 
     if lock and str(out) in ("", "."):
         usage_error(f"{flag} is empty or '.' (the current directory); name a directory for the results, e.g. "

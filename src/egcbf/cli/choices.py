@@ -4,7 +4,7 @@ other value before the command runs, as one ``Error:`` line naming the flag and 
 
 Each enum mirrors a registry of the library (``tests/egcbf/test_cli.py`` checks that they agree); the commands pass
 the plain string (``.value``) on, so configs and results hold strings, never enum members. ``--device`` stays a
-string (``cuda:1`` is as valid as ``cuda``: :func:`egcbf.cli_checks.parse_device` checks it), as do the comma lists
+string (``cuda:1`` is as valid as ``cuda``: :func:`egcbf.cli.checks.parse_device` checks it), as do the comma lists
 (``--compare``, ``--methods``), which are parsed and checked by their commands.
 """
 
@@ -91,7 +91,7 @@ class RobotName(str, Enum):
 
 
 class Dtype(str, Enum):
-    """The floating-point type of an evaluation (``egcbf.cli_eval.DTYPES``): ``egcbf eval --dtype``."""
+    """The floating-point type of an evaluation (``egcbf.cli.eval.DTYPES``): ``egcbf eval --dtype``."""
 
     float32 = "float32"
     float64 = "float64"

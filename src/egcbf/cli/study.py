@@ -7,7 +7,8 @@ from typing import Annotated
 
 import typer
 
-from .cli_checks import require
+from .checks import require
+from .root import app
 
 
 def study_cmd(
@@ -29,7 +30,7 @@ def study_cmd(
 ) -> None:
     """Train, evaluate and report the equivariance study (docs/equivariance.md): what SE(2)xR equivariance buys,
     claim by claim, with seeds and 95 % intervals. Everything resumes: rerun the same command."""
-    from .study import ARMS, arm, evaluate_arm, pending_runs, train_runs, write_report
+    from ..study import ARMS, arm, evaluate_arm, pending_runs, train_runs, write_report
 
     require(jobs >= 1, f"--jobs must be >= 1, got {jobs}")
     try:
@@ -56,3 +57,6 @@ def study_cmd(
     for claim, v in verdicts.items():
         typer.echo(f"{claim}: {v}")
     typer.echo(f"wrote {path}")
+
+
+app.command("study")(study_cmd)

@@ -1,0 +1,127 @@
+"""egcbf.deploy.AgentController: one agent's control from its own observation equals the swarm-level evaluation's
+for that agent (every agent of random scenes), with no neighbours, with more than its limit, and far agents
+ignored."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from egcbf.checkpoint import load_controller
+from egcbf.deploy import AgentController
+from egcbf.env import EnvConfig, SwarmEnv, SwarmState
+
+ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
+F64 = torch.float64
+
+
+@functools.cache
+def _controllers(method: str, dtype: torch.dtype = F64):
+    swarm, cfg = load_controller(ROOT / method, dtype=dtype)
+    return swarm, cfg, AgentController.from_checkpoint(ROOT / method, dtype=dtype)
+
+
+def _scene(cfg, n: int, area: float, obstacles: int, seed: int, dtype=F64, steps: int = 6):
+    env_cfg = EnvConfig.for_robot(
+        cfg.robot, num_agents=n, area_size=area, num_obstacles=obstacles, num_envs=1, **cfg.env_overrides
+    )
+    env = SwarmEnv(env_cfg, dtype=dtype)
+    state = env.reset(seed)
+    swarm = _controllers(cfg.algo, dtype)[0]
+    for _ in range(steps):  # moving agents: non-zero velocities and rates
+        u, _ = swarm(state, env_cfg)
+        state, _ = env.step(state, u)
+    return env, env_cfg, state
+
+
+def _observation(env, state, i: int):
+    lidar = env.lidar(state)
+    others = torch.cat((state.x[0, :i], state.x[0, i + 1 :]))
+    return state.x[0, i], state.goals[0, i], others, lidar.points[0, i][lidar.valid[0, i]]
+
+
+@pytest.mark.parametrize("method", ["egcbf+", "gcbf+"])
+@given(seed=st.integers(0, 2**16), n=st.integers(2, 14), area=st.floats(1.0, 2.5), obstacles=st.integers(0, 3))
+@settings(max_examples=4, deadline=None)
+def test_every_agents_control_is_the_swarm_evaluations(method, seed, n, area, obstacles):
+    """float64, 1e-9: the per-agent call reproduces LearnedController's control of every agent of the scene."""
+    swarm, cfg, agent = _controllers(method)
+    env, env_cfg, state = _scene(cfg, n, area, obstacles, seed)
+    u_all, _ = swarm(state, env_cfg)
+    for i in range(n):
+        u, info = agent(*_observation(env, state, i))
+        assert u.shape == u_all[0, i].shape and (u - u_all[0, i]).abs().max() <= 1e-9, (i, info)
+
+
+def test_float32_within_a_stated_tolerance():
+    """float32 networks and observations: within 1e-4 of the swarm evaluation's float32 control (the summation
+    order of the attention over neighbours differs)."""
+    swarm, cfg, agent = _controllers("egcbf+", torch.float32)
+    env, env_cfg, state = _scene(cfg, 10, 1.6, 2, 3, dtype=torch.float32)
+    u_all, _ = swarm(state, env_cfg)
+    worst = max(float((agent(*_observation(env, state, i))[0] - u_all[0, i]).abs().max()) for i in range(10))
+    assert worst <= 1e-4
+
+
+def test_an_agent_alone_and_far_agents():
+    """No neighbours and no hits (empty tensors) is the swarm evaluation of the agent alone; agents beyond the
+    communication radius change nothing."""
+    swarm, cfg, agent = _controllers("egcbf+")
+    _env, env_cfg, state = _scene(cfg, 4, 2.0, 0, 11)
+    alone = SwarmState(state.x[:, :1], state.goals[:, :1], state.obstacles, robot=state.robot)
+    u_alone, _ = swarm(alone, env_cfg)
+    x, goal = state.x[0, 0], state.goals[0, 0]
+    u, info = agent(x, goal, x.new_zeros(0, x.shape[0]), x.new_zeros(0, 3))
+    assert info["num_neighbours"] == info["num_hits"] == 0 and (u - u_alone[0, 0]).abs().max() <= 1e-9
+    far = state.x[0, 1:].clone()
+    far[:, :3] += 50.0  # far outside the communication radius
+    assert torch.equal(agent(x, goal, far, x.new_zeros(0, 3))[0], u)
+
+
+def test_beyond_the_limit_the_nearest_neighbours_are_kept():
+    """With max_neighbours = 2 the control equals the swarm evaluation of the agent with its two nearest in-range
+    neighbours only (the documented limit; the swarm evaluation itself has none)."""
+    _swarm, cfg, agent = _controllers("egcbf+")
+    limited = AgentController(agent.policy, agent.model_config, agent.env_config, max_neighbours=2)
+    env, env_cfg, state = _scene(cfg, 14, 1.0, 0, 7)
+    x = state.x[0]
+    i = int(torch.argmax(((x[:, None, :3] - x[None, :, :3]).norm(dim=-1) < env_cfg.comm_radius).sum(1)))
+    obs = _observation(env, state, i)
+    assert obs[2].shape[0] >= 3
+    u, info = limited(*obs)
+    d = (x[:, :3] - x[i, :3]).norm(dim=-1)
+    d[i] = float("inf")
+    nearest = torch.argsort(d)[:2]
+    rows = torch.cat((torch.tensor([i]), nearest))
+    sub = SwarmState(state.x[:, rows], state.goals[:, rows], state.obstacles, robot=state.robot)
+    lidar = env.lidar(state)
+    from egcbf.env.lidar import LidarScan
+
+    sub_lidar = LidarScan(lidar.points[:, rows], lidar.valid[:, rows], lidar.distance[:, rows])
+    from egcbf.algo.interface import make_interface
+    from egcbf.algo.learner import policy_command
+    from egcbf.graph import build_graph
+
+    graph = build_graph(sub, env_cfg, lidar=sub_lidar)
+    itf = make_interface(agent.model_config.interface, state.robot)
+    command, _ = policy_command(agent.policy, agent.model_config, itf, graph, sub.x, sub.goals)
+    expected = itf.apply(sub.x, command)[0, 0]
+    assert info["num_neighbours"] == 2 and (u - expected).abs().max() <= 1e-9
+
+
+def test_bad_observations_are_named():
+    _, _, agent = _controllers("egcbf+")
+    x, goal = torch.zeros(18, dtype=F64), torch.zeros(3, dtype=F64)
+    with pytest.raises(ValueError, match=r"state must be a tensor of shape \(18,\)"):
+        agent(torch.zeros(17, dtype=F64), goal, x.new_zeros(0, 18), x.new_zeros(0, 3))
+    with pytest.raises(ValueError, match=r"neighbours must be a tensor of shape \(K, 18\)"):
+        agent(x, goal, x.new_zeros(18), x.new_zeros(0, 3))
+    with pytest.raises(ValueError, match="hits holds NaN or inf"):
+        agent(x, goal, x.new_zeros(0, 18), torch.full((1, 3), float("nan"), dtype=F64))
+    with pytest.raises(ValueError, match="max_neighbours must be an integer >= 0"):
+        AgentController(agent.policy, agent.model_config, agent.env_config, max_neighbours=-1)

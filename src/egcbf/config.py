@@ -1,7 +1,7 @@
-"""Typed training configuration: one dataclass, four presets (``cpu``, ``cpu-torque``, ``paper``, ``tiny``), JSON
-round trip.
+"""Typed training configuration: one dataclass, six presets (``cpu``, ``paper-cpu``, ``paper-cpu-mlp``,
+``cpu-torque``, ``paper``, ``tiny``), JSON round trip.
 
-    cfg = TrainConfig.preset("egcbf+", "cpu")          # or "cpu-torque", "paper", "tiny"
+    cfg = TrainConfig.preset("egcbf+", "cpu")          # or "paper-cpu", "paper-cpu-mlp", "cpu-torque", "paper", "tiny"
     cfg = TrainConfig.from_json(path)                   # what every checkpoint stores beside its weights
 
 The four methods are points of one grid (``LEARNED_METHODS``): the symmetry group of the networks times the reference

@@ -23,7 +23,6 @@ Results go to ``docs/benchmarks.md`` between ``<!-- qp-scaling:begin -->`` and `
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
 import platform
 import statistics
@@ -38,6 +37,7 @@ from egcbf.control.barriers import build_constraints, split_for_agents
 from egcbf.control.cbf_qp import CentralizedCBFQP, DecentralizedCBFQP
 from egcbf.control.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
 from egcbf.control.qp import SOLVERS, assemble_centralized, solve_sparse
+from egcbf.control.sparse_solvers import available_solvers
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.report import replace_section
 
@@ -153,9 +153,8 @@ def rollout_with_adapters(n: int, args) -> dict:
 
 
 def installed_solvers() -> list[str]:
-    mods = {"piqp": "piqp", "proxsuite": "proxsuite", "osqp": "osqp", "clarabel": "clarabel", "highs": "highspy",
-            "qpalm": "qpalm"}  # fmt: skip
-    return [s for s in SOLVERS if importlib.util.find_spec(mods[s]) is not None]
+    installed = available_solvers()
+    return [s for s in SOLVERS if s in installed]
 
 
 def render(rows: list[dict], comp: dict[int, dict], args, solvers) -> str:

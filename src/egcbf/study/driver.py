@@ -122,7 +122,7 @@ def sweep_config(arm: Arm, root: str | Path = ROOT, workers: int = 2):
     """The ``egcbf reproduce`` sweep of a ``table`` arm (its checkpoints, its cells folder)."""
     from ..reproduce import SweepConfig
 
-    seeded = tuple(a for a in arm.algos() if len(arm.seeds(a)) > 1 or arm.seeds(a) != (0,))
+    seeded = tuple(a for a in arm.algos() if arm.seeds(a) != (0,))
     seeds = tuple(sorted({s for a in seeded for s in arm.seeds(a)})) or (0,)
     return SweepConfig(
         methods=arm.algos(),

@@ -6,12 +6,12 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from ..reproduce.paper import LABELS
 from .plan import Arm, Run
 
 __all__ = ["curves_figure", "rotated_figure", "zero_shot_figure"]
 
 COLORS = {"egcbf+": "tab:blue", "gcbf+": "tab:orange", "egcbf": "tab:green", "gcbf": "tab:red"}
-LABELS = {"egcbf+": "EGCBF+", "gcbf+": "GCBF+", "egcbf": "EGCBF", "gcbf": "GCBF"}
 
 
 def _seeds_label(algo: str, k: int) -> str:

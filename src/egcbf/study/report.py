@@ -14,7 +14,8 @@ from pathlib import Path
 from ..atomic import write_text_atomic
 from ..bootstrap import Interval, difference_ci, mean_ci
 from ..report import md_table, pct, replace_block
-from .figures import LABELS, curves_figure, rotated_figure, zero_shot_figure
+from ..reproduce.paper import LABELS
+from .figures import curves_figure, rotated_figure, zero_shot_figure
 from .plan import ARMS, ROOT, Arm, arm, rotated_cells
 from .results import arm_cells, auc, curve, difference, method_mean, per_episode, rotated_rows, updates_to
 

@@ -88,8 +88,9 @@ def main() -> None:
         training_curves({k: v if len(v) > 1 else v[0] for k, v in runs.items()}, FIG, title=title)
         body += (
             "**Command interface (`cpu` recipe, this release): `checkpoints/<algo>/`, `checkpoints/seeds/`; the "
-            "EGCBF+ and GCBF+ runs are those of `checkpoints/paper-target/`, which the shipped `egcbf+/`, `gcbf+/` "
-            "and `seeds/` fine-tune (their fine-tuning curves: docs/gen_finetune.py):**\n\n"
+            "EGCBF+ and GCBF+ runs are those of `checkpoints/paper-target/`, which `checkpoints/fine-tuned/` "
+            "fine-tunes (its curves: docs/gen_finetune.py); the shipped `egcbf+/`, `gcbf+/` and `seeds/` are "
+            "weight averages of the two (docs/gen_wise.py):**\n\n"
             f"![training curves](figures/{FIG.name})\n\n" + "\n".join(_table(runs)) + "\n\n"
         )
     if "torque" in groups:

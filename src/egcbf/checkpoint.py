@@ -74,6 +74,7 @@ __all__ = [
     "set_aside",
     "sha256",
     "weights_identity",
+    "write_checkpoint_dir",
 ]
 
 #: Version of the checkpoint layout written by this code (``state.json["format_version"]``). 2: ``model.safetensors``
@@ -241,7 +242,7 @@ def _to_cpu(obj):
     return obj
 
 
-def _write_dir_atomically(learner: GraphCBFLearner, final: Path, state: dict, extra=None) -> Path:
+def write_checkpoint_dir(learner: GraphCBFLearner, final: Path, state: dict, extra=None) -> Path:
     """Write ``config.json``, ``model.safetensors``, ``state.json`` (and whatever ``extra(tmp_dir, at)`` adds, each
     file passed through ``at``, :func:`egcbf.atomic.writing`) into ``final.tmp``, then swap it into place
     (:func:`egcbf.atomic.replace_dir`): a kill at any moment leaves a complete ``final`` (new or previous) or a
@@ -282,7 +283,7 @@ def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: in
         "platform": platform.platform(),
     }
     out = Path(out)
-    final = _write_dir_atomically(learner, _ckpt_dir(out, learner.step), state, training_files)
+    final = write_checkpoint_dir(learner, _ckpt_dir(out, learner.step), state, training_files)
     older = list_checkpoints(out)[:-1]
     for old in older:  # resuming needs the buffers of the newest checkpoint only (they can be large)
         (old / "buffers.safetensors").unlink(missing_ok=True)
@@ -295,7 +296,7 @@ def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: in
 def save_best(learner: GraphCBFLearner, out: Path, wall_s: float, row: dict) -> Path:
     """Write ``OUT/best`` (weights, config, and the evaluation ``row`` that selected it) atomically."""
     state = {"step": learner.step, "wall_s": wall_s, "algo": learner.config.algo, "metrics": row}
-    return _write_dir_atomically(learner, Path(out) / "best", state)
+    return write_checkpoint_dir(learner, Path(out) / "best", state)
 
 
 def best_metrics(out: str | Path) -> dict | None:

@@ -2,7 +2,8 @@
 
 Speed-ups and refactors must not change what a trained network computes. This records, in float64, the policy
 residual, the CBF value and the applied control of each checkpoint of ``METHODS`` (``checkpoints/egcbf+``,
-``checkpoints/gcbf+`` and the policies trained with the paper's QP target they were fine-tuned from) on one fixed
+``checkpoints/gcbf+``, and the two policies each is the weight average of: the fine-tuned one and the one trained
+with the paper's QP target it started from) on one fixed
 scene (32 agents, 3 obstacles, after 5 steps of the nominal controller), with the sha256 of each checkpoint's
 weights (the tensors, not the file: the checkpoint format's header may change while the weights do not), into
 ``tests/egcbf/data/shipped_reference.json``. Regenerate it only when a checkpoint is replaced or added (the test
@@ -28,7 +29,7 @@ from egcbf.graph import build_graph
 ROOT = Path(__file__).resolve().parents[2]
 DATA = Path(__file__).resolve().parent / "data" / "shipped_reference.json"
 #: checkpoint directories under checkpoints/
-METHODS = ("egcbf+", "gcbf+", "paper-target/egcbf+", "paper-target/gcbf+")
+METHODS = ("egcbf+", "gcbf+", "fine-tuned/egcbf+", "fine-tuned/gcbf+", "paper-target/egcbf+", "paper-target/gcbf+")
 
 
 def checkpoint_hash(method: str) -> str:

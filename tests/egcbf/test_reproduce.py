@@ -780,6 +780,27 @@ def test_the_paper_target_archive_is_complete_and_found():
     _assert_cells_of_their_checkpoints(found, cfg.checkpoints)
 
 
+def test_the_fine_tuned_archive_cells_are_of_their_checkpoints():
+    """docs/results/fine-tuned holds the cells computed for the per-edge fine-tuned policies while they shipped
+    (checkpoints/fine-tuned; the shipped policies are their weight averages with checkpoints/paper-target): each is
+    found under its key and was computed with the checkpoint that directory holds (docs/fine_tuned.md)."""
+    root = Path(__file__).resolve().parents[2]
+    if not (root / "checkpoints" / "fine-tuned").exists():
+        pytest.skip("no fine-tuned checkpoints")
+    methods = ("egcbf+", "gcbf+", "egcbf+:dcbf")
+    cfg = SweepConfig(
+        methods=methods,
+        obstacle_methods=methods,
+        scale_methods=methods,
+        checkpoints=root / "checkpoints" / "fine-tuned",
+        out=root / "docs" / "results" / "fine-tuned",
+    )
+    found = rp.load_cells(cfg)
+    stored = sorted(cfg.out.glob("**/N*.json"))
+    assert len(found) == len(stored) == 79 and not rp.mismatched_cells(cfg)
+    _assert_cells_of_their_checkpoints(found, cfg.checkpoints)
+
+
 def test_reproduce_command_takes_the_filtered_names(filtered, tmp_path):
     from egcbf.cli.reproduce import _REPRO_METHODS, _REPRO_OBSTACLE_METHODS
 

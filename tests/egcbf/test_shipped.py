@@ -5,6 +5,7 @@ import json
 from pathlib import Path
 
 import pytest
+import shipped_reference
 import torch
 
 from egcbf.checkpoint import load_controller
@@ -32,9 +33,10 @@ def test_shipped_checkpoint_loads_and_acts(path):
     if cfg.init_from is not None:  # a fine-tuned policy names the shipped weights it started from
         start = Path(__file__).resolve().parents[2] / cfg.init_from
         assert json.loads((start / "state.json").read_text())["weights_sha256"] == cfg.init_sha256
-    for name in ("metrics.csv", "state.json"):
-        assert (path / name).exists(), name
-    assert json.loads((path / "state.json").read_text())["step"] >= 0
+    state = json.loads((path / "state.json").read_text())
+    assert state["step"] >= 0
+    if "weight_average" not in state:  # a trained checkpoint carries its run's validations
+        assert (path / "metrics.csv").exists()
     ctrl, _ = load_controller(path)
     env_cfg = EnvConfig.for_robot(cfg.robot, num_agents=4, num_envs=1, area_size=1.5, num_obstacles=1)
     state = SwarmEnv(env_cfg).reset(0)
@@ -43,12 +45,11 @@ def test_shipped_checkpoint_loads_and_acts(path):
     assert u.shape == (1, 4, k) and torch.isfinite(u).all() and info["num_failed"] == 0
 
 
-@pytest.mark.parametrize("method", ["egcbf+", "gcbf+", "paper-target/egcbf+", "paper-target/gcbf+"])
+@pytest.mark.parametrize("method", shipped_reference.METHODS)
 def test_shipped_policy_outputs_are_unchanged(method):
-    """Regression: the shipped networks compute what they computed when recorded (tests/egcbf/shipped_reference.py;
-    recorded by the code before the performance work). float64, 1e-9: only rounding may differ."""
-    import shipped_reference as ref
-
+    """Regression: the shipped networks compute what they computed when recorded (tests/egcbf/shipped_reference.py,
+    recorded when each checkpoint was added). float64, 1e-9: only rounding may differ."""
+    ref = shipped_reference
     data = json.loads(ref.DATA.read_text())[method]
     if data["sha256"] != ref.checkpoint_hash(method):
         pytest.fail(f"checkpoints/{method} was replaced: regenerate with `python tests/egcbf/shipped_reference.py`")
@@ -69,3 +70,24 @@ def test_shipped_checkpoints_carry_their_identity(state):
     assert {k: meta[k] for k in identity(cfg)} == identity(cfg) and meta["format_version"] == FORMAT_VERSION
     assert len(meta["weights_sha256"]) == 64
     check_identity(state.parent, cfg)
+
+
+AVERAGED = [p for p in SHIPPED if "weight_average" in json.loads((p / "state.json").read_text())]
+
+
+@pytest.mark.parametrize("path", AVERAGED, ids=[str(p.relative_to(ROOT)) for p in AVERAGED])
+def test_averaged_checkpoints_are_their_recorded_average(path, tmp_path):
+    """A weight-averaged checkpoint (``egcbf average``) names its two inputs, which are still shipped with the
+    weights they had, and rebuilding it from them gives the same tensors exactly."""
+    from egcbf.averaging import average_checkpoints
+    from egcbf.checkpoint import read_tensors, sha256
+
+    rec = json.loads((path / "state.json").read_text())["weight_average"]
+    repo = ROOT.parent
+    for k in ("a", "b"):
+        assert sha256(repo / rec[k] / "model.safetensors") == rec[f"{k}_sha256"], k
+    rebuilt = read_tensors(
+        average_checkpoints(repo / rec["a"], repo / rec["b"], rec["lam"], tmp_path / "x") / "model.safetensors"
+    )
+    shipped = read_tensors(path / "model.safetensors")
+    assert rebuilt.keys() == shipped.keys() and all(torch.equal(rebuilt[k], shipped[k]) for k in shipped)

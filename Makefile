@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml requirements/torch.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -r requirements/torch.txt
-	$(PY) -m pip install --quiet -e ".[dev]"
+	$(PY) -m pip install --quiet -e ".[dev,export]"
 	touch $(STAMP)
 
 # escnn needs numpy<2, so its adapter is tested in a separate environment.
@@ -65,6 +65,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/qp_scaling.py
 	$(PY) benchmarks/policy_scaling.py
 	$(PY) benchmarks/filter_cost.py
+	$(PY) benchmarks/agent_latency.py
 
 clean:
 	rm -rf $(VENV) $(ESCNN_VENV) .pytest_cache .ruff_cache .hypothesis

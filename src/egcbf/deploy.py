@@ -1,4 +1,4 @@
-"""One agent's learned controller from its own observations: what a robot runs on board (issue 28, part 1).
+"""One agent's learned controller from its own observations: what a robot runs on board (issue 28).
 
 The paper's controllers are trained centrally and executed distributed: each robot runs its own copy of the policy
 on what it senses and hears. :class:`AgentController` is that copy, built from a checkpoint. One call takes one
@@ -19,15 +19,18 @@ Inputs (world frame, SI units, float tensors of one dtype):
   simulator keeps ``lidar_max_hits`` per agent, 16 by default).
 
 Output: the body control ``u`` (quadrotor: torque and thrust, through the attitude loop of the checkpoint's command
-interface), and ``info`` with ``"command"`` (the policy's command, e.g. the desired acceleration) and
+interface), and ``info`` with ``"command"`` (the policy's command in the interface's units) and
 ``"num_neighbours"``, ``"num_hits"`` (how many were used).
 
 How: the network has one message-passing layer, so an agent's output reads only its own incoming edges (its
-neighbours, its goal, its hits). The call builds the graph of the agent and its in-range neighbours alone and
-keeps the agent's edges (:meth:`egcbf.graph.SwarmGraph.with_receivers`): the same computation as the swarm-level
-:class:`egcbf.algo.learner.LearnedController` for that agent (``tests/egcbf/test_deploy.py``: every agent of
-random scenes within 1e-9 in float64). Run-time filters, export (TorchScript, ONNX) and fixed-shape inputs are the
-issue's next parts.
+neighbours, its goal, its hits). :class:`AgentPolicy` is that computation with **fixed shapes**: exactly
+``max_neighbours`` neighbour rows and ``max_hits`` hit rows, each with a validity mask. Its graph has two
+receivers, the agent and a sink: every neighbour, goal and hit is an edge, valid ones into the agent and masked
+ones (and neighbours out of range) into the sink, whose output is dropped. So the masked rows change nothing, the
+tensor shapes never depend on the data, and the same module is what :mod:`egcbf.export` writes to TorchScript and
+ONNX. :class:`AgentController` pads a variable-size observation into it (the nearest rows first). It is the same
+computation as the swarm-level :class:`egcbf.algo.learner.LearnedController` for that agent
+(``tests/egcbf/test_deploy.py``: every agent of random scenes within 1e-9 in float64).
 """
 
 from __future__ import annotations
@@ -36,24 +39,84 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .algo.interface import make_interface
 from .algo.learner import policy_command
-from .env import EnvConfig, SwarmState
-from .env.lidar import LidarScan
-from .env.obstacles import Obstacles
-from .graph import build_graph
+from .env import EnvConfig
+from .graph import KIND_AGENT, KIND_GOAL, KIND_HIT, SwarmGraph, agent_features, edge_vectors, static_features
 from .nn import ModelConfig, PolicyNet
 from .robots import Robot
 
-__all__ = ["AgentController"]
+__all__ = ["AgentController", "AgentPolicy"]
+
+
+class AgentPolicy(nn.Module):
+    """One agent's policy on fixed-shape inputs (module doc): traceable, exportable, no data-dependent shapes.
+
+    ``forward(state (S,), goal (d,), neighbours (K, S), neighbour_valid (K,) bool, hits (H, d), hit_valid (H,) bool)
+    -> (u (control_dim,), command (k,))`` with ``K = max_neighbours`` and ``H = max_hits`` fixed at construction.
+    A neighbour row is used if it is valid and strictly within ``comm_radius`` of the agent; a hit row if it is
+    valid. Invalid rows may hold any finite numbers.
+    """
+
+    def __init__(self, policy: PolicyNet, model_config: ModelConfig, robot: Robot, comm_radius: float,
+                 max_neighbours: int, max_hits: int):  # fmt: skip
+        super().__init__()
+        for name, v in (("max_neighbours", max_neighbours), ("max_hits", max_hits)):
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise ValueError(f"AgentPolicy.{name} must be an integer >= 0, got {v!r}")
+        self.policy, self.model_config, self.robot = policy, model_config, robot
+        self.interface = make_interface(model_config.interface, robot)
+        self.comm_radius = float(comm_radius)
+        self.max_neighbours, self.max_hits = max_neighbours, max_hits
+
+    def graph(self, state: Tensor, goal: Tensor, neighbours: Tensor, neighbour_valid: Tensor, hits: Tensor,
+              hit_valid: Tensor) -> tuple[SwarmGraph, Tensor, Tensor]:  # fmt: skip
+        """The agent's graph (receivers: the agent, the sink), the receivers' states ``(1, 2, S)`` and goals
+        ``(1, 2, d)``. Senders: the two receivers, the ``K`` neighbours, the goal, the ``H`` hits (only
+        ``edge_index`` says who sends to whom: the networks read nothing else of the layout)."""
+        robot, k, h = self.robot, self.max_neighbours, self.max_hits
+        dev = state.device
+        x = torch.stack((state, state))  # the agent and the sink (a copy: finite features, output dropped)
+        p = robot.positions(x)
+        p_nbr = robot.positions(neighbours)
+        in_range = neighbour_valid & (torch.linalg.vector_norm(p_nbr - p[:1], dim=-1) < self.comm_radius)
+        feat = agent_features(robot, x)
+        x_src = torch.cat((feat, agent_features(robot, neighbours), static_features(1, KIND_GOAL, feat),
+                           static_features(h, KIND_HIT, feat)))  # fmt: skip
+        pos_src = torch.cat((p, p_nbr, goal[None].to(p.dtype), hits.to(p.dtype)))
+        sink = torch.ones((), dtype=torch.long, device=dev)
+        zero = torch.zeros((), dtype=torch.long, device=dev)
+        senders = torch.arange(2, 2 + k + 1 + h, device=dev)
+        receivers = torch.cat((torch.where(in_range, zero, sink), zero[None], torch.where(hit_valid, zero, sink)))
+        edge_index = torch.stack((senders, receivers))
+        kinds = (KIND_AGENT,) * (2 + k) + (KIND_GOAL,) + (KIND_HIT,) * h
+        src_kind = torch.tensor(kinds, dtype=torch.long, device=dev)
+        edge_kind = src_kind[2:]
+        graph = SwarmGraph(
+            x_src=x_src, x_dst=feat, edge_index=edge_index,
+            edge_attr=edge_vectors(pos_src, p, edge_index, edge_kind, self.comm_radius), edge_kind=edge_kind,
+            frames=robot.frames(x), pos_src=pos_src, pos_dst=p, src_kind=src_kind,
+            batch=torch.zeros(2, dtype=torch.long, device=dev), src_batch=torch.zeros_like(src_kind),
+            hit_owner=torch.zeros(h, dtype=torch.long, device=dev), num_envs=1, num_agents=2,
+            comm_radius=self.comm_radius, robot=robot,
+        )  # fmt: skip
+        return graph, x[None], torch.stack((goal, goal))[None].to(x.dtype)
+
+    def forward(self, state: Tensor, goal: Tensor, neighbours: Tensor, neighbour_valid: Tensor, hits: Tensor,
+                hit_valid: Tensor) -> tuple[Tensor, Tensor]:  # fmt: skip
+        graph, x, goals = self.graph(state, goal, neighbours, neighbour_valid, hits, hit_valid)
+        command, _ = policy_command(self.policy, self.model_config, self.interface, graph, x, goals)
+        u = self.interface.apply(x[:, :1], command[:, :1])  # as egcbf.algo.learner.act, for the agent only
+        return u[0, 0], command[0, 0]
 
 
 @dataclass
 class AgentController:
-    """A learned policy as one agent's controller (module doc). ``env_config`` carries the sensing settings the
-    policy was trained with (communication radius, LiDAR range)."""
+    """A learned policy as one agent's controller (module doc): pads a variable-size observation into
+    :attr:`module`, the fixed-shape :class:`AgentPolicy`. ``env_config`` carries the sensing settings the policy was
+    trained with (communication radius, LiDAR range)."""
 
     policy: PolicyNet
     model_config: ModelConfig
@@ -62,10 +125,8 @@ class AgentController:
     max_hits: int = 16
 
     def __post_init__(self) -> None:
-        for name in ("max_neighbours", "max_hits"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
-                raise ValueError(f"AgentController.{name} must be an integer >= 0, got {v!r}")
+        self.module = AgentPolicy(self.policy, self.model_config, self.env_config.make_robot(),
+                                  self.env_config.comm_radius, self.max_neighbours, self.max_hits)  # fmt: skip
 
     @classmethod
     def from_checkpoint(
@@ -88,7 +149,7 @@ class AgentController:
 
     @property
     def robot(self) -> Robot:
-        return self.env_config.make_robot()
+        return self.module.robot
 
     def _check(self, state: Tensor, goal: Tensor, neighbours: Tensor, hits: Tensor) -> None:
         s, d = self.robot.state_dim, self.robot.dim
@@ -104,39 +165,32 @@ class AgentController:
             if not bool(torch.isfinite(t).all()):
                 raise ValueError(f"{name} holds NaN or inf")
 
-    @torch.no_grad()
-    def __call__(self, state: Tensor, goal: Tensor, neighbours: Tensor, hits: Tensor) -> tuple[Tensor, dict]:
-        """The agent's body control ``(control_dim,)`` and ``info`` (module doc)."""
+    def pad(self, state: Tensor, goal: Tensor, neighbours: Tensor, hits: Tensor) -> tuple[Tensor, ...]:
+        """The fixed-shape inputs of :attr:`module`: ``(state, goal, neighbours (max_neighbours, S),
+        neighbour_valid, hits (max_hits, d), hit_valid)``, the nearest in-range neighbours and the nearest hits
+        first, the remaining rows zero and invalid."""
         self._check(state, goal, neighbours, hits)
         robot = self.robot
         p = next(self.policy.parameters())
         state, goal, neighbours, hits = (t.to(device=p.device, dtype=p.dtype) for t in (state, goal, neighbours, hits))
         pos = robot.positions(state)
-        # the neighbours in range (strict, as the simulator's edges), the nearest max_neighbours of them
         dist = torch.linalg.vector_norm(robot.positions(neighbours) - pos, dim=-1)
         order = torch.argsort(dist)
         order = order[dist[order] < self.env_config.comm_radius][: self.max_neighbours]
-        near = neighbours[order]
-        kept_hits = hits[torch.argsort(torch.linalg.vector_norm(hits - pos, dim=-1))][: self.max_hits]
-        n = 1 + near.shape[0]
-        x = torch.cat((state[None], near))[None]  # (1, n, S): the agent is row 0
-        # the neighbours' goals, obstacles and hits do not reach the agent's output: placeholders
-        goals = torch.cat((goal[None], robot.positions(near)))[None]
-        d = robot.dim
-        obstacles = Obstacles(x.new_zeros(1, 0, d), x.new_zeros(1, 0))
-        swarm = SwarmState(x, goals, obstacles, robot=robot)
-        h = kept_hits.shape[0]
-        points = x.new_zeros(1, n, max(h, 1), d) + robot.positions(x)[:, :, None]
-        valid = torch.zeros(1, n, max(h, 1), dtype=torch.bool, device=x.device)
-        points[0, 0, :h] = kept_hits
-        valid[0, 0, :h] = True
-        distance = torch.where(valid, torch.linalg.vector_norm(points - robot.positions(x)[:, :, None], dim=-1),
-                               torch.full_like(valid, float("inf"), dtype=x.dtype))  # fmt: skip
-        lidar = LidarScan(points, valid, distance)
-        keep = torch.zeros(n, dtype=torch.bool, device=x.device)
-        keep[0] = True
-        graph = build_graph(swarm, self.env_config, lidar=lidar).with_receivers(keep)
-        itf = make_interface(self.model_config.interface, robot)
-        command, _ = policy_command(self.policy, self.model_config, itf, graph, x, goals)
-        u = itf.apply(x, command)  # as egcbf.algo.learner.act: the command through the robot's inner loop
-        return u[0, 0], {"command": command[0, 0], "num_neighbours": int(near.shape[0]), "num_hits": int(h)}
+        hit_order = torch.argsort(torch.linalg.vector_norm(hits - pos, dim=-1))[: self.max_hits]
+        near, kept = neighbours[order], hits[hit_order]
+        k, h = self.max_neighbours, self.max_hits
+        nbr = neighbours.new_zeros(k, neighbours.shape[1])
+        nbr[: near.shape[0]] = near
+        pts = hits.new_zeros(h, hits.shape[1])
+        pts[: kept.shape[0]] = kept
+        nbr_valid = torch.arange(k, device=p.device) < near.shape[0]
+        hit_valid = torch.arange(h, device=p.device) < kept.shape[0]
+        return state, goal, nbr, nbr_valid, pts, hit_valid
+
+    @torch.no_grad()
+    def __call__(self, state: Tensor, goal: Tensor, neighbours: Tensor, hits: Tensor) -> tuple[Tensor, dict]:
+        """The agent's body control ``(control_dim,)`` and ``info`` (module doc)."""
+        inputs = self.pad(state, goal, neighbours, hits)
+        u, command = self.module(*inputs)
+        return u, {"command": command, "num_neighbours": int(inputs[3].sum()), "num_hits": int(inputs[5].sum())}

@@ -62,8 +62,11 @@ __all__ = [
     "NODE_DIM",
     "NODE_TYPE",
     "SwarmGraph",
+    "agent_features",
     "build_graph",
+    "edge_vectors",
     "refresh_graph",
+    "static_features",
     "with_agent_states",
 ]
 
@@ -212,14 +215,15 @@ def _device_of(args, kwargs, like: Tensor):
     return like.device
 
 
-def _agent_features(robot: Robot, x: Tensor) -> Tensor:
+def agent_features(robot: Robot, x: Tensor) -> Tensor:
     """``(M, F)`` node features of agents from states ``(M, S)``: kind one-hot | ``robot.agent_features``."""
     kind = torch.zeros(x.shape[0], 3, dtype=x.dtype, device=x.device)
     kind[:, KIND_AGENT] = 1
     return torch.cat((kind, robot.agent_features(x)), dim=-1)
 
 
-def _static_features(num: int, kind: int, like: Tensor) -> Tensor:
+def static_features(num: int, kind: int, like: Tensor) -> Tensor:
+    """``(num, F)`` node features of goals or hits (``kind``): the kind one-hot, zeros after it (like ``like``)."""
     f = torch.zeros(num, like.shape[1], dtype=like.dtype, device=like.device)
     f[:, kind] = 1
     return f
@@ -231,7 +235,8 @@ def _clip_norm(v: Tensor, max_norm: float) -> Tensor:
     return v * scale
 
 
-def _edge_attr(pos_src: Tensor, pos_dst: Tensor, edge_index: Tensor, edge_kind: Tensor, comm: float) -> Tensor:
+def edge_vectors(pos_src: Tensor, pos_dst: Tensor, edge_index: Tensor, edge_kind: Tensor, comm: float) -> Tensor:
+    """``(E, d)`` edge features ``p_sender - p_receiver``, goal edges clipped to norm ``<= comm`` (module doc)."""
     dp = pos_src.index_select(0, edge_index[0]) - pos_dst.index_select(0, edge_index[1])
     is_goal = (edge_kind == KIND_GOAL)[:, None]
     return torch.where(is_goal, _clip_norm(dp, comm), dp)
@@ -261,10 +266,8 @@ def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None
     hit_pos = lidar.points.reshape(m, -1, d)[valid]  # same order as nonzero
     h = owner.shape[0]
 
-    agent_feat = _agent_features(robot, xf)
-    x_src = torch.cat(
-        (agent_feat, _static_features(m, KIND_GOAL, agent_feat), _static_features(h, KIND_HIT, agent_feat))
-    )
+    agent_feat = agent_features(robot, xf)
+    x_src = torch.cat((agent_feat, static_features(m, KIND_GOAL, agent_feat), static_features(h, KIND_HIT, agent_feat)))
     pos_src = torch.cat((p, state.goals.reshape(m, d).to(p.dtype), hit_pos))
     agent_ids = torch.arange(m, device=device)
     batch = agent_ids // n
@@ -286,7 +289,7 @@ def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None
     perm = torch.argsort(edge_index[1] * n_src + edge_index[0])
     edge_index = edge_index.index_select(1, perm)
     edge_kind = src_kind.index_select(0, edge_index[0])
-    edge_attr = _edge_attr(pos_src, p, edge_index, edge_kind, config.comm_radius)
+    edge_attr = edge_vectors(pos_src, p, edge_index, edge_kind, config.comm_radius)
 
     return SwarmGraph(
         x_src=x_src,
@@ -331,7 +334,7 @@ def with_agent_states(graph: SwarmGraph, x_recv: Tensor, x_edge: Tensor | None =
     m = graph.num_dst
     robot = graph.robot
     p_recv = robot.positions(x_recv)
-    agent_feat = _agent_features(robot, x_recv)
+    agent_feat = agent_features(robot, x_recv)
     if x_edge is None:
         x_src = torch.cat((agent_feat, graph.x_src[m:].to(x_recv.dtype)))
         pos_src = torch.cat((p_recv, graph.pos_src[m:].to(p_recv.dtype)))
@@ -339,11 +342,11 @@ def with_agent_states(graph: SwarmGraph, x_recv: Tensor, x_edge: Tensor | None =
     else:
         src, dst = graph.edge_index
         rows = (src < m).nonzero()[:, 0]
-        x_src = graph.x_src[src].to(x_recv.dtype).index_put((rows,), _agent_features(robot, x_edge))
+        x_src = graph.x_src[src].to(x_recv.dtype).index_put((rows,), agent_features(robot, x_edge))
         pos_src = graph.pos_src[src].to(x_recv.dtype).index_put((rows,), robot.positions(x_edge))
         edge_index = torch.stack((torch.arange(src.shape[0], device=src.device), dst))
         extra = {"src_kind": graph.src_kind[src], "src_batch": graph.src_batch[src]}
-    edge_attr = _edge_attr(pos_src, p_recv, edge_index, graph.edge_kind, graph.comm_radius)
+    edge_attr = edge_vectors(pos_src, p_recv, edge_index, graph.edge_kind, graph.comm_radius)
     return replace(
         graph, x_src=x_src, x_dst=agent_feat, pos_src=pos_src, pos_dst=p_recv, edge_index=edge_index,
         edge_attr=edge_attr, frames=robot.frames(x_recv), **extra,

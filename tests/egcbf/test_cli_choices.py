@@ -13,6 +13,7 @@ from egcbf.cli.choices import (
     Controller,
     DemoMethod,
     Dtype,
+    ExportFormat,
     LearnedMethod,
     Preset,
     RobotName,
@@ -24,6 +25,7 @@ from egcbf.cli.eval import DTYPES
 from egcbf.config import LEARNED_METHODS, PRESETS
 from egcbf.control.controllers import CONTROLLERS
 from egcbf.env.scenes import SCENES
+from egcbf.export import FORMATS
 from egcbf.reproduce.plan import BACKENDS
 from egcbf.robots import ROBOTS
 
@@ -36,6 +38,7 @@ OPTIONS = [  # (command, flag, enum)
     ("train", "--algo", LearnedMethod),
     ("train", "--preset", Preset),
     ("reproduce", "--backend", Backend),
+    ("export", "--format", ExportFormat),
 ]
 
 
@@ -53,7 +56,9 @@ def test_the_choices_are_the_library_registries():
     assert _values(RobotName) == list(ROBOTS)
     assert _values(SafetyFilter) == list(FILTERS)
     assert _values(SceneName) == list(SCENES)
-    for enum in (Controller, LearnedMethod, DemoMethod, Preset, Dtype, Backend, RobotName, SafetyFilter, SceneName):
+    assert _values(ExportFormat) == list(FORMATS)
+    enums = (Controller, LearnedMethod, DemoMethod, Preset, Dtype, Backend, RobotName, SafetyFilter, SceneName)
+    for enum in (*enums, ExportFormat):
         assert all(isinstance(m, str) and json.dumps(m) == json.dumps(m.value) for m in enum)
 
 

@@ -18,6 +18,7 @@ __all__ = [
     "Controller",
     "DemoMethod",
     "Dtype",
+    "ExportFormat",
     "LearnedMethod",
     "Preset",
     "RobotName",
@@ -95,6 +96,13 @@ class Dtype(str, Enum):
 
     float32 = "float32"
     float64 = "float64"
+
+
+class ExportFormat(str, Enum):
+    """The file format of an exported agent controller (``egcbf.export.FORMATS``): ``egcbf export --format``."""
+
+    torchscript = "torchscript"
+    onnx = "onnx"
 
 
 class Backend(str, Enum):

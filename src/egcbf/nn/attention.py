@@ -61,7 +61,10 @@ __all__ = ["EdgeAttention"]
 
 
 def _is_edge_aligned(src: Tensor, num_src: int) -> bool:
-    """Whether source row ``e`` is the sender of edge ``e`` (``src == arange(E)``)."""
+    """Whether source row ``e`` is the sender of edge ``e`` (``src == arange(E)``); ``False`` while exporting
+    (``torch.export`` records no value-dependent branch; the gather is then always made, with the same result)."""
+    if torch.compiler.is_exporting():
+        return False
     num_edges = src.shape[0]
     return num_src == num_edges and torch.equal(src, torch.arange(num_edges, device=src.device))
 
@@ -189,7 +192,12 @@ class EdgeAttention(TransformerConv):
 
     Call as ``attn((x_src (N_src, in), x_dst (N_dst, in)), edge_index (2, E), edge_attr (E, edge_dim))``; returns
     ``(N_dst, heads * out_channels)``. Receivers without incoming edges get zeros, as in PyG.
+
+    ``receiver_side = False`` (an instance attribute) keeps it on the per-edge path on every device: dense and
+    scatter operations only, which tracing and ONNX export can record (:mod:`egcbf.export`).
     """
+
+    receiver_side: bool = True
 
     def _fast_path(self, edge_index, edge_attr, return_attention_weights) -> bool:
         linears = (self.lin_query, self.lin_key, self.lin_value, self.lin_edge)
@@ -210,7 +218,7 @@ class EdgeAttention(TransformerConv):
         if not self._fast_path(edge_index, edge_attr, return_attention_weights):
             return super().forward(x, edge_index, edge_attr, return_attention_weights)
         x_src, x_dst = (x, x) if isinstance(x, Tensor) else x
-        if x_dst.device.type == "cpu" and x_dst.dtype in (torch.float32, torch.float64):
+        if self.receiver_side and x_dst.device.type == "cpu" and x_dst.dtype in (torch.float32, torch.float64):
             return self._forward_receivers(x_src, x_dst, edge_index, edge_attr)
         return self._forward_per_edge(x_src, x_dst, edge_index, edge_attr)
 

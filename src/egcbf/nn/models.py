@@ -384,6 +384,6 @@ class PolicyNet(nn.Module):
 
 def sensing(graph: SwarmGraph) -> Tensor:
     """``(M,)`` bool: the agent has an incoming edge from another agent or a LiDAR hit."""
-    sel = graph.edge_kind != KIND_GOAL
-    out = torch.zeros(graph.num_dst, dtype=torch.bool, device=graph.edge_index.device)
-    return out.index_fill(0, graph.edge_index[1, sel], True)
+    sensed = (graph.edge_kind != KIND_GOAL).to(graph.edge_attr.dtype)
+    count = graph.edge_attr.new_zeros(graph.num_dst).index_add(0, graph.edge_index[1], sensed)
+    return count > 0  # a sum over the edges, not index_fill: traceable (egcbf.export)

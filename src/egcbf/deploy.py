@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
@@ -48,7 +49,10 @@ from .graph import KIND_AGENT, KIND_GOAL, KIND_HIT, SwarmGraph, agent_features, 
 from .nn import ModelConfig, PolicyNet
 from .robots import Robot
 
-__all__ = ["AgentController", "AgentPolicy"]
+if TYPE_CHECKING:
+    from .algo.filtered import FilterConfig
+
+__all__ = ["AgentController", "AgentFilteredController", "AgentPolicy"]
 
 
 class AgentPolicy(nn.Module):
@@ -194,3 +198,76 @@ class AgentController:
         inputs = self.pad(state, goal, neighbours, hits)
         u, command = self.module(*inputs)
         return u, {"command": command, "num_neighbours": int(inputs[3].sum()), "num_hits": int(inputs[5].sum())}
+
+
+@dataclass
+class AgentFilteredController:
+    """One agent's policy behind the decentralized ``dcbf`` run-time filter (:mod:`egcbf.algo.filtered`,
+    docs/safety_filters.md): what the recommended controller runs on board.
+
+    ``u, info = ctrl(state, goal, neighbours, hits, obstacles=(centers (O, 3), radii (O,)), accelerations=None)``.
+    The policy reads ``neighbours`` and ``hits`` as :class:`AgentController` does. The filter reads the neighbours'
+    states (pass every neighbour heard: it keeps those within its range at the look-ahead positions, as the swarm
+    filter does), the sphere obstacles the agent senses, and, for the look-ahead, ``accelerations`` ``(1 + K, 3)``:
+    the agent's own and each neighbour's realized acceleration over the last control step, ``(v_t - v_{t-1}) / dt``
+    from two consecutive broadcasts (``None``: zero, as at an episode's first step). It solves the agent's own QP
+    only in effect (the rows of a pair are split in halves; no command is exchanged).
+
+    ``info``: ``command`` (the filtered command, interface units), ``policy_command``, ``failed`` (the QP failed
+    and the agent brakes), ``slack`` (the QP's slack), ``num_neighbours``, ``num_hits``.
+    """
+
+    controller: AgentController
+    filter_config: FilterConfig | None = None
+
+    def __post_init__(self) -> None:
+        from .algo.filtered import FilterConfig
+        from .control.cbf_qp import DecentralizedCBFQP
+
+        self.filter_config = self.filter_config or FilterConfig.for_kind("dcbf")
+        cfg = self.filter_config
+        if cfg.kind != "dcbf":
+            raise NotImplementedError(f"the per-agent controller runs the 'dcbf' filter, not {cfg.kind!r}")
+        if self.controller.model_config.interface != "accel":
+            raise ValueError("run-time filters act on the acceleration command (the 'accel' interface)")
+        self._qp = DecentralizedCBFQP(barrier=cfg.barrier, penalty=cfg.penalty, brake_gain=cfg.brake_gain)
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, filter_config: FilterConfig | None = None, **kwargs):
+        """The checkpoint's :class:`AgentController` (``kwargs`` as there) behind ``filter_config`` (default:
+        ``FilterConfig.for_kind("dcbf")``, the evaluation's ``--filter dcbf``)."""
+        return cls(AgentController.from_checkpoint(path, **kwargs), filter_config)
+
+    @torch.no_grad()
+    def __call__(self, state: Tensor, goal: Tensor, neighbours: Tensor, hits: Tensor,
+                 obstacles: tuple[Tensor, Tensor] | None = None,
+                 accelerations: Tensor | None = None) -> tuple[Tensor, dict]:  # fmt: skip
+        from .env import SwarmState
+        from .env.obstacles import Obstacles
+
+        ctrl, robot = self.controller, self.controller.robot
+        _, info = ctrl(state, goal, neighbours, hits)
+        unit = ctrl.module.interface.accel_unit
+        dtype = info["command"].dtype
+        x = torch.cat((state[None], neighbours)).to(torch.float64)
+        k = neighbours.shape[0]
+        if accelerations is not None and tuple(accelerations.shape) != (1 + k, robot.dim):
+            raise ValueError(f"accelerations must have shape {(1 + k, robot.dim)} (the agent, then each neighbour), "
+                             f"got {tuple(accelerations.shape)}")  # fmt: skip
+        centers, radii = obstacles if obstacles is not None else (x.new_zeros(0, robot.dim), x.new_zeros(0))
+        if centers.dim() != 2 or centers.shape[-1] != robot.dim or tuple(radii.shape) != (centers.shape[0],):
+            raise ValueError(f"obstacles must be (centers (O, {robot.dim}), radii (O,)), got "
+                             f"{tuple(centers.shape)}, {tuple(radii.shape)}")  # fmt: skip
+        goals = torch.cat((goal[None].to(x.dtype), robot.positions(x[1:])))
+        swarm = SwarmState(x[None], goals[None], Obstacles(centers[None].to(x.dtype), radii[None].to(x.dtype)),
+                           robot=robot)  # fmt: skip
+        a_ref = torch.zeros(1, 1 + k, robot.dim, dtype=torch.float64)
+        a_ref[0, 0] = unit * info["command"].to(torch.float64).cpu()
+        acc = None if accelerations is None else accelerations.to(torch.float64).cpu().numpy()[None]
+        cfg = self.filter_config
+        u, q = self._qp.filter(swarm, ctrl.env_config, a_ref.numpy(), cfg.lookahead, acc)
+        command = torch.as_tensor(q["a_safe"][0, 0] / unit, dtype=dtype)
+        return u[0, 0].to(dtype), {
+            "command": command, "policy_command": info["command"], "failed": bool(q["failed"][0, 0]),
+            "slack": float(q["slack"][0, 0]), "num_neighbours": info["num_neighbours"], "num_hits": info["num_hits"],
+        }  # fmt: skip

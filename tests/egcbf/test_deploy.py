@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from egcbf.checkpoint import load_controller
-from egcbf.deploy import AgentController
+from egcbf.deploy import AgentController, AgentFilteredController
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
 
 ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
@@ -125,3 +125,49 @@ def test_bad_observations_are_named():
         agent(x, goal, x.new_zeros(0, 18), torch.full((1, 3), float("nan"), dtype=F64))
     with pytest.raises(ValueError, match="max_neighbours must be an integer >= 0"):
         AgentController(agent.policy, agent.model_config, agent.env_config, max_neighbours=-1)
+
+
+@functools.cache
+def _filtered(method: str = "egcbf+"):
+    from egcbf.algo.filtered import FilterConfig, load_filtered_controller
+
+    swarm, cfg = load_filtered_controller(ROOT / method, FilterConfig.for_kind("dcbf"), dtype=F64)
+    return swarm, cfg, AgentFilteredController.from_checkpoint(ROOT / method, dtype=F64)
+
+
+@pytest.mark.parametrize("method", ["egcbf+", "gcbf+"])
+@given(seed=st.integers(0, 2**16), n=st.integers(2, 12), area=st.floats(0.8, 2.0), obstacles=st.integers(0, 3))
+@settings(max_examples=3, deadline=None)
+def test_every_agents_filtered_control_is_the_swarm_filters(method, seed, n, area, obstacles):
+    """float64, 1e-9: the per-agent policy behind the dcbf filter, given the neighbours' states, the obstacles it
+    senses and the realized accelerations of the last step, reproduces the swarm-level filtered control (with its
+    look-ahead) of every agent, the braking fallback included."""
+    swarm, cfg, agent = _filtered(method)
+    env, env_cfg, state = _scene(cfg, n, area, obstacles, seed)
+    swarm(state, env_cfg)  # the swarm filter keeps the velocities of its previous call: two calls in a row
+    v_prev = state.x[0, :, 12:15].clone()
+    state, _ = env.step(state, swarm(state, env_cfg)[0])
+    u_all, info = swarm(state, env_cfg)
+    acc = (state.x[0, :, 12:15] - v_prev) / env_cfg.dt
+    obstacles_seen = (state.obstacles.centers[0], state.obstacles.radii[0])
+    for i in range(n):
+        x, goal, others, hits = _observation(env, state, i)
+        order = torch.cat((torch.tensor([i]), torch.tensor([j for j in range(n) if j != i], dtype=torch.long)))
+        u, out = agent(x, goal, others, hits, obstacles=obstacles_seen, accelerations=acc[order])
+        assert (u - u_all[0, i]).abs().max() <= 1e-9, (i, out)
+        a_safe = info["a_safe"][0, i] / 5.0
+        assert (out["command"] - a_safe).abs().max() <= 1e-9
+
+
+def test_the_filtered_agent_refuses_bad_inputs():
+    _, _, agent = _filtered()
+    x, goal = torch.zeros(18, dtype=F64), torch.zeros(3, dtype=F64)
+    x[3:12] = torch.eye(3, dtype=F64).flatten()
+    with pytest.raises(ValueError, match=r"accelerations must have shape \(1, 3\)"):
+        agent(x, goal, x.new_zeros(0, 18), x.new_zeros(0, 3), accelerations=x.new_zeros(2, 3))
+    with pytest.raises(ValueError, match="obstacles must be"):
+        agent(x, goal, x.new_zeros(0, 18), x.new_zeros(0, 3), obstacles=(x.new_zeros(1, 2), x.new_zeros(1)))
+    from egcbf.algo.filtered import FilterConfig
+
+    with pytest.raises(NotImplementedError, match="'dcbf' filter"):
+        AgentFilteredController(agent.controller, FilterConfig.for_kind("prior"))

@@ -463,5 +463,7 @@ class DecentralizedCBFQP(_CBFQPBase):
             "max_slack": float(s.max(initial=0.0)),
             "a_safe": a_safe,
             "a_nom": prep.a_nom,
+            "failed": bad.reshape(b, n),  # per agent: its QP failed or its solution failed the check (it brakes)
+            "slack": s.reshape(b, n),
         }
         return u, info

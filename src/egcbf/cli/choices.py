@@ -89,6 +89,8 @@ class RobotName(str, Enum):
 
     quadrotor = "quadrotor"
     unicycle = "unicycle"
+    single_integrator = "single_integrator"
+    double_integrator = "double_integrator"
 
 
 class Dtype(str, Enum):

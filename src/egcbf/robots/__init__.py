@@ -1,4 +1,5 @@
-"""Robots of the swarm as plug-ins (:class:`Robot`): the quadrotor of the paper and a planar unicycle.
+"""Robots of the swarm as plug-ins (:class:`Robot`): the quadrotor of the paper, a planar unicycle, and GCBF+'s
+single and double integrators.
 
 ``make_robot("unicycle")`` builds one by name; :func:`register_robot` adds a user's robot to the registry the
 environment (``EnvConfig.robot``), the learner and the CLI (``--robot``) read. See docs/robots.md.
@@ -9,14 +10,18 @@ from __future__ import annotations
 import functools
 
 from .base import Robot, rk4_step
+from .integrators import DoubleIntegrator, IntegratorParams, SingleIntegrator
 from .quadrotor import Quadrotor
 from .unicycle import Unicycle, UnicycleParams
 
 __all__ = [
     "BUILTIN_ROBOTS",
     "ROBOTS",
+    "DoubleIntegrator",
+    "IntegratorParams",
     "Quadrotor",
     "Robot",
+    "SingleIntegrator",
     "Unicycle",
     "UnicycleParams",
     "make_robot",
@@ -25,7 +30,12 @@ __all__ = [
 ]
 
 #: robot name -> class (the class is called with its ``params``, or with none for the defaults)
-ROBOTS: dict[str, type[Robot]] = {"quadrotor": Quadrotor, "unicycle": Unicycle}
+ROBOTS: dict[str, type[Robot]] = {
+    "quadrotor": Quadrotor,
+    "unicycle": Unicycle,
+    "single_integrator": SingleIntegrator,
+    "double_integrator": DoubleIntegrator,
+}
 
 
 #: the robots shipped with egcbf: never replaced by a registration

@@ -1,0 +1,229 @@
+"""GCBF+'s planar point-mass robots: the single integrator and the double integrator (issue 26, part 1).
+
+Both follow the GCBF+ reference's conventions exactly (``../shared/reference/gcbfplus-facts.md``, "Robot details"):
+
+=================== ================== ============================== ================== ==========================
+robot               state              control (box)                  dynamics           state clip (after a step)
+=================== ================== ============================== ================== ==========================
+single_integrator   ``p`` (2)          velocity, ``+-1`` per axis     ``p' = u``         none
+double_integrator   ``(p, v)`` (4)     force, ``+-1`` per axis        ``p' = v``,        ``v`` to ``+-0.5`` per axis
+                                                                      ``v' = u / m``
+=================== ================== ============================== ================== ==========================
+
+with ``m = 0.1`` kg, one explicit Euler step per control period ``dt = 0.03`` s (the reference's; ``integrator =
+"rk4"`` is available), agent radius 0.05 m, communication and LiDAR range 0.5 m, 32 world-fixed LiDAR rays, 256
+steps. The step clips the control to its box first (:meth:`Robot.clip_control`, by the caller) and the state after.
+
+Nominal controller (the reference's ``u_ref``): a discrete-time LQR on the full error state ``e = goal_state - x``
+(the goal's velocity is 0, so the velocity part is ``-v``), with ``e`` scaled to norm ``<= comm_radius`` (0.5) and
+the result clipped to the box: ``u = clip(K e)``. ``K = (B^T X B + R)^-1 B^T X A`` from the discrete Riccati
+equation of ``A = I``, ``B = dt I``, ``Q = 2 I``, ``R = I`` (single: ``K = 1.3845 I``) and of
+``A = I + dt [[0, I], [0, 0]]``, ``B = dt [0; I / m]``, ``Q = 5 I``, ``R = I`` (double: ``1.585`` on the position
+error, ``1.706`` on the velocity error, per axis).
+
+Symmetry: the per-axis boxes and clips are invariant only under the rotations by multiples of 90 degrees (and
+translations), and a point mass carries no heading from which to build a frame. Until the frame-averaged networks
+for such groups exist, these robots declare the trivial group: EGCBF+ equals GCBF+ on them. LiDAR rays are fixed in
+the world frame (:meth:`heading` is the world x axis), as in the reference.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from groupcanon import FieldType
+from groupcanon.features import Point, Vector
+from groupcanon.groups import Trivial
+
+from .base import Robot, rk4_step
+
+__all__ = ["DoubleIntegrator", "IntegratorParams", "SingleIntegrator", "discrete_lqr"]
+
+#: GCBF+'s planar environment defaults (obstacles: discs until rotated rectangles are wired in)
+_PLANAR_DEFAULTS: dict = {
+    "area_size": 4.0,
+    "agent_radius": 0.05,
+    "comm_radius": 0.5,
+    "obstacle_radius_range": (0.05, 0.25),
+    "n_rays": 32,
+    "lidar_max_hits": 32,
+    "dt": 0.03,
+    "substeps": 1,
+    "integrator": "euler",
+    "max_steps": 256,
+}
+
+
+@dataclass(frozen=True)
+class IntegratorParams:
+    """Point-mass parameters (SI units): ``radius`` (m; EnvConfig sets it), ``mass`` (kg, double integrator),
+    ``max_control`` (the box, per axis), ``max_speed`` (the double integrator's velocity clip, per axis; m/s),
+    ``max_position_error`` (the nominal controller scales the error state to this norm), ``dt`` (the period the LQR
+    is designed for, s)."""
+
+    radius: float = 0.05
+    mass: float = 0.1
+    max_control: float = 1.0
+    max_speed: float = 0.5
+    max_position_error: float = 0.5
+    dt: float = 0.03
+
+    def __post_init__(self) -> None:
+        for name in ("radius", "mass", "max_control", "max_speed", "max_position_error", "dt"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"IntegratorParams.{name} must be a finite number > 0, got {v!r}")
+
+
+def discrete_lqr(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The gain ``K = (B^T X B + R)^-1 B^T X A`` of the discrete-time LQR (``u = -K x``), ``X`` the stabilizing
+    solution of the discrete algebraic Riccati equation (float64)."""
+    from scipy.linalg import solve_discrete_are
+
+    x = solve_discrete_are(a, b, q, r)
+    return np.linalg.solve(b.T @ x @ b + r, b.T @ x @ a)
+
+
+class _PointMass(Robot):
+    """What the two integrators share: planar positions, world-fixed heading, trivial frames, the LQR law."""
+
+    dim = 2
+    control_dim = 2
+    group_name = "trivial"
+    interfaces = ("control",)
+    env_defaults: ClassVar[dict] = _PLANAR_DEFAULTS
+
+    def __init__(self, params: IntegratorParams | None = None):
+        if params is not None and not isinstance(params, IntegratorParams):
+            raise TypeError(f"{type(self).__name__} params must be an IntegratorParams, got {type(params).__name__}")
+        self.params = IntegratorParams() if params is None else params
+        self.group = Trivial()
+        self._gain = torch.as_tensor(self._lqr_gain(), dtype=torch.float64)  # (2, state_dim)
+
+    def _lqr_gain(self) -> np.ndarray:
+        raise NotImplementedError
+
+    def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        hi = torch.full((2,), self.params.max_control, dtype=like.dtype, device=like.device)
+        return -hi, hi
+
+    def _clip_state(self, x: Tensor) -> Tensor:
+        return x
+
+    def step(self, x: Tensor, u: Tensor, dt: float, substeps: int = 1, integrator: str = "euler") -> Tensor:
+        if int(substeps) != substeps or substeps < 1:
+            raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+        if integrator == "rk4":
+            return self._clip_state(rk4_step(self.xdot, x, u, dt, substeps))
+        if integrator != "euler":
+            raise ValueError(f"unknown integrator {integrator!r}; choose 'euler' or 'rk4'")
+        h = dt / int(substeps)
+        for _ in range(int(substeps)):
+            x = self._clip_state(x + h * self.xdot(x, u))
+        return x
+
+    def positions(self, x: Tensor) -> Tensor:
+        return x[..., :2]
+
+    def heading(self, x: Tensor) -> Tensor:
+        """The world x axis: the reference's LiDAR rays are fixed in the world."""
+        out = torch.zeros(*x.shape[:-1], 2, dtype=x.dtype, device=x.device)
+        out[..., 0] = 1.0
+        return out
+
+    def frames(self, x: Tensor) -> Tensor:
+        return self.group.identity(*x.shape[:-1], dtype=x.dtype, device=x.device)
+
+    @property
+    def node_fields(self) -> dict:
+        return {"v": Vector(2)}
+
+    def agent_features(self, x: Tensor) -> Tensor:
+        return self.velocities(x)
+
+    def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:
+        goal_state = torch.cat((goals.to(x.dtype), torch.zeros_like(x[..., 2:])), -1)
+        e = goal_state - x
+        norm = torch.linalg.vector_norm(e, dim=-1, keepdim=True)
+        e = e * (self.params.max_position_error / norm.clamp_min(self.params.max_position_error))
+        return self.clip_control(e @ self._gain.to(dtype=x.dtype, device=x.device).T)
+
+    def command_feature(self, interface: str):
+        if interface not in self.interfaces:
+            raise ValueError(f"the {self.name} has the command interfaces {self.interfaces}, not {interface!r}")
+        return Vector(2)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.params})"
+
+
+class SingleIntegrator(_PointMass):
+    """GCBF+'s single integrator (module doc): state ``p`` (2), control the velocity."""
+
+    name = "single_integrator"
+    state_dim = 2
+
+    def __init__(self, params: IntegratorParams | None = None):
+        super().__init__(params)
+        self.state_type = FieldType(self.group, {"p": Point(2)})
+        self.control_type = FieldType(self.group, {"u": Vector(2)})
+
+    def _lqr_gain(self) -> np.ndarray:
+        eye = np.eye(2)
+        return discrete_lqr(eye, self.params.dt * eye, 2 * eye, eye)
+
+    def f0(self, x: Tensor) -> Tensor:
+        return torch.zeros_like(x)
+
+    def f1(self, x: Tensor) -> Tensor:
+        return torch.eye(2, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], 2, 2)
+
+    def velocities(self, x: Tensor) -> Tensor:  # kinematic: the velocity is the control, not part of the state
+        return torch.zeros_like(x)
+
+    def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
+        return positions.clone()
+
+
+class DoubleIntegrator(_PointMass):
+    """GCBF+'s double integrator (module doc): state ``(p, v)`` (4), control the force; ``v`` clipped per axis."""
+
+    name = "double_integrator"
+    state_dim = 4
+
+    def __init__(self, params: IntegratorParams | None = None):
+        super().__init__(params)
+        self.state_type = FieldType(self.group, {"p": Point(2), "v": Vector(2)})
+        self.control_type = FieldType(self.group, {"u": Vector(2)})
+
+    def _lqr_gain(self) -> np.ndarray:
+        q = self.params
+        a = np.eye(4)
+        a[0, 2] = a[1, 3] = q.dt
+        b = np.zeros((4, 2))
+        b[2, 0] = b[3, 1] = q.dt / q.mass
+        return discrete_lqr(a, b, 5 * np.eye(4), np.eye(2))
+
+    def f0(self, x: Tensor) -> Tensor:
+        return torch.cat((x[..., 2:4], torch.zeros_like(x[..., 2:4])), -1)
+
+    def f1(self, x: Tensor) -> Tensor:
+        out = x.new_zeros(*x.shape[:-1], 4, 2)
+        out[..., 2, 0] = out[..., 3, 1] = 1.0 / self.params.mass
+        return out
+
+    def _clip_state(self, x: Tensor) -> Tensor:
+        s = self.params.max_speed
+        return torch.cat((x[..., :2], x[..., 2:4].clamp(-s, s)), -1)
+
+    def velocities(self, x: Tensor) -> Tensor:
+        return x[..., 2:4]
+
+    def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
+        return torch.cat((positions, torch.zeros_like(positions)), -1)

@@ -1,0 +1,99 @@
+"""GCBF+'s single and double integrators (egcbf.robots.integrators): one step, the LQR gains and the nominal law
+match the reference's conventions (../shared/reference/gcbfplus-facts.md), the nominal controller reaches its goals
+within the box, and the whole pipeline (environment, graph, training, evaluation) runs on them."""
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from egcbf.config import TrainConfig
+from egcbf.env import EnvConfig, SwarmEnv
+from egcbf.graph import build_graph
+from egcbf.robots import DoubleIntegrator, IntegratorParams, SingleIntegrator, make_robot
+
+F64 = torch.float64
+
+
+def test_lqr_gains_are_the_references():
+    """K from the discrete Riccati equation of the reference's A, B, Q, R (values read from its code)."""
+    assert torch.allclose(SingleIntegrator()._gain, 1.3845 * torch.eye(2, dtype=F64), atol=1e-4)
+    k = DoubleIntegrator()._gain
+    expected = torch.tensor([[1.585, 0, 1.706, 0], [0, 1.585, 0, 1.706]], dtype=F64)
+    assert torch.allclose(k, expected, atol=1e-3)
+
+
+def test_one_euler_step_is_the_references():
+    """Double: p + dt v (the old velocity), v + dt u / m, then v clipped to +-0.5 per axis. Single: p + dt u."""
+    di = DoubleIntegrator()
+    x = torch.tensor([[0.1, 0.2, 0.4, -0.3]], dtype=F64)
+    u = torch.tensor([[1.0, -0.5]], dtype=F64)
+    got = di.step(x, u, 0.03)
+    assert torch.allclose(got, torch.tensor([[0.112, 0.191, 0.5, -0.45]], dtype=F64), atol=1e-15, rtol=0)
+    si = SingleIntegrator()
+    got = si.step(torch.tensor([[1.0, 2.0]], dtype=F64), torch.tensor([[1.0, -0.25]], dtype=F64), 0.03)
+    assert torch.allclose(got, torch.tensor([[1.03, 1.9925]], dtype=F64), atol=1e-15, rtol=0)
+    with pytest.raises(ValueError, match="unknown integrator"):
+        di.step(x, u, 0.03, integrator="midpoint")
+
+
+def test_the_nominal_law():
+    """u = clip(K e), e = goal_state - x scaled to norm <= 0.5 (velocities included; the goal is at rest)."""
+    di = DoubleIntegrator()
+    x = torch.tensor([[0.0, 0.0, 0.1, 0.0]], dtype=F64)
+    goal = torch.tensor([[0.02, 0.01]], dtype=F64)  # |e| < 0.5: not scaled
+    e = torch.tensor([[0.02, 0.01, -0.1, 0.0]], dtype=F64)
+    assert torch.allclose(di.nominal_control(x, goal), e @ di._gain.T, atol=1e-15)
+    far = torch.tensor([[3.0, 4.0]], dtype=F64)  # scaled to norm 0.5, then clipped to the box
+    e = torch.tensor([[3.0, 4.0, -0.1, 0.0]], dtype=F64)
+    e = e * 0.5 / e.norm()
+    assert torch.allclose(di.nominal_control(x, far), (e @ di._gain.T).clamp(-1, 1), atol=1e-15)
+    assert torch.isfinite(di.nominal_control(x.new_zeros(1, 4), x.new_zeros(1, 2))).all()  # e = 0: no NaN
+
+
+@pytest.mark.parametrize("name", ["single_integrator", "double_integrator"])
+@given(seed=st.integers(0, 2**16))
+@settings(max_examples=5, deadline=None)
+def test_the_nominal_controller_reaches_its_goals_within_the_box(name, seed):
+    cfg = EnvConfig.for_robot(name, num_agents=8, num_obstacles=0, num_envs=2)
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(seed)
+    robot = cfg.make_robot()
+    lo, hi = robot.control_bounds(state.x)
+    for _ in range(600):
+        u = robot.nominal_control(state.x, state.goals)
+        assert bool(((u >= lo) & (u <= hi)).all())
+        state, _ = env.step(state, u)
+        if name == "double_integrator":
+            assert float(state.x[..., 2:].abs().max()) <= 0.5
+    assert float((robot.positions(state.x) - state.goals).norm(dim=-1).max()) < 2 * cfg.agent_radius
+
+
+def test_the_reference_environment_defaults():
+    for name in ("single_integrator", "double_integrator"):
+        cfg = EnvConfig.for_robot(name, num_agents=4)
+        assert (cfg.dt, cfg.integrator, cfg.agent_radius, cfg.comm_radius) == (0.03, "euler", 0.05, 0.5)
+        assert (cfg.n_rays, cfg.max_steps, cfg.dim) == (32, 256, 2)
+    robot = make_robot("double_integrator")
+    x = torch.rand(5, 4, dtype=F64)
+    assert torch.equal(robot.heading(x), torch.tensor([1.0, 0.0], dtype=F64).expand(5, 2))  # world-fixed rays
+    with pytest.raises(ValueError, match="mass"):
+        IntegratorParams(mass=0.0)
+
+
+@pytest.mark.parametrize("name", ["single_integrator", "double_integrator"])
+def test_the_pipeline_runs(name, tmp_path):
+    from egcbf.algo import GraphCBFLearner
+    from egcbf.evaluate import evaluate
+
+    cfg = TrainConfig.preset("gcbf+", "tiny", robot=name)
+    learner = GraphCBFLearner(cfg)
+    for _ in range(2):
+        info = learner.update()
+    assert all(torch.isfinite(torch.as_tensor(v)).all() for v in info.values() if isinstance(v, (int, float)))
+    env_cfg = EnvConfig.for_robot(name, num_agents=6, num_obstacles=2, num_envs=1, max_steps=20)
+    graph = build_graph(SwarmEnv(env_cfg).reset(0), env_cfg)
+    assert graph.edge_attr.shape[1] == 2
+    rows, _ = evaluate(lambda _cfg: learner.controller(), [6], area_size=1.5, num_obstacles=2, episodes=1,
+                       max_steps=20, show_progress=False, robot=name)  # fmt: skip
+    assert 0.0 <= rows[0]["safe_rate"] <= 1.0 and rows[0]["num_agents"] == 6

@@ -10,10 +10,12 @@ that is not a tensor, or whose last dimension is too small, raises an error nami
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
-__all__ = ["planar_frame", "rotation_from_vectors", "se2xr_frame", "se3_frame"]
+__all__ = ["cyclic_frames", "planar_frame", "rotation_from_vectors", "se2xr_frame", "se3_frame"]
 
 
 def _check_vectors(fn: str, what: str, v, width: int, exact: bool = True) -> None:
@@ -75,3 +77,20 @@ def se3_frame(a: Tensor, b: Tensor, position: Tensor, eps: float = 1e-12) -> Ten
     """SE3 elements ``(*batch, 3, 4)`` from two direction vectors and a position."""
     _check_vectors("se3_frame", "position", position, 3)
     return torch.cat((rotation_from_vectors(a, b, eps), position.unsqueeze(-1)), dim=-1)
+
+
+def cyclic_frames(n: int, position: Tensor) -> Tensor:
+    """The ``n`` frames of a point at ``position`` ``(*batch, 2)`` under :class:`~groupcanon.groups.CyclicSE2(n)`:
+    ``(*batch, n, 4)``, the rotations by ``2 pi k / n`` (``k = 0 .. n-1``) translated to the point.
+
+    For frame averaging: a layer canonicalized in each of these frames and averaged over them is equivariant, since
+    ``g`` maps the set of frames of a point onto the set of frames of the moved point (``g . F(p) = F(g . p)`` as
+    sets: the rotation index shifts cyclically). No vector is needed, so nothing degenerates at zero velocity.
+    """
+    _check_vectors("cyclic_frames", "position", position, 2)
+    if int(n) != n or n < 1:
+        raise ValueError(f"cyclic_frames() needs a positive integer n, got {n!r}")
+    theta = torch.arange(int(n), dtype=torch.float64, device=position.device) * (2 * math.pi / int(n))
+    cs = torch.stack((torch.cos(theta), torch.sin(theta)), -1).to(position.dtype)  # (n, 2)
+    cs = cs.expand(*position.shape[:-1], int(n), 2)
+    return torch.cat((cs, position[..., None, :].expand(*position.shape[:-1], int(n), 2)), -1)

@@ -1,6 +1,7 @@
 """GCBF+'s single and double integrators (egcbf.robots.integrators): one step, the LQR gains and the nominal law
 match the reference's conventions (../shared/reference/gcbfplus-facts.md), the nominal controller reaches its goals
-within the box, and the whole pipeline (environment, graph, training, evaluation) runs on them."""
+within the box, the whole pipeline (environment, graph, training, evaluation) runs on them, and EGCBF+, averaged
+over each agent's four frames, is equivariant under C4 x| R^2 at every state."""
 
 import pytest
 import torch
@@ -11,6 +12,8 @@ from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.graph import build_graph
 from egcbf.robots import DoubleIntegrator, IntegratorParams, SingleIntegrator, make_robot
+from groupcanon import FieldType
+from groupcanon.features import Vector
 
 F64 = torch.float64
 
@@ -97,3 +100,72 @@ def test_the_pipeline_runs(name, tmp_path):
     rows, _ = evaluate(lambda _cfg: learner.controller(), [6], area_size=1.5, num_obstacles=2, episodes=1,
                        max_steps=20, show_progress=False, robot=name)  # fmt: skip
     assert 0.0 <= rows[0]["safe_rate"] <= 1.0 and rows[0]["num_agents"] == 6
+
+
+def _perturbed_nets(algo: str, name: str = "double_integrator"):
+    from egcbf.nn import CBFNet, PolicyNet
+
+    model = TrainConfig.preset(algo, "cpu", robot=name).model
+    torch.manual_seed(0)
+    cbf, pol = CBFNet(model).double(), PolicyNet(model).double()
+    with torch.no_grad():  # equivariance holds for any weights: move the zero-initialized last layers off their priors
+        for p in (*cbf.parameters(), *pol.parameters()):
+            p.add_(0.05 * torch.randn_like(p))
+    return cbf, pol
+
+
+@pytest.mark.parametrize("name", ["single_integrator", "double_integrator"])
+@given(seed=st.integers(0, 2**16), k=st.integers(0, 3), t=st.tuples(st.floats(-3, 3), st.floats(-3, 3)),
+       moving=st.booleans())  # fmt: skip
+@settings(max_examples=12, deadline=None)
+def test_egcbf_plus_is_c4_equivariant_at_every_state(name, seed, k, t, moving):
+    """EGCBF+ averaged over each agent's four frames: the CBF is invariant and the policy's command (a world-frame
+    vector) rotates with the scene, under every rotation by a multiple of 90 degrees and translation, float64 within
+    1e-9, at rest (zero velocity: no vector to build a frame from) and moving."""
+    from groupcanon.groups import CyclicSE2
+
+    cbf, pol = _perturbed_nets("egcbf+", name)
+    env_cfg = EnvConfig.for_robot(name, num_agents=6, num_obstacles=2, num_envs=1, area_size=1.2)
+    env = SwarmEnv(env_cfg, dtype=F64)
+    state = env.reset(seed)
+    robot = env_cfg.make_robot()
+    for _ in range(4 if moving else 0):
+        state, _ = env.step(state, robot.nominal_control(state.x, state.goals))
+    group = CyclicSE2(4)
+    g = torch.cat((group.rotation_element(torch.tensor([k]), dtype=F64)[:, :2], torch.tensor([t], dtype=F64)), -1)
+    moved = state.transform(g)
+    with torch.no_grad():
+        a, b = build_graph(state, env_cfg), build_graph(moved, env_cfg)
+        assert a.frames_per_agent == 4
+        assert (cbf(a) - cbf(b)).abs().max() <= 1e-9
+        rotate = FieldType(group, [Vector(2)])
+        pa, pb = pol(a).view(6, 2), pol(b).view(6, 2)
+        assert (rotate.act(g.expand(6, 4), pa) - pb).abs().max() <= 1e-9
+
+
+def test_gcbf_plus_is_not_c4_equivariant():
+    """The same test fails for GCBF+ (the world-frame networks) under a quarter turn: the test can fail."""
+    from groupcanon.groups import CyclicSE2
+
+    pol = _perturbed_nets("gcbf+")[1]
+    env_cfg = EnvConfig.for_robot("double_integrator", num_agents=6, num_obstacles=2, num_envs=1, area_size=1.2)
+    state = SwarmEnv(env_cfg, dtype=F64).reset(3)
+    g = CyclicSE2(4).rotation_element(torch.tensor([1]), dtype=F64)
+    with torch.no_grad():
+        pa = pol(build_graph(state, env_cfg)).view(6, 2)
+        pb = pol(build_graph(state.transform(g), env_cfg)).view(6, 2)
+    assert (FieldType(CyclicSE2(4), [Vector(2)]).act(g.expand(6, 4), pa) - pb).abs().max() > 1e-4
+
+
+def test_a_wrong_frame_set_is_caught():
+    from egcbf.robots.checks import check_robot
+
+    class Shifted(DoubleIntegrator):
+        name = "shifted-double-integrator-for-test"
+
+        def frames(self, x):
+            f = super().frames(x)
+            return torch.cat((f[..., :2], f[..., 2:] + torch.tensor([0.1, 0.0], dtype=x.dtype)), -1)  # world-fixed
+
+    with pytest.raises(AssertionError, match="frames"):
+        check_robot(Shifted(), seed=0)

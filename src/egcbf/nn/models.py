@@ -27,6 +27,7 @@ CBF and policy are separate networks (GCBF+), each with its own graph layer.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass
 
 import torch
@@ -34,7 +35,7 @@ from torch import Tensor, nn
 
 from groupcanon import Canonicalize, FieldType, Group
 from groupcanon.features import Scalar, Vector
-from groupcanon.groups import SE2, SE2xR, Trivial
+from groupcanon.groups import SE2, CyclicSE2, SE2xR, Trivial
 
 from ..graph import KIND_GOAL, SwarmGraph
 from ..robots import make_robot
@@ -56,11 +57,12 @@ __all__ = [
     "sensing",
 ]
 
-GROUPS = {"se2xr": SE2xR, "se2": SE2, "trivial": Trivial}
+GROUPS = {"se2xr": SE2xR, "se2": SE2, "se2c4": functools.partial(CyclicSE2, 4), "trivial": Trivial}
 
 
 def make_group(name: str) -> Group:
-    """The group of a config name: ``"se2xr"``, ``"se2"`` or ``"trivial"``."""
+    """The group of a config name: ``"se2xr"``, ``"se2"``, ``"se2c4"`` (rotations by multiples of 90 degrees and
+    planar translations: the networks average over each agent's four frames) or ``"trivial"``."""
     try:
         return GROUPS[name]()
     except KeyError:
@@ -326,7 +328,11 @@ class CBFNet(nn.Module):
         return self.head(z).squeeze(-1)
 
     def raw(self, graph: SwarmGraph) -> Tensor:
-        """The pre-``tanh`` value ``(M,)`` (mirror-averaged with ``cbf_z_symmetric``)."""
+        """The pre-``tanh`` value ``(M,)`` (mirror-averaged with ``cbf_z_symmetric``; averaged over each agent's
+        frames when it has several, :meth:`egcbf.graph.SwarmGraph.expand_frames`)."""
+        f = graph.frames_per_agent
+        if f > 1:
+            return self.raw(graph.expand_frames()).view(-1, f).mean(1)
         out = self._value(graph)
         if self.config.cbf_z_symmetric:
             out = 0.5 * (out + self._value(graph.reflect_z()))
@@ -368,7 +374,9 @@ class PolicyNet(nn.Module):
             )  # fmt: skip
 
     def raw(self, graph: SwarmGraph) -> Tensor:
-        """The pre-``tanh`` output ``(M, k)`` in the agents' own frames."""
+        """The pre-``tanh`` output ``(M, k)`` in the agents' own frames (one frame per agent)."""
+        if graph.frames_per_agent > 1:
+            raise ValueError("PolicyNet.raw is per frame: with several frames per agent, call the policy itself")
         z = self.encoder(graph)
         out = self.head(z)
         if self.edge_head is not None:
@@ -376,6 +384,10 @@ class PolicyNet(nn.Module):
         return out
 
     def forward(self, graph: SwarmGraph) -> Tensor:
+        f = graph.frames_per_agent
+        if f > 1:  # frame averaging: the world-frame outputs of each agent's frames, averaged
+            out = self(graph.expand_frames())
+            return out.view(-1, f, out.shape[-1]).mean(1)
         out = self.out_type.act(frames_for(self.encoder.group, graph), torch.tanh(self.raw(graph)))
         if self.config.policy_gate_isolated:
             out = out * sensing(graph).to(out.dtype)[:, None]

@@ -58,6 +58,9 @@ class Robot:
     group_name: ClassVar[str] = ""
     #: command interfaces the learned methods may use; the first is the default
     interfaces: ClassVar[tuple[str, ...]] = ()
+    #: whether the LiDAR rays are fixed in the world frame (``heading`` then is a constant, not a vector of the
+    #: group; the ray pattern must be invariant under the group's rotations instead)
+    world_fixed_lidar: ClassVar[bool] = False
     #: :class:`egcbf.env.EnvConfig` defaults for this robot (fields not named keep the EnvConfig defaults)
     env_defaults: ClassVar[dict[str, Any]] = {}
 
@@ -117,7 +120,9 @@ class Robot:
         raise _not_implemented(self, "heading")
 
     def frames(self, x: Tensor) -> Tensor:
-        """The agents' frames ``(*batch, *group.element_shape)``: ``frames(phi_g x) = g frames(x)``."""
+        """The agents' frames ``(*batch, *group.element_shape)``: ``frames(phi_g x) = g frames(x)``. A robot of a
+        finite-rotation group may instead give each agent a set of ``F`` frames, ``(*batch, F, *element_shape)``,
+        with ``frames(phi_g x) = g frames(x)`` as sets; the networks then average over them."""
         raise _not_implemented(self, "frames")
 
     def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:

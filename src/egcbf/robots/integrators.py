@@ -21,10 +21,14 @@ equation of ``A = I``, ``B = dt I``, ``Q = 2 I``, ``R = I`` (single: ``K = 1.384
 ``A = I + dt [[0, I], [0, 0]]``, ``B = dt [0; I / m]``, ``Q = 5 I``, ``R = I`` (double: ``1.585`` on the position
 error, ``1.706`` on the velocity error, per axis).
 
-Symmetry: the per-axis boxes and clips are invariant only under the rotations by multiples of 90 degrees (and
-translations), and a point mass carries no heading from which to build a frame. Until the frame-averaged networks
-for such groups exist, these robots declare the trivial group: EGCBF+ equals GCBF+ on them. LiDAR rays are fixed in
-the world frame (:meth:`heading` is the world x axis), as in the reference.
+Symmetry: the per-axis boxes and clips are invariant only under the rotations by multiples of 90 degrees and the
+planar translations, ``C4 x| R^2`` (:class:`groupcanon.groups.CyclicSE2` ``(4)``; config name ``"se2c4"``), and a
+point mass carries no heading from which to build a frame (a velocity vanishes at rest). So each agent gets the set of
+its four frames, the rotations by ``k 90`` degrees at its position (:func:`groupcanon.frames.cyclic_frames`), and
+the equivariant networks average over them (:meth:`egcbf.graph.SwarmGraph.expand_frames`): exact at every state,
+zero velocity included, for four times the network's work. LiDAR rays are fixed in the world frame, as in the
+reference (:meth:`heading` is the world x axis): with a number of rays divisible by 4 the ray set is invariant under
+the group, so the hits move with the scene.
 """
 
 from __future__ import annotations
@@ -39,7 +43,8 @@ from torch import Tensor
 
 from groupcanon import FieldType
 from groupcanon.features import Point, Vector
-from groupcanon.groups import Trivial
+from groupcanon.frames import cyclic_frames
+from groupcanon.groups import CyclicSE2
 
 from .base import Robot, rk4_step
 
@@ -91,19 +96,21 @@ def discrete_lqr(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray) -> 
 
 
 class _PointMass(Robot):
-    """What the two integrators share: planar positions, world-fixed heading, trivial frames, the LQR law."""
+    """What the two integrators share: planar positions, world-fixed LiDAR, the four C4 frames, the LQR law."""
 
     dim = 2
     control_dim = 2
-    group_name = "trivial"
+    group_name = "se2c4"
     interfaces = ("control",)
     env_defaults: ClassVar[dict] = _PLANAR_DEFAULTS
+    #: the LiDAR rays are fixed in the world (``heading`` is no vector of the group): check_robot skips that claim
+    world_fixed_lidar: ClassVar[bool] = True
 
     def __init__(self, params: IntegratorParams | None = None):
         if params is not None and not isinstance(params, IntegratorParams):
             raise TypeError(f"{type(self).__name__} params must be an IntegratorParams, got {type(params).__name__}")
         self.params = IntegratorParams() if params is None else params
-        self.group = Trivial()
+        self.group = CyclicSE2(4)
         self._gain = torch.as_tensor(self._lqr_gain(), dtype=torch.float64)  # (2, state_dim)
 
     def _lqr_gain(self) -> np.ndarray:
@@ -138,7 +145,8 @@ class _PointMass(Robot):
         return out
 
     def frames(self, x: Tensor) -> Tensor:
-        return self.group.identity(*x.shape[:-1], dtype=x.dtype, device=x.device)
+        """Each agent's four frames ``(*batch, 4, 4)`` (module doc): a frame set, averaged over by the networks."""
+        return cyclic_frames(4, self.positions(x))
 
     @property
     def node_fields(self) -> dict:

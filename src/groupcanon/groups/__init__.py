@@ -3,10 +3,22 @@
 from .cyclic import Cyclic
 from .o2 import O2
 from .product import Product
-from .se2 import SE2, SE2xR
+from .se2 import SE2, CyclicSE2, SE2xR
 from .so2 import SO2
 from .so3 import SE3, SO3
 from .translation import Translation
 from .trivial import Trivial
 
-__all__ = ["O2", "SE2", "SE3", "SO2", "SO3", "Cyclic", "Product", "SE2xR", "Translation", "Trivial"]
+__all__ = [
+    "O2",
+    "SE2",
+    "SE3",
+    "SO2",
+    "SO3",
+    "Cyclic",
+    "CyclicSE2",
+    "Product",
+    "SE2xR",
+    "Translation",
+    "Trivial",
+]

@@ -1,8 +1,9 @@
-"""SE(2) and SE(2) x R: planar rotations (about z) with 2-D or 3-D translations.
+"""SE(2) and SE(2) x R: planar rotations (about z) with 2-D or 3-D translations; CyclicSE2(n), the rotations by
+multiples of 2 pi / n with all planar translations.
 
 Element layouts:
-    SE2:   ``(*batch, 4) = (cos theta, sin theta, tx, ty)``
-    SE2xR: ``(*batch, 5) = (cos theta, sin theta, tx, ty, tz)``
+    SE2, CyclicSE2:   ``(*batch, 4) = (cos theta, sin theta, tx, ty)``
+    SE2xR:            ``(*batch, 5) = (cos theta, sin theta, tx, ty, tz)``
 
 ``g = (theta, t)`` acts on points by ``p -> R_z(theta) p + t`` and on vectors by ``v -> R_z(theta) v``.
 SE2xR is the paper's symmetry group G-bar of a quadrotor under gravity: rotations about the world z axis and
@@ -10,6 +11,8 @@ all 3-D translations (a subgroup of SE(3), isomorphic to SE(2) x R).
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -27,7 +30,7 @@ from ._util import (
     uniform_angle,
 )
 
-__all__ = ["SE2", "SE2xR"]
+__all__ = ["SE2", "CyclicSE2", "SE2xR"]
 
 
 class _PlanarRigid(Group):
@@ -147,3 +150,54 @@ class SE2xR(_PlanarRigid):
     """
 
     space_dim = 3
+
+
+class CyclicSE2(SE2):
+    """The subgroup of SE(2) of rotations by multiples of ``2 pi / n`` and all planar translations (``C_n`` x| R^2).
+    Same layout and actions as :class:`SE2`, so every SE(2) feature applies.
+
+    The symmetry of a planar robot whose actuator box or state limits are per axis (GCBF+'s point masses: ``n = 4``).
+    It is a finite extension of the translations: no frame can be built continuously from a vector, and
+    :func:`groupcanon.frames.cyclic_frames` gives every agent its ``n`` frames to average over instead.
+    """
+
+    def __init__(self, n: int, translation_scale: float = 10.0):
+        if int(n) != n or n < 1:
+            raise ValueError(f"CyclicSE2(n) needs a positive integer n, got {n!r}")
+        super().__init__(translation_scale)
+        self.n = int(n)
+
+    def rotation_element(self, k: Tensor, dtype=None) -> Tensor:
+        """The rotations by ``2 pi k / n`` (no translation), ``(*k.shape, 4)``, for integer ``k``."""
+        theta = (2 * math.pi / self.n) * k.to(torch.float64)
+        cs = angle_to_cs(theta).to(dtype if dtype is not None else torch.get_default_dtype())
+        return torch.cat((cs, cs.new_zeros(*cs.shape[:-1], 2)), -1)
+
+    def membership_residual(self, g: Tensor) -> Tensor:
+        """SE(2)'s residual plus the distance of the rotation to the nearest multiple of ``2 pi / n``."""
+        res = super().membership_residual(g)
+        theta = torch.atan2(g[..., 1], g[..., 0])
+        k = torch.round(theta * (self.n / (2 * math.pi)))
+        nearest = angle_to_cs(k * (2 * math.pi / self.n))
+        return res + (g[..., :2] - nearest).abs().amax(-1)
+
+    def sample(self, *batch, generator=None, dtype=None, device=None) -> Tensor:
+        k = torch.randint(0, self.n, batch, generator=generator, device=device)
+        rot = self.rotation_element(k, dtype=dtype).to(device)
+        t = gaussian(batch, 2, self.translation_scale, generator, rot.dtype, device)
+        return torch.cat((rot[..., :2], t), dim=-1)
+
+    def special_elements(self, dtype=None, device=None) -> Tensor:
+        ks = torch.tensor(sorted({0, 1 % self.n, self.n // 2, self.n - 1}), device=device)
+        rot = self.rotation_element(ks, dtype=dtype).to(device)
+        rot[:, 2] = torch.linspace(-1, 1, len(ks), dtype=rot.dtype, device=device) * self.translation_scale
+        return rot
+
+    def exp(self, xi: Tensor) -> Tensor:
+        raise NotImplementedError(f"{self!r} is not connected: it has no exponential map")
+
+    def log(self, g: Tensor) -> Tensor:
+        raise NotImplementedError(f"{self!r} is not connected: it has no logarithm")
+
+    def __repr__(self) -> str:
+        return f"CyclicSE2({self.n}, translation_scale={self.translation_scale:g})"

@@ -169,3 +169,27 @@ def test_a_wrong_frame_set_is_caught():
 
     with pytest.raises(AssertionError, match="frames"):
         check_robot(Shifted(), seed=0)
+
+
+@pytest.mark.parametrize("name", ["double_integrator", "quadrotor"])
+@given(seed=st.integers(0, 2**16), travel=st.floats(0.3, 2.0))
+@settings(max_examples=6, deadline=None)
+def test_max_travel_keeps_each_goal_near_its_start(name, seed, travel):
+    """GCBF+'s --max-travel: every goal within max_travel of its own start, inside the arena, still separated from
+    the other goals and clear of the obstacles (the sampler's rules)."""
+    cfg = EnvConfig.for_robot(name, num_agents=24, num_envs=2, num_obstacles=3, area_size=3.0, max_travel=travel)
+    state = SwarmEnv(cfg, dtype=F64).reset(seed)
+    robot = cfg.make_robot()
+    start, goal = robot.positions(state.x), state.goals
+    assert float((goal - start).norm(dim=-1).max()) <= travel + 1e-12
+    assert float(goal.min()) >= 0 and float(goal.max()) <= 3.0
+    gap = (goal[:, :, None] - goal[:, None]).norm(dim=-1) + 10 * torch.eye(24, dtype=F64)
+    assert float(gap.min()) > cfg.start_separation * cfg.agent_radius
+    assert not bool(state.obstacles.inside(goal, cfg.obstacle_clearance * cfg.agent_radius).any())
+
+
+def test_max_travel_is_checked():
+    with pytest.raises(ValueError, match="max_travel"):
+        EnvConfig.for_robot("double_integrator", num_agents=4, max_travel=0.0)
+    with pytest.raises(ValueError, match="max_travel"):
+        EnvConfig.for_robot("double_integrator", num_agents=4, max_travel=1.0, scene="crossing")

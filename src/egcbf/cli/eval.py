@@ -147,6 +147,7 @@ def run_eval(
     filter_margin: float | None = None,
     scene: str = "uniform",
     scene_yaw: float = 0.0,
+    max_travel: float | None = None,
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -210,6 +211,11 @@ def run_eval(
     require(math.isfinite(scene_yaw), f"--scene-yaw must be a finite number of degrees, got {scene_yaw}")
     if scene != "uniform" or scene_yaw != 0:  # else the environment's defaults, as every earlier run recorded them
         env_overrides = {**(env_overrides or {}), "scene": scene, "scene_yaw": float(scene_yaw)}
+    require(max_travel is None or (math.isfinite(max_travel) and max_travel > 0),
+            f"--max-travel must be a number > 0 (m), got {max_travel}")  # fmt: skip
+    require(max_travel is None or scene == "uniform", "--max-travel needs --scene uniform")
+    if max_travel is not None:
+        env_overrides = {**(env_overrides or {}), "max_travel": float(max_travel)}
     configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides, robot)
     if checkpoint is not None:
         check_policy_memory(configs, episodes, batch, train_cfg.model.hidden, dev)
@@ -228,6 +234,7 @@ def run_eval(
         "area": area,
         "obstacles": obstacles,
         **({"scene": scene, "scene_yaw": float(scene_yaw)} if scene != "uniform" or scene_yaw != 0 else {}),
+        **({"max_travel": float(max_travel)} if max_travel is not None else {}),
         "episodes": episodes,
         "seed": seed,
         "wall_s": 0.0,
@@ -340,6 +347,10 @@ def eval_cmd(
         float,
         typer.Option(help="rotate every sampled scene by this many degrees about the arena's vertical centre axis"),
     ] = 0.0,
+    max_travel: Annotated[
+        float | None,
+        typer.Option(help="each goal within this distance (m) of its agent's start (GCBF+'s --max-travel)"),
+    ] = None,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)
@@ -368,4 +379,5 @@ def eval_cmd(
             filter_margin=filter_margin,
             scene=scene.value,
             scene_yaw=scene_yaw,
+            max_travel=max_travel,
         )

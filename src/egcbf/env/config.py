@@ -55,6 +55,8 @@ class EnvConfig:
             and the paper's) or ``"crossing"`` (starts in ``x < l / 2``, goals in ``x > l / 2``).
         scene_yaw: degrees; the sampled scene (starts, goals, obstacles, yaws) rotated about the vertical axis
             through the arena's centre (:mod:`egcbf.env.scenes`), for the rotated-world test.
+        max_travel: ``None`` (goals anywhere in the arena) or ``> 0`` (m): each goal within this distance of its own
+            start (GCBF+'s ``--max-travel``; uniform scene only).
         robot: the robot's name (:data:`egcbf.robots.ROBOTS`); ``make_robot()`` builds it.
         params: the robot's parameters (``None``: its defaults; for the quadrotor a ``QuadrotorParams``).
     """
@@ -80,6 +82,7 @@ class EnvConfig:
     max_sampling_rounds: int = 200
     scene: str = "uniform"
     scene_yaw: float = 0.0
+    max_travel: float | None = None
     params: Any = None
     robot: str = "quadrotor"
 
@@ -125,6 +128,9 @@ class EnvConfig:
         )
         need(self.scene in SCENES, "scene", f"one of {SCENES}")
         need(_is_num(self.scene_yaw), "scene_yaw", "a finite number (degrees)")
+        need(self.max_travel is None or (_is_num(self.max_travel) and self.max_travel > 0), "max_travel",
+             "None or a number > 0 (m)")  # fmt: skip
+        need(self.max_travel is None or self.scene == "uniform", "max_travel", "None with a non-uniform scene")
         try:
             robot = make_robot(self.robot, self.params)
         except (ValueError, TypeError) as err:

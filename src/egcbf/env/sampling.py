@@ -73,6 +73,8 @@ def sample_separated_points(
     max_rounds: int = 200,
     dim: int = 3,
     box: tuple[tuple[float, float], ...] | None = None,
+    anchors: Tensor | None = None,
+    max_offset: float | None = None,
 ) -> Tensor:
     """Sample ``(num_envs, num_sets, num_points, dim)`` points in ``[0, l]^dim`` (world frame), or in ``box`` (``dim``
     pairs ``(low, high)``, metres) if given; each set of each environment is separated.
@@ -83,6 +85,10 @@ def sample_separated_points(
 
     Sets are independent (e.g. set 0 = start positions, set 1 = goals: a start may coincide with another agent's
     goal, as in GCBF+). Runs on the CPU with ``generator`` (reproducible); move the result with ``.to``.
+
+    ``anchors`` ``(num_envs, num_sets, num_points, dim)`` with ``max_offset`` (m): each point within ``max_offset`` of
+    its anchor (GCBF+'s goals within ``max_travel`` of their starts): its candidates are the anchor plus a uniform
+    offset in ``[-max_offset, max_offset]^dim``, kept if inside the region and within the distance.
 
     Raises:
         ValueError: if the points cannot be placed (message names N, l and the separation).
@@ -112,6 +118,14 @@ def sample_separated_points(
             "or obstacles, or a smaller agent_radius."
         )
 
+    if (anchors is None) != (max_offset is None):
+        raise ValueError("anchors and max_offset go together: pass both or neither")
+    if anchors is not None:
+        if tuple(anchors.shape) != (b, s, n, dim):
+            raise ValueError(f"anchors must be {(b, s, n, dim)}, got {tuple(anchors.shape)}")
+        if not float(max_offset) > 0:
+            raise ValueError(f"max_offset must be > 0, got {max_offset!r}")
+        anchors = anchors.to(dtype=dtype, device="cpu").reshape(b * s * n, dim)
     if not packing_feasible(n, l, sep, dim, extents):
         raise fail(f"even the densest {'sphere' if dim == 3 else 'disc'} packing cannot hold them")
     obstacles = obstacles.to(dtype=dtype, device="cpu")
@@ -131,9 +145,17 @@ def sample_separated_points(
         per = int(min(64, max(1, -(-total // u))))
         cand_slot = todo.repeat_interleave(per)
         cand = torch.rand(u * per, dim, generator=generator, dtype=dtype)
-        cand = cand * l if box is None else low + cand * width
+        if anchors is not None:  # around each slot's anchor, inside the region and within the distance
+            cand = anchors[cand_slot] + (2 * cand - 1) * float(max_offset)
+            lo_r = torch.zeros(dim, dtype=dtype) if box is None else low
+            hi_r = torch.full((dim,), l, dtype=dtype) if box is None else low + width
+            inside = ((cand >= lo_r) & (cand <= hi_r)).all(-1)
+            inside &= (cand - anchors[cand_slot]).norm(dim=-1) <= float(max_offset)
+        else:
+            cand = cand * l if box is None else low + cand * width
+            inside = torch.ones(u * per, dtype=torch.bool)
         pi, _ = obstacles.near_pairs_flat(cand, env[cand_slot], obstacle_margin)
-        clear = torch.ones(u * per, dtype=torch.bool)
+        clear = inside.clone()
         clear[pi] = False
         cand, cand_slot = cand[clear], cand_slot[clear]
         c = cand.shape[0]

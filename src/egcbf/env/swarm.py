@@ -275,7 +275,12 @@ class SwarmEnv:
         boxes = scene_boxes(c.scene, c.area_size, d)
         sampling = dict(generator=gen, dtype=f64, max_rounds=c.max_sampling_rounds, dim=d)
         args = (c.area_size, c.start_separation * c.agent_radius, obstacles, c.obstacle_clearance * c.agent_radius)
-        if boxes is None:  # starts and goals drawn together (the generator stream of every earlier release)
+        if c.max_travel is not None:  # starts first, then each goal within max_travel of its own start
+            starts = sample_separated_points(c.num_envs, 1, c.num_agents, *args, **sampling)
+            goals = sample_separated_points(c.num_envs, 1, c.num_agents, *args, anchors=starts,
+                                            max_offset=c.max_travel, **sampling)  # fmt: skip
+            pts = torch.cat((starts, goals), 1)
+        elif boxes is None:  # starts and goals drawn together (the generator stream of every earlier release)
             pts = sample_separated_points(c.num_envs, 2, c.num_agents, *args, **sampling)
         else:
             sets = [sample_separated_points(c.num_envs, 1, c.num_agents, *args, box=b, **sampling) for b in boxes]

@@ -80,17 +80,23 @@ def se3_frame(a: Tensor, b: Tensor, position: Tensor, eps: float = 1e-12) -> Ten
 
 
 def cyclic_frames(n: int, position: Tensor) -> Tensor:
-    """The ``n`` frames of a point at ``position`` ``(*batch, 2)`` under :class:`~groupcanon.groups.CyclicSE2(n)`:
-    ``(*batch, n, 4)``, the rotations by ``2 pi k / n`` (``k = 0 .. n-1``) translated to the point.
+    """The ``n`` frames of a point at ``position`` ``(*batch, d)``, ``d = 2`` (:class:`~groupcanon.groups.CyclicSE2`)
+    or ``d = 3`` (:class:`~groupcanon.groups.CyclicSE2xR`): ``(*batch, n, 2 + d)``, the rotations (about z) by
+    ``2 pi k / n`` (``k = 0 .. n-1``) translated to the point.
 
     For frame averaging: a layer canonicalized in each of these frames and averaged over them is equivariant, since
     ``g`` maps the set of frames of a point onto the set of frames of the moved point (``g . F(p) = F(g . p)`` as
     sets: the rotation index shifts cyclically). No vector is needed, so nothing degenerates at zero velocity.
     """
-    _check_vectors("cyclic_frames", "position", position, 2)
+    if not isinstance(position, Tensor):
+        raise TypeError(f"cyclic_frames() argument position must be a torch.Tensor, got {type(position).__name__}")
+    if position.dim() == 0 or position.shape[-1] not in (2, 3):
+        raise ValueError(
+            f"cyclic_frames() argument position has shape {tuple(position.shape)}, expected (*batch, 2 or 3)"
+        )
     if int(n) != n or n < 1:
         raise ValueError(f"cyclic_frames() needs a positive integer n, got {n!r}")
     theta = torch.arange(int(n), dtype=torch.float64, device=position.device) * (2 * math.pi / int(n))
     cs = torch.stack((torch.cos(theta), torch.sin(theta)), -1).to(position.dtype)  # (n, 2)
-    cs = cs.expand(*position.shape[:-1], int(n), 2)
-    return torch.cat((cs, position[..., None, :].expand(*position.shape[:-1], int(n), 2)), -1)
+    batch, d = position.shape[:-1], position.shape[-1]
+    return torch.cat((cs.expand(*batch, int(n), 2), position[..., None, :].expand(*batch, int(n), d)), -1)

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.graph import build_graph
-from egcbf.robots import DoubleIntegrator, IntegratorParams, SingleIntegrator, make_robot
+from egcbf.robots import DoubleIntegrator, IntegratorParams, LinearDrone, SingleIntegrator, make_robot
 from groupcanon import FieldType
 from groupcanon.features import Vector
 
@@ -19,7 +19,15 @@ F64 = torch.float64
 
 
 def test_lqr_gains_are_the_references():
-    """K from the discrete Riccati equation of the reference's A, B, Q, R (values read from its code)."""
+    """K from the discrete Riccati equation of the reference's A, B, Q, R (values read from its code; the linear
+    drone's mixes the exactly discretized A with the continuous B, as the reference does)."""
+    k = LinearDrone()._gain
+    expected = torch.zeros(3, 6, dtype=F64)
+    expected[0, 0] = expected[1, 1] = 0.6312
+    expected[2, 2] = 0.6365
+    expected[0, 3] = expected[1, 4] = 0.1146
+    expected[2, 5] = 0.1003
+    assert torch.allclose(k, expected, atol=1e-4)
     assert torch.allclose(SingleIntegrator()._gain, 1.3845 * torch.eye(2, dtype=F64), atol=1e-4)
     k = DoubleIntegrator()._gain
     expected = torch.tensor([[1.585, 0, 1.706, 0], [0, 1.585, 0, 1.706]], dtype=F64)
@@ -38,6 +46,11 @@ def test_one_euler_step_is_the_references():
     assert torch.allclose(got, torch.tensor([[1.03, 1.9925]], dtype=F64), atol=1e-15, rtol=0)
     with pytest.raises(ValueError, match="unknown integrator"):
         di.step(x, u, 0.03, integrator="midpoint")
+    drone = LinearDrone()  # v + dt (-D v + 10 u), D = diag(1.1, 1.1, 6), then clipped; p + dt v (the old v)
+    x = torch.tensor([[0.0, 0.0, 0.0, 0.4, -0.3, 0.1]], dtype=F64)
+    got = drone.step(x, torch.tensor([[1.0, 0.5, -1.0]], dtype=F64), 0.03)
+    want = torch.tensor([[0.012, -0.009, 0.003, 0.5, -0.3 + 0.03 * (0.33 + 5), 0.1 + 0.03 * (-0.6 - 10)]], dtype=F64)
+    assert torch.allclose(got, want, atol=1e-15, rtol=0)
 
 
 def test_the_nominal_law():
@@ -54,7 +67,7 @@ def test_the_nominal_law():
     assert torch.isfinite(di.nominal_control(x.new_zeros(1, 4), x.new_zeros(1, 2))).all()  # e = 0: no NaN
 
 
-@pytest.mark.parametrize("name", ["single_integrator", "double_integrator"])
+@pytest.mark.parametrize("name", ["single_integrator", "double_integrator", "linear_drone"])
 @given(seed=st.integers(0, 2**16))
 @settings(max_examples=5, deadline=None)
 def test_the_nominal_controller_reaches_its_goals_within_the_box(name, seed):
@@ -67,16 +80,17 @@ def test_the_nominal_controller_reaches_its_goals_within_the_box(name, seed):
         u = robot.nominal_control(state.x, state.goals)
         assert bool(((u >= lo) & (u <= hi)).all())
         state, _ = env.step(state, u)
-        if name == "double_integrator":
-            assert float(state.x[..., 2:].abs().max()) <= 0.5
+        if name != "single_integrator":
+            assert float(robot.velocities(state.x).abs().max()) <= 0.5
     assert float((robot.positions(state.x) - state.goals).norm(dim=-1).max()) < 2 * cfg.agent_radius
 
 
 def test_the_reference_environment_defaults():
-    for name in ("single_integrator", "double_integrator"):
+    for name, dim in (("single_integrator", 2), ("double_integrator", 2), ("linear_drone", 3)):
         cfg = EnvConfig.for_robot(name, num_agents=4)
         assert (cfg.dt, cfg.integrator, cfg.agent_radius, cfg.comm_radius) == (0.03, "euler", 0.05, 0.5)
-        assert (cfg.n_rays, cfg.max_steps, cfg.dim) == (32, 256, 2)
+        assert (cfg.n_rays, cfg.max_steps, cfg.dim) == (32, 256, dim)
+    assert EnvConfig.for_robot("linear_drone", num_agents=4).obstacle_radius_range == (0.075, 0.15)
     robot = make_robot("double_integrator")
     x = torch.rand(5, 4, dtype=F64)
     assert torch.equal(robot.heading(x), torch.tensor([1.0, 0.0], dtype=F64).expand(5, 2))  # world-fixed rays
@@ -84,7 +98,7 @@ def test_the_reference_environment_defaults():
         IntegratorParams(mass=0.0)
 
 
-@pytest.mark.parametrize("name", ["single_integrator", "double_integrator"])
+@pytest.mark.parametrize("name", ["single_integrator", "double_integrator", "linear_drone"])
 def test_the_pipeline_runs(name, tmp_path):
     from egcbf.algo import GraphCBFLearner
     from egcbf.evaluate import evaluate
@@ -96,7 +110,7 @@ def test_the_pipeline_runs(name, tmp_path):
     assert all(torch.isfinite(torch.as_tensor(v)).all() for v in info.values() if isinstance(v, (int, float)))
     env_cfg = EnvConfig.for_robot(name, num_agents=6, num_obstacles=2, num_envs=1, max_steps=20)
     graph = build_graph(SwarmEnv(env_cfg).reset(0), env_cfg)
-    assert graph.edge_attr.shape[1] == 2
+    assert graph.edge_attr.shape[1] == env_cfg.dim
     rows, _ = evaluate(lambda _cfg: learner.controller(), [6], area_size=1.5, num_obstacles=2, episodes=1,
                        max_steps=20, show_progress=False, robot=name)  # fmt: skip
     assert 0.0 <= rows[0]["safe_rate"] <= 1.0 and rows[0]["num_agents"] == 6
@@ -114,16 +128,14 @@ def _perturbed_nets(algo: str, name: str = "double_integrator"):
     return cbf, pol
 
 
-@pytest.mark.parametrize("name", ["single_integrator", "double_integrator"])
-@given(seed=st.integers(0, 2**16), k=st.integers(0, 3), t=st.tuples(st.floats(-3, 3), st.floats(-3, 3)),
+@pytest.mark.parametrize("name", ["single_integrator", "double_integrator", "linear_drone"])
+@given(seed=st.integers(0, 2**16), k=st.integers(0, 3), t=st.lists(st.floats(-3, 3), min_size=3, max_size=3),
        moving=st.booleans())  # fmt: skip
 @settings(max_examples=12, deadline=None)
 def test_egcbf_plus_is_c4_equivariant_at_every_state(name, seed, k, t, moving):
     """EGCBF+ averaged over each agent's four frames: the CBF is invariant and the policy's command (a world-frame
-    vector) rotates with the scene, under every rotation by a multiple of 90 degrees and translation, float64 within
-    1e-9, at rest (zero velocity: no vector to build a frame from) and moving."""
-    from groupcanon.groups import CyclicSE2
-
+    vector) rotates with the scene, under every quarter turn (about z) and translation, float64 within 1e-9, at rest
+    (zero velocity: no vector to build a frame from) and moving."""
     cbf, pol = _perturbed_nets("egcbf+", name)
     env_cfg = EnvConfig.for_robot(name, num_agents=6, num_obstacles=2, num_envs=1, area_size=1.2)
     env = SwarmEnv(env_cfg, dtype=F64)
@@ -131,16 +143,16 @@ def test_egcbf_plus_is_c4_equivariant_at_every_state(name, seed, k, t, moving):
     robot = env_cfg.make_robot()
     for _ in range(4 if moving else 0):
         state, _ = env.step(state, robot.nominal_control(state.x, state.goals))
-    group = CyclicSE2(4)
-    g = torch.cat((group.rotation_element(torch.tensor([k]), dtype=F64)[:, :2], torch.tensor([t], dtype=F64)), -1)
+    group, d = robot.group, robot.dim
+    g = torch.cat((group.rotation_element(torch.tensor([k]), dtype=F64)[:, :2], torch.tensor([t[:d]], dtype=F64)), -1)
     moved = state.transform(g)
     with torch.no_grad():
         a, b = build_graph(state, env_cfg), build_graph(moved, env_cfg)
         assert a.frames_per_agent == 4
         assert (cbf(a) - cbf(b)).abs().max() <= 1e-9
-        rotate = FieldType(group, [Vector(2)])
-        pa, pb = pol(a).view(6, 2), pol(b).view(6, 2)
-        assert (rotate.act(g.expand(6, 4), pa) - pb).abs().max() <= 1e-9
+        rotate = FieldType(group, [Vector(d)])
+        pa, pb = pol(a).view(6, d), pol(b).view(6, d)
+        assert (rotate.act(g.expand(6, g.shape[-1]), pa) - pb).abs().max() <= 1e-9
 
 
 def test_gcbf_plus_is_not_c4_equivariant():

@@ -41,6 +41,7 @@ def all_groups() -> list[gg.Group]:
         gg.Cyclic(5),
         gg.Cyclic(6),
         gg.CyclicSE2(4),
+        gg.CyclicSE2xR(4),
         gg.Translation(2),
         gg.Product(gg.SE2(), gg.Translation(1)),
         gg.Product(gg.SO2(), gg.SO3()),

@@ -26,6 +26,7 @@ ELEMENT_SHAPES = {
     "Cyclic(5)": (2,),
     "Cyclic(6)": (2,),
     "CyclicSE2(4)": (4,),
+    "CyclicSE2xR(4)": (5,),
     "Translation(2)": (2,),
     "Product(SE2, Translation(1))": (5,),
     "Product(SO2, SO3)": (11,),

@@ -91,6 +91,7 @@ class RobotName(str, Enum):
     unicycle = "unicycle"
     single_integrator = "single_integrator"
     double_integrator = "double_integrator"
+    linear_drone = "linear_drone"
 
 
 class Dtype(str, Enum):

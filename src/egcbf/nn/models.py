@@ -35,7 +35,7 @@ from torch import Tensor, nn
 
 from groupcanon import Canonicalize, FieldType, Group
 from groupcanon.features import Scalar, Vector
-from groupcanon.groups import SE2, CyclicSE2, SE2xR, Trivial
+from groupcanon.groups import SE2, CyclicSE2, CyclicSE2xR, SE2xR, Trivial
 
 from ..graph import KIND_GOAL, SwarmGraph
 from ..robots import make_robot
@@ -57,12 +57,19 @@ __all__ = [
     "sensing",
 ]
 
-GROUPS = {"se2xr": SE2xR, "se2": SE2, "se2c4": functools.partial(CyclicSE2, 4), "trivial": Trivial}
+GROUPS = {
+    "se2xr": SE2xR,
+    "se2": SE2,
+    "se2c4": functools.partial(CyclicSE2, 4),
+    "se2xrc4": functools.partial(CyclicSE2xR, 4),
+    "trivial": Trivial,
+}
 
 
 def make_group(name: str) -> Group:
-    """The group of a config name: ``"se2xr"``, ``"se2"``, ``"se2c4"`` (rotations by multiples of 90 degrees and
-    planar translations: the networks average over each agent's four frames) or ``"trivial"``."""
+    """The group of a config name: ``"se2xr"``, ``"se2"``, ``"se2c4"`` / ``"se2xrc4"`` (rotations about z by
+    multiples of 90 degrees with planar / 3-D translations: the networks average over each agent's four frames) or
+    ``"trivial"``."""
     try:
         return GROUPS[name]()
     except KeyError:

@@ -1,5 +1,5 @@
 """Robots of the swarm as plug-ins (:class:`Robot`): the quadrotor of the paper, a planar unicycle, and GCBF+'s
-single and double integrators.
+single and double integrators and linear drone.
 
 ``make_robot("unicycle")`` builds one by name; :func:`register_robot` adds a user's robot to the registry the
 environment (``EnvConfig.robot``), the learner and the CLI (``--robot``) read. See docs/robots.md.
@@ -10,7 +10,7 @@ from __future__ import annotations
 import functools
 
 from .base import Robot, rk4_step
-from .integrators import DoubleIntegrator, IntegratorParams, SingleIntegrator
+from .integrators import DoubleIntegrator, IntegratorParams, LinearDrone, SingleIntegrator
 from .quadrotor import Quadrotor
 from .unicycle import Unicycle, UnicycleParams
 
@@ -19,6 +19,7 @@ __all__ = [
     "ROBOTS",
     "DoubleIntegrator",
     "IntegratorParams",
+    "LinearDrone",
     "Quadrotor",
     "Robot",
     "SingleIntegrator",
@@ -35,6 +36,7 @@ ROBOTS: dict[str, type[Robot]] = {
     "unicycle": Unicycle,
     "single_integrator": SingleIntegrator,
     "double_integrator": DoubleIntegrator,
+    "linear_drone": LinearDrone,
 }
 
 

@@ -44,11 +44,11 @@ from torch import Tensor
 from groupcanon import FieldType
 from groupcanon.features import Point, Vector
 from groupcanon.frames import cyclic_frames
-from groupcanon.groups import CyclicSE2
+from groupcanon.groups import CyclicSE2, CyclicSE2xR
 
 from .base import Robot, rk4_step
 
-__all__ = ["DoubleIntegrator", "IntegratorParams", "SingleIntegrator", "discrete_lqr"]
+__all__ = ["DoubleIntegrator", "IntegratorParams", "LinearDrone", "SingleIntegrator", "discrete_lqr"]
 
 #: GCBF+'s planar environment defaults (obstacles: discs until rotated rectangles are wired in)
 _PLANAR_DEFAULTS: dict = {
@@ -117,7 +117,7 @@ class _PointMass(Robot):
         raise NotImplementedError
 
     def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
-        hi = torch.full((2,), self.params.max_control, dtype=like.dtype, device=like.device)
+        hi = torch.full((self.control_dim,), self.params.max_control, dtype=like.dtype, device=like.device)
         return -hi, hi
 
     def _clip_state(self, x: Tensor) -> Tensor:
@@ -136,27 +136,27 @@ class _PointMass(Robot):
         return x
 
     def positions(self, x: Tensor) -> Tensor:
-        return x[..., :2]
+        return x[..., : self.dim]
 
     def heading(self, x: Tensor) -> Tensor:
         """The world x axis: the reference's LiDAR rays are fixed in the world."""
-        out = torch.zeros(*x.shape[:-1], 2, dtype=x.dtype, device=x.device)
+        out = torch.zeros(*x.shape[:-1], self.dim, dtype=x.dtype, device=x.device)
         out[..., 0] = 1.0
         return out
 
     def frames(self, x: Tensor) -> Tensor:
-        """Each agent's four frames ``(*batch, 4, 4)`` (module doc): a frame set, averaged over by the networks."""
+        """Each agent's four frames ``(*batch, 4, *element)`` (module doc): a frame set, averaged over."""
         return cyclic_frames(4, self.positions(x))
 
     @property
     def node_fields(self) -> dict:
-        return {"v": Vector(2)}
+        return {"v": Vector(self.dim)}
 
     def agent_features(self, x: Tensor) -> Tensor:
         return self.velocities(x)
 
     def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:
-        goal_state = torch.cat((goals.to(x.dtype), torch.zeros_like(x[..., 2:])), -1)
+        goal_state = torch.cat((goals.to(x.dtype), torch.zeros_like(x[..., self.dim :])), -1)
         e = goal_state - x
         norm = torch.linalg.vector_norm(e, dim=-1, keepdim=True)
         e = e * (self.params.max_position_error / norm.clamp_min(self.params.max_position_error))
@@ -165,7 +165,7 @@ class _PointMass(Robot):
     def command_feature(self, interface: str):
         if interface not in self.interfaces:
             raise ValueError(f"the {self.name} has the command interfaces {self.interfaces}, not {interface!r}")
-        return Vector(2)
+        return Vector(self.dim)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.params})"
@@ -232,6 +232,73 @@ class DoubleIntegrator(_PointMass):
 
     def velocities(self, x: Tensor) -> Tensor:
         return x[..., 2:4]
+
+    def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
+        return torch.cat((positions, torch.zeros_like(positions)), -1)
+
+
+#: GCBF+'s linear drone's environment defaults: spheres of radius 0.075-0.15 m, 3-D LiDAR, 16 hits kept
+_DRONE_DEFAULTS: dict = {
+    **_PLANAR_DEFAULTS,
+    "area_size": 4.0,
+    "obstacle_radius_range": (0.075, 0.15),
+    "lidar_max_hits": 16,
+}
+
+
+class LinearDrone(_PointMass):
+    """GCBF+'s linear drone: state ``(p, v)`` (6), control an acceleration command ``c`` in ``[-1, 1]^3``,
+    ``v' = -D v + 10 c`` with damping ``D = diag(1.1, 1.1, 6)``, ``v`` clipped to ``+-0.5`` per axis after each
+    Euler step. Nominal controller: the reference's LQR on the error state (``A = expm(A_c dt)``, ``B = B_c`` not
+    times ``dt``, as its code does; ``Q = diag(50, 50, 50, 1, 1, 1)``, ``R = I``). Symmetry: quarter turns about z
+    and 3-D translations (:class:`groupcanon.groups.CyclicSE2xR` ``(4)``, config name ``"se2xrc4"``), four frames
+    per agent averaged over, as for the planar point masses."""
+
+    name = "linear_drone"
+    dim = 3
+    state_dim = 6
+    control_dim = 3
+    group_name = "se2xrc4"
+    env_defaults: ClassVar[dict] = _DRONE_DEFAULTS
+    damping = (1.1, 1.1, 6.0)
+    gain = 10.0
+
+    def __init__(self, params: IntegratorParams | None = None):
+        super().__init__(params)
+        self.group = CyclicSE2xR(4)
+        self.state_type = FieldType(self.group, {"p": Point(3), "v": Vector(3)})
+        self.control_type = FieldType(self.group, {"u": Vector(3)})
+
+    def _continuous(self) -> tuple[np.ndarray, np.ndarray]:
+        a = np.zeros((6, 6))
+        a[0, 3] = a[1, 4] = a[2, 5] = 1.0
+        a[3, 3], a[4, 4], a[5, 5] = (-d for d in self.damping)
+        b = np.zeros((6, 3))
+        b[3, 0] = b[4, 1] = b[5, 2] = self.gain
+        return a, b
+
+    def _lqr_gain(self) -> np.ndarray:
+        from scipy.linalg import expm
+
+        a, b = self._continuous()
+        q = np.diag([50.0, 50.0, 50.0, 1.0, 1.0, 1.0])
+        return discrete_lqr(expm(a * self.params.dt), b, q, np.eye(3))
+
+    def f0(self, x: Tensor) -> Tensor:
+        damping = torch.tensor(self.damping, dtype=x.dtype, device=x.device)
+        return torch.cat((x[..., 3:6], -damping * x[..., 3:6]), -1)
+
+    def f1(self, x: Tensor) -> Tensor:
+        out = x.new_zeros(*x.shape[:-1], 6, 3)
+        out[..., 3, 0] = out[..., 4, 1] = out[..., 5, 2] = self.gain
+        return out
+
+    def _clip_state(self, x: Tensor) -> Tensor:
+        s = self.params.max_speed
+        return torch.cat((x[..., :3], x[..., 3:6].clamp(-s, s)), -1)
+
+    def velocities(self, x: Tensor) -> Tensor:
+        return x[..., 3:6]
 
     def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
         return torch.cat((positions, torch.zeros_like(positions)), -1)

@@ -3,7 +3,7 @@
 from .cyclic import Cyclic
 from .o2 import O2
 from .product import Product
-from .se2 import SE2, CyclicSE2, SE2xR
+from .se2 import SE2, CyclicSE2, CyclicSE2xR, SE2xR
 from .so2 import SO2
 from .so3 import SE3, SO3
 from .translation import Translation
@@ -17,6 +17,7 @@ __all__ = [
     "SO3",
     "Cyclic",
     "CyclicSE2",
+    "CyclicSE2xR",
     "Product",
     "SE2xR",
     "Translation",

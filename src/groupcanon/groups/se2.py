@@ -1,9 +1,9 @@
-"""SE(2) and SE(2) x R: planar rotations (about z) with 2-D or 3-D translations; CyclicSE2(n), the rotations by
-multiples of 2 pi / n with all planar translations.
+"""SE(2) and SE(2) x R: planar rotations (about z) with 2-D or 3-D translations; CyclicSE2(n) and CyclicSE2xR(n),
+their subgroups of rotations by multiples of 2 pi / n.
 
 Element layouts:
-    SE2, CyclicSE2:   ``(*batch, 4) = (cos theta, sin theta, tx, ty)``
-    SE2xR:            ``(*batch, 5) = (cos theta, sin theta, tx, ty, tz)``
+    SE2, CyclicSE2:       ``(*batch, 4) = (cos theta, sin theta, tx, ty)``
+    SE2xR, CyclicSE2xR:   ``(*batch, 5) = (cos theta, sin theta, tx, ty, tz)``
 
 ``g = (theta, t)`` acts on points by ``p -> R_z(theta) p + t`` and on vectors by ``v -> R_z(theta) v``.
 SE2xR is the paper's symmetry group G-bar of a quadrotor under gravity: rotations about the world z axis and
@@ -30,7 +30,7 @@ from ._util import (
     uniform_angle,
 )
 
-__all__ = ["SE2", "CyclicSE2", "SE2xR"]
+__all__ = ["SE2", "CyclicSE2", "CyclicSE2xR", "SE2xR"]
 
 
 class _PlanarRigid(Group):
@@ -152,29 +152,25 @@ class SE2xR(_PlanarRigid):
     space_dim = 3
 
 
-class CyclicSE2(SE2):
-    """The subgroup of SE(2) of rotations by multiples of ``2 pi / n`` and all planar translations (``C_n`` x| R^2).
-    Same layout and actions as :class:`SE2`, so every SE(2) feature applies.
+class _CyclicRotations:
+    """Rotations restricted to multiples of ``2 pi / n`` (a mixin over :class:`_PlanarRigid`): sampling, membership,
+    special elements; no exponential map (the group is not connected)."""
 
-    The symmetry of a planar robot whose actuator box or state limits are per axis (GCBF+'s point masses: ``n = 4``).
-    It is a finite extension of the translations: no frame can be built continuously from a vector, and
-    :func:`groupcanon.frames.cyclic_frames` gives every agent its ``n`` frames to average over instead.
-    """
+    n: int
 
-    def __init__(self, n: int, translation_scale: float = 10.0):
+    def _init_cyclic(self, n: int) -> None:
         if int(n) != n or n < 1:
-            raise ValueError(f"CyclicSE2(n) needs a positive integer n, got {n!r}")
-        super().__init__(translation_scale)
+            raise ValueError(f"{type(self).__name__}(n) needs a positive integer n, got {n!r}")
         self.n = int(n)
 
     def rotation_element(self, k: Tensor, dtype=None) -> Tensor:
-        """The rotations by ``2 pi k / n`` (no translation), ``(*k.shape, 4)``, for integer ``k``."""
+        """The rotations by ``2 pi k / n`` (no translation), ``(*k.shape, *element_shape)``, for integer ``k``."""
         theta = (2 * math.pi / self.n) * k.to(torch.float64)
         cs = angle_to_cs(theta).to(dtype if dtype is not None else torch.get_default_dtype())
-        return torch.cat((cs, cs.new_zeros(*cs.shape[:-1], 2)), -1)
+        return torch.cat((cs, cs.new_zeros(*cs.shape[:-1], self.space_dim)), -1)
 
     def membership_residual(self, g: Tensor) -> Tensor:
-        """SE(2)'s residual plus the distance of the rotation to the nearest multiple of ``2 pi / n``."""
+        """The rigid group's residual plus the distance of the rotation to the nearest multiple of ``2 pi / n``."""
         res = super().membership_residual(g)
         theta = torch.atan2(g[..., 1], g[..., 0])
         k = torch.round(theta * (self.n / (2 * math.pi)))
@@ -184,7 +180,7 @@ class CyclicSE2(SE2):
     def sample(self, *batch, generator=None, dtype=None, device=None) -> Tensor:
         k = torch.randint(0, self.n, batch, generator=generator, device=device)
         rot = self.rotation_element(k, dtype=dtype).to(device)
-        t = gaussian(batch, 2, self.translation_scale, generator, rot.dtype, device)
+        t = gaussian(batch, self.space_dim, self.translation_scale, generator, rot.dtype, device)
         return torch.cat((rot[..., :2], t), dim=-1)
 
     def special_elements(self, dtype=None, device=None) -> Tensor:
@@ -200,4 +196,27 @@ class CyclicSE2(SE2):
         raise NotImplementedError(f"{self!r} is not connected: it has no logarithm")
 
     def __repr__(self) -> str:
-        return f"CyclicSE2({self.n}, translation_scale={self.translation_scale:g})"
+        return f"{type(self).__name__}({self.n}, translation_scale={self.translation_scale:g})"
+
+
+class CyclicSE2(_CyclicRotations, SE2):
+    """The subgroup of SE(2) of rotations by multiples of ``2 pi / n`` and all planar translations (``C_n`` x| R^2).
+    Same layout and actions as :class:`SE2`, so every SE(2) feature applies.
+
+    The symmetry of a planar robot whose actuator box or state limits are per axis (GCBF+'s point masses: ``n = 4``).
+    No frame can be built continuously from a vector for it; :func:`groupcanon.frames.cyclic_frames` gives every
+    node its ``n`` frames to average over instead.
+    """
+
+    def __init__(self, n: int, translation_scale: float = 10.0):
+        self._init_cyclic(n)
+        SE2.__init__(self, translation_scale)
+
+
+class CyclicSE2xR(_CyclicRotations, SE2xR):
+    """The subgroup of SE2xR of rotations about z by multiples of ``2 pi / n`` and all 3-D translations. Same
+    layout and actions as :class:`SE2xR` (GCBF+'s linear drone, whose limits are per axis: ``n = 4``)."""
+
+    def __init__(self, n: int, translation_scale: float = 10.0):
+        self._init_cyclic(n)
+        SE2xR.__init__(self, translation_scale)

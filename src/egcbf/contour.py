@@ -35,7 +35,6 @@ from torch import Tensor
 from .dynamics import quadrotor as dyn
 from .env.config import EnvConfig
 from .env.lidar import LidarScan
-from .env.obstacles import Obstacles
 from .env.swarm import SwarmEnv, SwarmState, cast_lidar
 from .graph import build_graph
 from .nn import CBFNet
@@ -81,9 +80,7 @@ def _placements(state: SwarmState, config: EnvConfig, agent: int, xy: Tensor, ba
     p = xy.shape[0]
     x = state.x.expand(p, -1, -1).clone()
     x[:, agent, 0:2] = xy
-    obstacles = Obstacles(
-        state.obstacles.centers.expand(p, -1, -1), state.obstacles.radii.expand(p, -1)
-    )  # views: read only
+    obstacles = state.obstacles.expand(p)  # views: read only
     placed = SwarmState(x, state.goals.expand(p, -1, -1), obstacles, state.t, state.robot)
     sel = slice(agent, agent + 1)
     own = cast_lidar(config, x[:, sel, 0:3], placed.attitudes[:, sel, :, 0], obstacles)

@@ -60,7 +60,7 @@ def episode_seed(seed: int, num_agents: int, episode: int) -> int:
 
 def concat_states(states: Sequence[SwarmState]) -> SwarmState:
     """Stack single- or multi-environment states along the environment dimension."""
-    obs = Obstacles(torch.cat([s.obstacles.centers for s in states]), torch.cat([s.obstacles.radii for s in states]))
+    obs = Obstacles.cat([s.obstacles for s in states])
     x, goals = torch.cat([s.x for s in states]), torch.cat([s.goals for s in states])
     return SwarmState(x, goals, obs, states[0].t, states[0].robot)
 
@@ -74,6 +74,7 @@ class EpisodeRecord:
     goals: Tensor | None = None
     centers: Tensor | None = None
     radii: Tensor | None = None
+    boxes: Tensor | None = None  # (K, 4): rectangle obstacles (egcbf.env.Obstacles.boxes); None: round
 
 
 def _new_timing() -> dict:
@@ -102,9 +103,11 @@ def run_episodes(
     timing = _new_timing()
     rec = None
     if record:
+        obs = state.obstacles
         rec = EpisodeRecord(
-            goals=state.goals[0].cpu(), centers=state.obstacles.centers[0].cpu(), radii=state.obstacles.radii[0].cpu()
-        )
+            goals=state.goals[0].cpu(), centers=obs.centers[0].cpu(), radii=obs.radii[0].cpu(),
+            boxes=None if obs.boxes is None else obs.boxes[0].cpu(),
+        )  # fmt: skip
         rec.positions.append(state.positions[0].detach().cpu().clone())
         rec.collided.append(torch.zeros(config.num_agents, dtype=torch.bool))
     for _ in range(config.max_steps):

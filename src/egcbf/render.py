@@ -5,6 +5,7 @@ Inputs are plain arrays (numpy or torch, CPU or GPU) so that any trajectory can 
     trajectory   (T, N, 3)  agent positions over time (world frame, metres)
     goals        (N, 3)     goal positions
     centers      (K, 3)     sphere obstacle centres,  radii (K,)
+    boxes        (K, 4)     optional: planar rectangle obstacles' half sides and orientation (cos, sin)
     collided     (T, N)     optional collision mask (agents drawn red while colliding)
 """
 
@@ -54,6 +55,34 @@ def _validate(trajectory, goals, centers, radii, collided):
     return traj, goals, centers, radii, coll
 
 
+def _corners(c: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """The four corners ``(4, 2)`` of a rectangle with centre ``c`` and ``box = (half sides, cos, sin)``."""
+    a, b, co, si = box
+    local = np.array([[a, b], [-a, b], [-a, -b], [a, -b]])
+    return c[:2] + local @ np.array([[co, si], [-si, co]])
+
+
+def _obstacles_2d(ax, centers, radii, boxes, **kw) -> None:
+    """Grey discs, or the rectangles of ``boxes``, in the x-y plane."""
+    from matplotlib.patches import Circle, Polygon
+
+    for k, (c, r) in enumerate(zip(centers, radii)):
+        if boxes is None:
+            ax.add_patch(Circle(c[:2], r, color="0.6", alpha=0.6, **kw))
+        else:
+            ax.add_patch(Polygon(_corners(c, boxes[k]), closed=True, color="0.6", alpha=0.6, **kw))
+
+
+def _boxes(boxes, centers: np.ndarray) -> np.ndarray | None:
+    b = _np(boxes)
+    if b is None or b.size == 0:
+        return None
+    b = b.reshape(-1, 4)
+    if b.shape[0] != centers.shape[0]:
+        raise ValueError(f"{centers.shape[0]} obstacle centres but {b.shape[0]} boxes")
+    return b
+
+
 def _sphere(ax, c, r, **kw):
     u, v = np.mgrid[0 : 2 * np.pi : 16j, 0 : np.pi : 9j]
     ax.plot_surface(c[0] + r * np.cos(u) * np.sin(v), c[1] + r * np.sin(u) * np.sin(v), c[2] + r * np.cos(v), **kw)
@@ -67,6 +96,7 @@ def render_gif(
     radii=None,
     collided=None,
     *,
+    boxes=None,
     area_size: float | None = None,
     fps: int = 15,
     max_frames: int = 90,
@@ -83,6 +113,7 @@ def render_gif(
     from matplotlib.figure import Figure
 
     traj, goals, centers, radii, coll = _validate(trajectory, goals, centers, radii, collided)
+    rects = _boxes(boxes, centers)
     T, N, _ = traj.shape
     frames = np.unique(np.linspace(0, T - 1, min(T, max_frames)).round().astype(int))
     lo = 0.0 if area_size is not None else float(traj.min())
@@ -101,8 +132,12 @@ def render_gif(
         ax.set_ylabel("y [m]")
         ax.set_zlabel("z [m]")
         ax.set_title(f"{title}  t = {t}".strip())
-        for c, r in zip(centers, radii):
-            _sphere(ax, c, r, color="0.5", alpha=0.35, linewidth=0)
+        for k, (c, r) in enumerate(zip(centers, radii)):
+            if rects is None:
+                _sphere(ax, c, r, color="0.5", alpha=0.35, linewidth=0)
+            else:  # a planar rectangle: its outline at height 0
+                xy = _corners(c, rects[k])
+                ax.plot(*np.vstack((xy, xy[:1])).T, np.zeros(5), color="0.4")
         if goals is not None:
             ax.scatter(*goals.T, marker="x", color="tab:green", s=12, depthshade=False)
         t0 = max(0, t - trail)
@@ -128,19 +163,18 @@ def render_topdown(
     radii=None,
     collided=None,
     *,
+    boxes=None,
     area_size: float | None = None,
     title: str = "",
 ) -> Path:
     """Write a top-down (x-y) still of the whole episode: paths, start (circle), end (dot), goals (cross),
-    obstacles (grey discs of their radius), collision points (red)."""
+    obstacles (grey discs of their radius, or rectangles), collision points (red)."""
     from matplotlib.figure import Figure
-    from matplotlib.patches import Circle
 
     traj, goals, centers, radii, coll = _validate(trajectory, goals, centers, radii, collided)
     fig = Figure(figsize=(5.5, 5.5), dpi=100)
     ax = fig.subplots()
-    for c, r in zip(centers, radii):
-        ax.add_patch(Circle(c[:2], r, color="0.6", alpha=0.6))
+    _obstacles_2d(ax, centers, radii, _boxes(boxes, centers))
     ax.plot(traj[:, :, 0], traj[:, :, 1], color="tab:blue", alpha=0.4, linewidth=0.8)
     ax.scatter(traj[0, :, 0], traj[0, :, 1], facecolors="none", edgecolors="tab:blue", s=14, label="start")
     ax.scatter(traj[-1, :, 0], traj[-1, :, 1], color="tab:blue", s=8, label="end")
@@ -170,6 +204,7 @@ def render_comparison_gif(
     centers=None,
     radii=None,
     *,
+    boxes=None,
     area_size: float | None = None,
     fps: int = 12,
     max_frames: int = 80,
@@ -187,7 +222,6 @@ def render_comparison_gif(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
-    from matplotlib.patches import Circle
     from PIL import Image
 
     if not panels:
@@ -212,8 +246,7 @@ def render_comparison_gif(
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
     artists = []
     for ax, (label, (traj, coll)) in zip(axes, data.items()):
-        for center, radius in zip(c, r):
-            ax.add_patch(Circle(center[:2], radius, color="0.6", alpha=0.6))
+        _obstacles_2d(ax, c, r, _boxes(boxes, c))
         if g is not None:
             ax.scatter(g[:, 0], g[:, 1], marker="x", color="tab:green", s=10, lw=0.8)
         lines = LineCollection([], colors="tab:blue", alpha=0.35, linewidths=0.7)

@@ -59,6 +59,7 @@ def _samples(lead: tuple[int, ...], n: int = 3, k: int = 2, hits: int = 4, value
         goals=torch.zeros(*lead, n, 3),
         centers=torch.zeros(*lead, k, 3),
         radii=torch.ones(*lead, k),
+        boxes=torch.zeros(*lead, k, 0),
         hit_points=torch.zeros(*lead, n, hits, 3),
         hit_valid=torch.zeros(*lead, n, hits, dtype=torch.bool),
         safe=torch.ones(*lead, n, dtype=torch.bool),

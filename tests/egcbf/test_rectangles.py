@@ -1,6 +1,7 @@
 """egcbf.env.rectangles: GCBF+'s rotated rectangle obstacles. The inflated inside test is the distance test, ray
 casting finds the first boundary point (against a brute-force march), everything is invariant under rigid motions
-of the plane, and the sampling follows GCBF+'s ranges."""
+of the plane, and the sampling follows GCBF+'s ranges. In the swarm (EnvConfig(obstacle_shape="rectangle")):
+the obstacle queries, the sampling clearance, the collision mask and the LiDAR agree with that geometry."""
 
 import math
 
@@ -11,6 +12,7 @@ from hypothesis import strategies as st
 from torch import Tensor
 
 from egcbf.env.rectangles import Rectangles, sample_rectangles
+from egcbf.env.swarm import safety_masks
 
 F64 = torch.float64
 
@@ -110,3 +112,78 @@ def test_sampling_follows_the_reference_ranges():
     empty = sample_rectangles(1, 0, 1.0, (0.1, 0.2))
     pts = torch.zeros(1, 3, 2)
     assert not bool(empty.contains(pts).any()) and bool(torch.isinf(empty.distance(pts)).all())
+
+
+# ----------------------------------------------------------------------------------- rectangles in the swarm
+def _rect_env(seed: int, n: int = 10, k: int = 6, **kw):
+    from egcbf.env import EnvConfig, SwarmEnv
+
+    cfg = EnvConfig.for_robot("double_integrator", num_agents=n, num_obstacles=k, num_envs=2, area_size=2.0, **kw)
+    env = SwarmEnv(cfg, dtype=F64)
+    return cfg, env, env.reset(seed)
+
+
+@given(seed=st.integers(0, 2**16))
+@settings(max_examples=8, deadline=None)
+def test_obstacle_queries_on_rectangles_are_the_geometry(seed):
+    """Obstacles.rectangles: near pairs (dense and cell list alike), the inflated inside test and the surface
+    distance agree with egcbf.env.rectangles."""
+    from egcbf.env.obstacles import sample_rectangle_obstacles
+
+    g = torch.Generator().manual_seed(seed)
+    obs = sample_rectangle_obstacles(2, 5, 2.0, (0.1, 0.6), generator=g)
+    geo = obs.geometry()
+    pts = 2.4 * torch.rand(2, 30, 2, generator=g, dtype=F64) - 0.2
+    for margin in (0.0, 0.05, 0.2):
+        assert torch.equal(obs.inside(pts, margin, method="dense"), geo.contains(pts, margin))
+        assert torch.equal(obs.inside(pts, margin, method="cells"), geo.contains(pts, margin))
+    sd = obs.surface_distance(pts)
+    assert torch.allclose(sd.clamp_min(0).amin(-1), geo.distance(pts), atol=1e-12)
+
+
+@given(seed=st.integers(0, 2**16))
+@settings(max_examples=6, deadline=None)
+def test_the_swarm_samples_senses_and_collides_with_rectangles(seed):
+    """Starts and goals 4 r clear of every rectangle; the collision mask is "within r of a rectangle" (or of another
+    agent); every LiDAR hit lies on a rectangle's boundary, at the distance a brute-force ray cast gives."""
+    cfg, env, state = _rect_env(seed)
+    obs, r = state.obstacles, cfg.agent_radius
+    assert obs.is_rectangles and obs.num_obstacles == 6
+    robot = cfg.make_robot()
+    for pts in (robot.positions(state.x), state.goals):
+        assert not bool(obs.inside(pts, 4 * r).any())
+    for _ in range(25):  # drive through the obstacles with the nominal controller
+        state, _ = env.step(state, robot.nominal_control(state.x, state.goals))
+    pos = robot.positions(state.x)
+    m = safety_masks(pos, state.goals, obs, r)
+    assert torch.equal(m["obstacle_collision"], obs.geometry().distance(pos) < r)
+    scan = env.lidar(state)
+    geo = obs.geometry()
+    hit_d = geo.distance(scan.points.reshape(2, -1, 2)).reshape(scan.valid.shape)
+    assert bool((hit_d[scan.valid] <= 1e-9).all())
+    dirs = torch.nn.functional.normalize(scan.points - pos[:, :, None], dim=-1)
+    t = geo.raycast(pos, torch.where(scan.valid[..., None], dirs, torch.ones_like(dirs) / 2**0.5), cfg.comm_radius)
+    assert torch.allclose(t[scan.valid], scan.distance[scan.valid], atol=1e-9)
+
+
+def test_rectangles_turn_with_the_scene():
+    """A rotated world (scene_yaw) and a group transform turn the rectangles with the scene."""
+    from groupcanon.groups import CyclicSE2
+
+    _, _, state = _rect_env(1)
+    g = CyclicSE2(4).rotation_element(torch.tensor([1, 1]), dtype=F64)
+    g[:, 2:] = torch.tensor([0.3, -0.2], dtype=F64)
+    moved = state.transform(g)
+    pts = 2.4 * torch.rand(2, 20, 2, generator=torch.Generator().manual_seed(0), dtype=F64) - 0.2
+    moved_pts = CyclicSE2(4).transform(g[:, None].expand(2, 20, 4), pts)
+    assert torch.allclose(
+        state.obstacles.surface_distance(pts), moved.obstacles.surface_distance(moved_pts), atol=1e-12
+    )
+    _, _, turned = _rect_env(1, scene_yaw=90.0)
+    c = turned.obstacles.boxes[..., 2:]
+    o = state.obstacles.boxes[..., 2:]
+    assert torch.allclose(c, torch.stack((-o[..., 1], o[..., 0]), -1), atol=1e-12)
+    with pytest.raises(ValueError, match="obstacle_shape"):
+        from egcbf.env import EnvConfig
+
+        EnvConfig(num_agents=4, obstacle_shape="rectangle")  # the quadrotor: 3-D

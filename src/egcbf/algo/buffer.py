@@ -18,6 +18,7 @@ Both are plain tensors (no Python objects per sample) and serialize to a flat ``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import torch
@@ -36,7 +37,8 @@ class Samples:
 
     Attributes:
         x: ``(*lead, N, S)`` agent states; goals ``(*lead, N, d)``.
-        centers: ``(*lead, K, 3)`` and radii ``(*lead, K)``: the obstacles.
+        centers: ``(*lead, K, d)``, radii ``(*lead, K)`` and boxes ``(*lead, K, 4)`` (rectangles) or ``(*lead, K, 0)``
+            (round): the obstacles (:meth:`egcbf.env.Obstacles.unpack`).
         hit_points: ``(*lead, N, H, 3)`` LiDAR hits (world frame) and hit_valid ``(*lead, N, H)``.
         safe, unsafe: ``(*lead, N)`` bool labels (:func:`egcbf.algo.labels.finite_horizon_labels`).
     """
@@ -45,6 +47,7 @@ class Samples:
     goals: Tensor
     centers: Tensor
     radii: Tensor
+    boxes: Tensor
     hit_points: Tensor
     hit_valid: Tensor
     safe: Tensor
@@ -61,7 +64,7 @@ class Samples:
 
     def flatten(self, ndims: int = 2) -> Samples:
         """Merge the first ``ndims`` leading dimensions into one."""
-        return self.map(lambda t: t.reshape(-1, *t.shape[ndims:]))
+        return self.map(lambda t: t.reshape(math.prod(t.shape[:ndims]), *t.shape[ndims:]))  # -1: not for 0 elements
 
     @staticmethod
     def cat(items: list[Samples]) -> Samples:
@@ -80,7 +83,7 @@ class Samples:
         leading dimension)."""
         if self.x.dim() != 3:
             raise ValueError(f"state() needs samples with one leading dimension, got x {tuple(self.x.shape)}")
-        return SwarmState(self.x, self.goals, Obstacles(self.centers, self.radii), robot=robot)
+        return SwarmState(self.x, self.goals, Obstacles.unpack(self.centers, self.radii, self.boxes), robot=robot)
 
     def lidar(self, robot: Robot | None = None) -> LidarScan:
         p = self.x[..., 0:3] if robot is None else robot.positions(self.x)
@@ -140,7 +143,10 @@ class _Ring:
             raise ValueError(f"checkpointed buffer {self.prefix!r} has capacity {cap}, this one {self.capacity}")
         self.size, self.ptr = size, ptr
         if f"{self.prefix}.x" in sd:
-            self.data = Samples(**{f.name: sd[f"{self.prefix}.{f.name}"].clone() for f in fields(Samples)})
+            stored = {f.name: sd.get(f"{self.prefix}.{f.name}") for f in fields(Samples)}
+            if stored["boxes"] is None:  # written before rectangle obstacles: round ones
+                stored["boxes"] = stored["centers"].new_zeros(*stored["centers"].shape[:-1], 0)
+            self.data = Samples(**{k: v.clone() for k, v in stored.items()})
         else:
             self.data = None
 

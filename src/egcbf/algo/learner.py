@@ -163,6 +163,7 @@ class GraphCBFLearner:
             goals=per_traj(state.goals),
             centers=per_traj(state.obstacles.centers),
             radii=per_traj(state.obstacles.radii),
+            boxes=per_traj(state.obstacles.packed_boxes),
             hit_points=torch.stack(pts, 1),
             hit_valid=torch.stack(valid, 1),
             safe=safe_t.transpose(0, 1).contiguous(),

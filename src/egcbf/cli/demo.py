@@ -146,13 +146,14 @@ def run_demo(
         }
         title = f"first episode, N = {num_agents}, l = {area:g} m, {obstacles} obstacles (red: colliding)"
         gif = render_comparison_gif(
-            out / f"compare_N{num_agents}.gif", panels, first.goals, first.centers, first.radii, area_size=area,
-            title=title,
+            out / f"compare_N{num_agents}.gif", panels, first.goals, first.centers, first.radii, boxes=first.boxes,
+            area_size=area, title=title,
         )  # fmt: skip
         main, rec = next(iter(episodes_seen.items()))
         png = render_topdown(
             out_dir(out, f"{main}_N{num_agents}_topdown.png"), torch.stack(rec.positions), rec.goals, rec.centers,
-            rec.radii, torch.stack(rec.collided), area_size=area, title=f"{describe(main)}, N = {num_agents}",
+            rec.radii, torch.stack(rec.collided), boxes=rec.boxes, area_size=area,
+            title=f"{describe(main)}, N = {num_agents}",
         )  # fmt: skip
         written += [gif, png]
     names = list(sources)

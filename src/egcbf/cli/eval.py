@@ -80,7 +80,7 @@ def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path
             tmp = final.with_name(f".{final.stem}.partial{final.suffix}")  # a kill never leaves a half image
             try:
                 with writing(final, f"the metrics of N = {n} are kept"):
-                    render(tmp, *args, area_size=area, title=f"{tag} N={n}")
+                    render(tmp, *args, boxes=rec.boxes, area_size=area, title=f"{tag} N={n}")
                     os.replace(tmp, final)
             finally:
                 tmp.unlink(missing_ok=True)

@@ -39,6 +39,8 @@ class EnvConfig:
         area_size: side ``l > 0`` of the arena ``[0, l]^3`` in which starts, goals and obstacle centres are drawn.
         num_obstacles: ``K >= 0`` sphere obstacles per environment.
         obstacle_radius_range: ``(lo, hi)``, ``0 < lo <= hi``: sphere radii are uniform in it.
+        obstacle_shape: ``"round"`` (spheres, discs) or ``"rectangle"`` (2-D robots: GCBF+'s rotated rectangles,
+            each side uniform in ``obstacle_side_range``, orientation uniform).
         agent_radius: ``r > 0``, the collision radius of an agent. Authoritative: ``params.radius`` is set to it.
         comm_radius: ``R-hat > 0``, the agent–agent edge radius (and goal-edge clipping radius).
         lidar_range: ``R``, the LiDAR ray length, ``0 < R <= comm_radius``; ``None`` means ``comm_radius`` (GCBF+).
@@ -65,6 +67,8 @@ class EnvConfig:
     area_size: float = 2.0
     num_obstacles: int = 5
     obstacle_radius_range: tuple[float, float] = (0.05, 0.3)
+    obstacle_shape: str = "round"
+    obstacle_side_range: tuple[float, float] = (0.1, 0.6)
     agent_radius: float = 0.05
     comm_radius: float = 1.0
     lidar_range: float | None = None
@@ -104,6 +108,14 @@ class EnvConfig:
             "a pair (lo, hi) of finite numbers with 0 < lo <= hi",
         )
         object.__setattr__(self, "obstacle_radius_range", (float(rr[0]), float(rr[1])))
+        need(self.obstacle_shape in ("round", "rectangle"), "obstacle_shape", "'round' or 'rectangle'")
+        sr = self.obstacle_side_range
+        need(
+            isinstance(sr, (tuple, list)) and len(sr) == 2 and all(_is_num(v) for v in sr) and 0 < sr[0] <= sr[1],
+            "obstacle_side_range",
+            "a pair (lo, hi) of finite numbers with 0 < lo <= hi",
+        )
+        object.__setattr__(self, "obstacle_side_range", (float(sr[0]), float(sr[1])))
         need(_is_num(self.agent_radius) and self.agent_radius > 0, "agent_radius", "a finite number > 0")
         need(_is_num(self.comm_radius) and self.comm_radius > 0, "comm_radius", "a finite number > 0")
         if self.lidar_range is not None:
@@ -140,6 +152,8 @@ class EnvConfig:
         need(type(self.params) is type(robot.params), "params", f"a {type(robot.params).__name__}")
         if self.params.radius != self.agent_radius:
             object.__setattr__(self, "params", replace(self.params, radius=float(self.agent_radius)))
+        need(self.obstacle_shape == "round" or robot.dim == 2, "obstacle_shape",
+             f"'round' for a {robot.dim}-D robot (rectangles are planar)")  # fmt: skip
 
     @classmethod
     def for_robot(cls, robot: str, **changes) -> EnvConfig:

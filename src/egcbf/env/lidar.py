@@ -41,6 +41,7 @@ from torch import Tensor
 from groupcanon.frames import planar_frame
 
 from .obstacles import Obstacles
+from .rectangles import ray_distances
 
 __all__ = ["LidarScan", "lidar_scan", "ray_directions"]
 
@@ -149,7 +150,17 @@ def lidar_scan(
         radii = obstacles.radii.to(dtype)
         # agent-obstacle pairs whose ray segments can reach the sphere (sparse: linear in N and K)
         bi, ni, ki = obstacles.near_pairs(positions.detach(), max_range)
-        if bi.numel() > 0:
+        if bi.numel() > 0 and obstacles.is_rectangles:
+            # ray x rectangle (slab method in the rectangle's axes), the rays turned into the world by the heading
+            cs = planar_frame(headings[bi, ni])  # (P, 2)
+            world = _yaw_rotate(cs[:, None, :], dirs[None].expand(cs.shape[0], -1, -1))  # (P, Rr, 2)
+            box = obstacles.boxes.to(dtype)[bi, ki]
+            t_all = ray_distances(positions[bi, ni], world, centers[bi, ki], box[:, :2], box[:, 2:])
+            pi, ri = torch.isfinite(t_all).nonzero(as_tuple=True)
+            t = t_all[pi, ri]
+            keep = t <= max_range
+            agent, ri, t = (bi * n + ni)[pi[keep]], ri[keep], t[keep]
+        elif bi.numel() > 0:
             # ray x sphere (disc) in the agent's yaw frame: one (P, d) x (d, Rr) product gives every d . (p - c)
             cs = planar_frame(headings[bi, ni])  # (P, 2)
             oc = _yaw_rotate(cs * cs.new_tensor([1.0, -1.0]), positions[bi, ni] - centers[bi, ki])  # (P, d)
@@ -162,7 +173,8 @@ def lidar_scan(
             t = torch.where(c0[pi] <= 0, torch.zeros_like(t), t)
             keep = t <= max_range
             agent, ri, t = (bi * n + ni)[pi[keep]], ri[keep], t[keep]
-            # closest sphere per (agent, ray): sort by t, then (stably) by (agent, ray), keep the first of each
+        if bi.numel() > 0:
+            # closest obstacle per (agent, ray): sort by t, then (stably) by (agent, ray), keep the first of each
             perm = _sort_by(agent * n_dirs + ri, t)
             key = (agent * n_dirs + ri)[perm]
             first = torch.ones_like(key, dtype=torch.bool)

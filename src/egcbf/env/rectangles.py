@@ -18,7 +18,7 @@ Geometry (GCBF+'s conventions, ``../shared/reference/gcbfplus-facts.md``):
 
 Everything is a function of relative geometry, so a rigid motion ``g`` of the plane (``groupcanon.groups.SE2``)
 moving points, rays and rectangles together leaves ``contains``, ``distance`` and ``raycast`` unchanged (tested).
-Not yet wired into the environment: the swarm, its LiDAR and the collision metrics read round obstacles today.
+The swarm uses them through :class:`egcbf.env.obstacles.Obstacles` (``EnvConfig(obstacle_shape="rectangle")``).
 """
 
 from __future__ import annotations
@@ -29,7 +29,38 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["Rectangles", "sample_rectangles"]
+__all__ = ["Rectangles", "ray_distances", "sample_rectangles", "signed_distance"]
+
+
+def _to_local(d: Tensor, orientation: Tensor) -> Tensor:
+    """Vectors ``d`` in the axes of rectangles oriented ``(cos, sin)`` (broadcasting)."""
+    c, s = orientation[..., 0], orientation[..., 1]
+    return torch.stack((c * d[..., 0] + s * d[..., 1], c * d[..., 1] - s * d[..., 0]), -1)
+
+
+def signed_distance(points: Tensor, centers: Tensor, half_sizes: Tensor, orientations: Tensor) -> Tensor:
+    """Signed distance of ``points`` to rectangles (all ``(..., 2)``, broadcasting): the Euclidean distance outside,
+    minus the depth inside. A point is inside the rectangle grown by ``r`` (GCBF+'s test) iff this is ``< r``."""
+    q = _to_local(points - centers, orientations).abs() - half_sizes
+    outside = torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1)
+    return outside + q.amax(-1).clamp_max(0.0)
+
+
+def ray_distances(origins: Tensor, directions: Tensor, centers: Tensor, half_sizes: Tensor,
+                  orientations: Tensor) -> Tensor:  # fmt: skip
+    """Distance along unit ``directions`` ``(P, R, 2)`` from ``origins`` ``(P, 2)`` to the rectangle of each row
+    (``centers``, ``half_sizes``, ``orientations`` ``(P, 2)``): ``(P, R)``, ``inf`` for a miss, 0 from inside (the
+    slab method in the rectangle's axes)."""
+    local = _to_local(origins - centers, orientations)[:, None]  # (P, 1, 2)
+    u = _to_local(directions, orientations[:, None])  # (P, R, 2)
+    half = half_sizes[:, None]
+    tiny = torch.full_like(u, 1e-12)
+    safe_u = torch.where(u.abs() > 1e-12, u, tiny)
+    t1, t2 = (-half - local) / safe_u, (half - local) / safe_u
+    parallel_out = ((u.abs() <= 1e-12) & (local.abs() >= half)).any(-1)  # parallel to a slab and outside it
+    t_enter, t_exit = torch.minimum(t1, t2).amax(-1), torch.maximum(t1, t2).amin(-1)
+    hit = (t_enter <= t_exit) & (t_exit >= 0) & ~parallel_out
+    return torch.where(hit, t_enter.clamp_min(0.0), torch.full_like(t_enter, math.inf))
 
 
 @dataclass
@@ -57,49 +88,43 @@ class Rectangles:
 
     def _local(self, points: Tensor) -> Tensor:
         """``(B, N, K, 2)``: each point relative to each rectangle, in the rectangle's axes."""
-        d = points[:, :, None, :] - self.centers[:, None, :, :]
-        e1 = self.orientations[:, None, :, :]
-        along = (d * e1).sum(-1)
-        across = d[..., 1] * e1[..., 0] - d[..., 0] * e1[..., 1]
-        return torch.stack((along, across), -1)
+        return _to_local(points[:, :, None, :] - self.centers[:, None, :, :], self.orientations[:, None])
 
     def contains(self, points: Tensor, inflation: float = 0.0) -> Tensor:
         """``(B, N)`` bool: the point lies inside some rectangle grown by ``inflation`` (module doc; strict)."""
+        if not self.num_obstacles:
+            return torch.zeros(points.shape[:2], dtype=torch.bool, device=points.device)
         q = self._local(points).abs() - self.half_sizes[:, None]
         x, y = q[..., 0], q[..., 1]
         r = float(inflation)
         corner = (x > 0) & (y > 0) & (x * x + y * y < r * r)
-        inside = ((x < r) & (y < 0)) | ((x < 0) & (y < r)) | corner
-        return inside.any(-1) if self.num_obstacles else inside.new_zeros(points.shape[:2])
+        return (((x < r) & (y < 0)) | ((x < 0) & (y < r)) | corner).any(-1)
 
     def distance(self, points: Tensor) -> Tensor:
         """``(B, N)``: Euclidean distance from each point to the nearest rectangle (0 inside; ``inf`` without
         rectangles)."""
         if not self.num_obstacles:
             return points.new_full(points.shape[:2], math.inf)
-        q = self._local(points).abs() - self.half_sizes[:, None]
-        return torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1).amin(-1)
+        sd = signed_distance(points[:, :, None], self.centers[:, None], self.half_sizes[:, None],
+                             self.orientations[:, None])  # fmt: skip
+        return sd.clamp_min(0.0).amin(-1)
 
     def raycast(self, points: Tensor, directions: Tensor, max_range: float) -> Tensor:
         """``(B, N, R)``: the distance from each point ``(B, N, 2)`` along each unit direction ``(B, N, R, 2)``
         (world frame) to the first rectangle it meets, ``inf`` if none within ``max_range``; 0 from inside."""
         b, n, r = directions.shape[:3]
-        if not self.num_obstacles:
+        k = self.num_obstacles
+        if not k:
             return points.new_full((b, n, r), math.inf)
-        local = self._local(points)[:, :, None]  # (B, N, 1, K, 2)
-        e1 = self.orientations[:, None, None]  # (B, 1, 1, K, 2)
-        dirs = directions[:, :, :, None, :]
-        u = torch.stack(((dirs * e1).sum(-1), dirs[..., 1] * e1[..., 0] - dirs[..., 0] * e1[..., 1]), -1)
-        half = self.half_sizes[:, None, None]
-        # slab method: the ray is inside slab i for t between (-h_i - p_i) / u_i and (h_i - p_i) / u_i
-        safe_u = torch.where(u.abs() > 1e-12, u, torch.full_like(u, 1e-12))
-        t1, t2 = (-half - local) / safe_u, (half - local) / safe_u
-        parallel_out = (u.abs() <= 1e-12) & (local.abs() >= half)  # parallel to a slab and outside it: no hit
-        t_enter = torch.minimum(t1, t2).amax(-1)
-        t_exit = torch.maximum(t1, t2).amin(-1)
-        hit = (t_enter <= t_exit) & (t_exit >= 0) & ~parallel_out.any(-1)
-        t = torch.where(hit, t_enter.clamp_min(0.0), torch.full_like(t_enter, math.inf))
-        t = t.amin(-1)
+        rows = (b, n, k)
+        t = ray_distances(
+            points[:, :, None].expand(*rows, 2).reshape(-1, 2),
+            directions[:, :, None].expand(b, n, k, r, 2).reshape(-1, r, 2),
+            self.centers[:, None].expand(*rows, 2).reshape(-1, 2),
+            self.half_sizes[:, None].expand(*rows, 2).reshape(-1, 2),
+            self.orientations[:, None].expand(*rows, 2).reshape(-1, 2),
+        ).view(b, n, k, r)
+        t = t.amin(2)
         return torch.where(t <= max_range, t, torch.full_like(t, math.inf))
 
 

@@ -24,7 +24,7 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["SCENES", "rotate_about_center", "scene_boxes", "wrap_angle"]
+__all__ = ["SCENES", "cos_sin_degrees", "rotate_about_center", "scene_boxes", "wrap_angle"]
 
 SCENES = ("uniform", "crossing")
 
@@ -46,7 +46,7 @@ def scene_boxes(scene: str, area_size: float, dim: int) -> tuple[Box, Box] | Non
 def rotate_about_center(points: Tensor, yaw_deg: float, area_size: float) -> Tensor:
     """``points`` ``(..., d)`` (world frame, ``d`` = 2 or 3) rotated by ``yaw_deg`` degrees about the vertical axis
     through ``(l / 2, l / 2)``; ``z`` unchanged. Exact for multiples of 90 degrees (no rounding of cos and sin)."""
-    c, s = _cos_sin(yaw_deg)
+    c, s = cos_sin_degrees(yaw_deg)
     h = float(area_size) / 2
     x, y = points[..., 0] - h, points[..., 1] - h
     out = points.clone()
@@ -55,7 +55,8 @@ def rotate_about_center(points: Tensor, yaw_deg: float, area_size: float) -> Ten
     return out
 
 
-def _cos_sin(yaw_deg: float) -> tuple[float, float]:
+def cos_sin_degrees(yaw_deg: float) -> tuple[float, float]:
+    """``(cos, sin)`` of an angle in degrees, exact for multiples of 90 degrees."""
     quarter = float(yaw_deg) / 90.0
     if quarter == round(quarter):
         return ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))[round(quarter) % 4]

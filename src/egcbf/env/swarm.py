@@ -35,9 +35,9 @@ from ..neighbors import radius_neighbors
 from ..robots import Robot, make_robot
 from .config import EnvConfig, _is_int
 from .lidar import LidarScan, lidar_scan
-from .obstacles import Obstacles, sample_obstacles
+from .obstacles import Obstacles, sample_obstacles, sample_rectangle_obstacles
 from .sampling import sample_separated_points
-from .scenes import rotate_about_center, scene_boxes, wrap_angle
+from .scenes import cos_sin_degrees, rotate_about_center, scene_boxes, wrap_angle
 
 __all__ = [
     "NonFiniteInputError",
@@ -132,8 +132,7 @@ class SwarmState:
         )  # fmt: skip
 
     def detach(self) -> SwarmState:
-        obs = Obstacles(self.obstacles.centers.detach(), self.obstacles.radii.detach())
-        return SwarmState(self.x.detach(), self.goals.detach(), obs, self.t, self.robot)
+        return SwarmState(self.x.detach(), self.goals.detach(), self.obstacles.detach(), self.t, self.robot)
 
     def transform(self, g: Tensor) -> SwarmState:
         """The scene moved by ``g`` ``(B, *element)``, one element of the robot's group per environment (SE2xR
@@ -150,7 +149,8 @@ class SwarmState:
         if g.shape[0] != self.num_envs:
             raise ValueError(f"g has {g.shape[0]} elements for {self.num_envs} environments")
         ge = g[:, None].to(self.x.dtype)
-        obs = Obstacles(group.transform(ge, self.obstacles.centers), self.obstacles.radii)
+        turn = group.planar_rotation(ge) if self.obstacles.is_rectangles else None
+        obs = self.obstacles.moved(group.transform(ge, self.obstacles.centers), turn)
         x = self.robot.state_type.act(ge, self.x)
         return SwarmState(x, group.transform(ge, self.goals), obs, self.t, self.robot)
 
@@ -201,8 +201,7 @@ def safety_masks(positions: Tensor, goals: Tensor, obstacles: Obstacles, agent_r
     obs_unsafe = torch.zeros_like(obs_coll)
     if obstacles.num_obstacles > 0:  # sparse agent-obstacle pairs within 1.5 r of a surface
         bi, ni, ki = obstacles.near_pairs(positions.detach(), 1.5 * r)
-        obs = obstacles.to(dtype=p.dtype)
-        sd = (positions.detach()[bi, ni] - obs.centers[bi, ki]).norm(dim=-1) - obs.radii[bi, ki]
+        sd = obstacles.pair_distance(positions.detach()[bi, ni], bi, ki)
         flat = bi * n + ni
         obs_unsafe[flat] = True
         obs_coll[flat[sd < r]] = True
@@ -269,9 +268,14 @@ class SwarmEnv:
         gen = torch.Generator().manual_seed(seed)
         f64 = torch.float64
         d = self.robot.dim
-        obstacles = sample_obstacles(
-            c.num_envs, c.num_obstacles, c.area_size, c.obstacle_radius_range, generator=gen, dtype=f64, dim=d
-        )
+        if c.obstacle_shape == "rectangle":
+            obstacles = sample_rectangle_obstacles(
+                c.num_envs, c.num_obstacles, c.area_size, c.obstacle_side_range, generator=gen, dtype=f64
+            )
+        else:
+            obstacles = sample_obstacles(
+                c.num_envs, c.num_obstacles, c.area_size, c.obstacle_radius_range, generator=gen, dtype=f64, dim=d
+            )
         boxes = scene_boxes(c.scene, c.area_size, d)
         sampling = dict(generator=gen, dtype=f64, max_rounds=c.max_sampling_rounds, dim=d)
         args = (c.area_size, c.start_separation * c.agent_radius, obstacles, c.obstacle_clearance * c.agent_radius)
@@ -291,7 +295,8 @@ class SwarmEnv:
             yaw = torch.zeros(c.num_envs, c.num_agents, dtype=f64)
         if c.scene_yaw != 0:
             pts = rotate_about_center(pts, c.scene_yaw, c.area_size)
-            obstacles = Obstacles(rotate_about_center(obstacles.centers, c.scene_yaw, c.area_size), obstacles.radii)
+            turn = torch.tensor(cos_sin_degrees(c.scene_yaw), dtype=f64).expand(c.num_envs, 1, 2)
+            obstacles = obstacles.moved(rotate_about_center(obstacles.centers, c.scene_yaw, c.area_size), turn)
             yaw = wrap_angle(yaw + math.radians(c.scene_yaw))
         x = self.robot.rest_state(pts[:, 0], yaw)
         state = SwarmState(x, pts[:, 1], obstacles, 0, self.robot)

@@ -50,12 +50,14 @@ from .base import Robot, rk4_step
 
 __all__ = ["DoubleIntegrator", "IntegratorParams", "LinearDrone", "SingleIntegrator", "discrete_lqr"]
 
-#: GCBF+'s planar environment defaults (obstacles: discs until rotated rectangles are wired in)
+#: GCBF+'s planar environment defaults: rotated rectangles with sides in [0.1, 0.6] m (the double integrator's are
+#: [0.1, 0.5]), 32 world-fixed rays, all kept
 _PLANAR_DEFAULTS: dict = {
     "area_size": 4.0,
     "agent_radius": 0.05,
     "comm_radius": 0.5,
-    "obstacle_radius_range": (0.05, 0.25),
+    "obstacle_shape": "rectangle",
+    "obstacle_side_range": (0.1, 0.6),
     "n_rays": 32,
     "lidar_max_hits": 32,
     "dt": 0.03,
@@ -204,6 +206,7 @@ class DoubleIntegrator(_PointMass):
 
     name = "double_integrator"
     state_dim = 4
+    env_defaults: ClassVar[dict] = {**_PLANAR_DEFAULTS, "obstacle_side_range": (0.1, 0.5)}
 
     def __init__(self, params: IntegratorParams | None = None):
         super().__init__(params)
@@ -241,6 +244,7 @@ class DoubleIntegrator(_PointMass):
 _DRONE_DEFAULTS: dict = {
     **_PLANAR_DEFAULTS,
     "area_size": 4.0,
+    "obstacle_shape": "round",
     "obstacle_radius_range": (0.075, 0.15),
     "lidar_max_hits": 16,
 }

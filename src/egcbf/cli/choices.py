@@ -92,6 +92,7 @@ class RobotName(str, Enum):
     single_integrator = "single_integrator"
     double_integrator = "double_integrator"
     linear_drone = "linear_drone"
+    dubins_car = "dubins_car"
 
 
 class Dtype(str, Enum):

@@ -1,5 +1,5 @@
 """Robots of the swarm as plug-ins (:class:`Robot`): the quadrotor of the paper, a planar unicycle, and GCBF+'s
-single and double integrators and linear drone.
+single and double integrators, linear drone and Dubins car.
 
 ``make_robot("unicycle")`` builds one by name; :func:`register_robot` adds a user's robot to the registry the
 environment (``EnvConfig.robot``), the learner and the CLI (``--robot``) read. See docs/robots.md.
@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 
 from .base import Robot, rk4_step
+from .dubins import DubinsCar
 from .integrators import DoubleIntegrator, IntegratorParams, LinearDrone, SingleIntegrator
 from .quadrotor import Quadrotor
 from .unicycle import Unicycle, UnicycleParams
@@ -18,6 +19,7 @@ __all__ = [
     "BUILTIN_ROBOTS",
     "ROBOTS",
     "DoubleIntegrator",
+    "DubinsCar",
     "IntegratorParams",
     "LinearDrone",
     "Quadrotor",
@@ -37,6 +39,7 @@ ROBOTS: dict[str, type[Robot]] = {
     "single_integrator": SingleIntegrator,
     "double_integrator": DoubleIntegrator,
     "linear_drone": LinearDrone,
+    "dubins_car": DubinsCar,
 }
 
 

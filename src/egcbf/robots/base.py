@@ -58,6 +58,9 @@ class Robot:
     group_name: ClassVar[str] = ""
     #: command interfaces the learned methods may use; the first is the default
     interfaces: ClassVar[tuple[str, ...]] = ()
+    #: agents closer than this to their goals are frozen (their whole state kept by the environment's step; GCBF+'s
+    #: Dubins car: 0.5 r); 0: never
+    goal_freeze_radius: float = 0.0
     #: whether the LiDAR rays are fixed in the world frame (``heading`` then is a constant, not a vector of the
     #: group; the ray pattern must be invariant under the group's rotations instead)
     world_fixed_lidar: ClassVar[bool] = False

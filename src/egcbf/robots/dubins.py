@@ -1,0 +1,170 @@
+"""GCBF+'s Dubins car, SE(2)-equivariant (issue 26). Our :mod:`egcbf.robots.unicycle` stays the control-affine
+variant; this one follows the reference (``../shared/reference/gcbfplus-facts.md``):
+
+State ``x`` ``(*batch, 5)``, control ``u`` ``(*batch, 2)``::
+
+    x = [p (2), h (2, unit heading), v (1, forward speed)]      (the reference's (x, y, theta, v), theta as h)
+    u = [omega_cmd, a]  in [-3, 3] each
+    p' = v h,   theta' = 20 omega_cmd,   v' = a;   one explicit Euler step per period, then v clipped to [-0.8, 0.8]
+
+The heading turns by exactly ``20 omega_cmd dt`` per step (the Euler step of the angle), so ``h`` stays a unit
+vector. An agent within ``0.5 r`` of its goal is frozen (its whole state kept; :attr:`goal_freeze_radius`, applied
+by :meth:`egcbf.env.SwarmEnv.step`).
+
+Nominal controller (the reference's ``u_ref``, from invariants of the body frame): ``omega_cmd = +-k_omega
+arccos(h . e / (d + 1e-4))`` (the bearing of the goal offset ``e``, regularized as the reference does, turning the
+short way; ``k_omega = 1``), ``a = -k_a v + k_v min(d, R)`` (``k_a = 2.5``, ``k_v = 2.3``, ``d`` the goal distance
+soft-clipped to ``R = 0.5`` as the reference does), **not clipped** (the step clips it, as in the reference).
+
+Departures, on purpose: the LiDAR rays turn with the heading (the reference fixes its 16 rays in the world, which
+breaks the rotation symmetry), and the QP's input matrix uses the dynamics' turn gain 20 (the reference's
+``control_affine_dyn`` says 10).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+
+from groupcanon import FieldType
+from groupcanon.features import Point, Scalar, Vector
+from groupcanon.frames import planar_frame
+from groupcanon.groups import SE2
+
+from .base import Robot
+from .integrators import IntegratorParams
+
+__all__ = ["DubinsCar"]
+
+P, H, V = slice(0, 2), slice(2, 4), slice(4, 5)
+TURN_GAIN = 20.0
+MAX_CONTROL = 3.0
+MAX_SPEED = 0.8
+K_OMEGA, K_A, K_V = 1.0, 2.5, 2.3
+
+
+def _perp(h: Tensor) -> Tensor:
+    return torch.stack((-h[..., 1], h[..., 0]), -1)
+
+
+class DubinsCar(Robot):
+    """GCBF+'s Dubins car (module doc)."""
+
+    name = "dubins_car"
+    dim = 2
+    state_dim = 5
+    control_dim = 2
+    group_name = "se2"
+    interfaces = ("control",)
+    env_defaults: ClassVar[dict] = {
+        "area_size": 4.0,
+        "agent_radius": 0.05,
+        "comm_radius": 0.5,
+        "obstacle_shape": "rectangle",
+        "obstacle_side_range": (0.1, 0.6),
+        "n_rays": 32,
+        "lidar_max_hits": 32,
+        "dt": 0.03,
+        "substeps": 1,
+        "integrator": "euler",
+        "max_steps": 256,
+    }
+
+    def __init__(self, params: IntegratorParams | None = None):
+        if params is not None and not isinstance(params, IntegratorParams):
+            raise TypeError(f"DubinsCar params must be an IntegratorParams, got {type(params).__name__}")
+        self.params = IntegratorParams() if params is None else params
+        self.group = SE2()
+        self.state_type = FieldType(self.group, {"p": Point(2), "h": Vector(2), "v": Scalar(1)})
+        self.control_type = FieldType(self.group, {"u": Scalar(2)})
+
+    @property
+    def goal_freeze_radius(self) -> float:
+        """Agents closer than this to their goals are frozen (the reference's ``0.5 r``)."""
+        return 0.5 * self.params.radius
+
+    # ------------------------------------------------------------------------------------------- dynamics
+    def f0(self, x: Tensor) -> Tensor:
+        return torch.cat((x[..., V] * x[..., H], torch.zeros_like(x[..., 2:5])), -1)
+
+    def f1(self, x: Tensor) -> Tensor:
+        out = x.new_zeros(*x.shape[:-1], 5, 2)
+        out[..., H, 0] = TURN_GAIN * _perp(x[..., H])
+        out[..., 4, 1] = 1.0
+        return out
+
+    def step(self, x: Tensor, u: Tensor, dt: float, substeps: int = 1, integrator: str = "euler") -> Tensor:
+        if integrator != "euler":
+            raise ValueError(f"the Dubins car integrates as the reference does: 'euler', not {integrator!r}")
+        if int(substeps) != substeps or substeps < 1:
+            raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+        h = dt / int(substeps)
+        for _ in range(int(substeps)):
+            p, head, v = x[..., P], x[..., H], x[..., V]
+            turn = TURN_GAIN * u[..., 0:1] * h
+            c, s = torch.cos(turn), torch.sin(turn)
+            new_head = c * head + s * _perp(head)  # the angle's Euler step, exactly on the unit circle
+            x = torch.cat((p + h * v * head, new_head, (v + h * u[..., 1:2]).clamp(-MAX_SPEED, MAX_SPEED)), -1)
+        return x
+
+    def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        hi = torch.full((2,), MAX_CONTROL, dtype=like.dtype, device=like.device)
+        return -hi, hi
+
+    def check_state(self, x: Tensor, atol: float = 1e-3) -> None:
+        super().check_state(x, atol)
+        err = (torch.linalg.vector_norm(x[..., H], dim=-1) - 1).abs()
+        if bool((err > atol).any()):
+            raise ValueError(f"Dubins car heading must be a unit vector (|h| - 1 up to {float(err.max()):.3g})")
+
+    # ------------------------------------------------------------------------------------------- geometry
+    def positions(self, x: Tensor) -> Tensor:
+        return x[..., P]
+
+    def velocities(self, x: Tensor) -> Tensor:
+        return x[..., V] * x[..., H]
+
+    def heading(self, x: Tensor) -> Tensor:
+        return planar_frame(x[..., H])
+
+    def frames(self, x: Tensor) -> Tensor:
+        return torch.cat((planar_frame(x[..., H]), x[..., P]), -1)
+
+    def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
+        h = torch.stack((torch.cos(yaw), torch.sin(yaw)), -1).to(positions.dtype)
+        return torch.cat((positions, h, torch.zeros_like(positions[..., :1])), -1)
+
+    @property
+    def node_fields(self) -> dict:
+        return {"v": Vector(2), "h": Vector(2)}
+
+    def agent_features(self, x: Tensor) -> Tensor:
+        return torch.cat((self.velocities(x), x[..., H]), -1)
+
+    # ------------------------------------------------------------------------------------------- control
+    def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:
+        """The reference's heading / speed law (module doc), unclipped."""
+        head = x[..., H]
+        e = goals.to(x.dtype) - x[..., P]
+        forward = (head * e).sum(-1, keepdim=True)
+        left = head[..., 0:1] * e[..., 1:2] - head[..., 1:2] * e[..., 0:1]
+        dist_raw = torch.linalg.vector_norm(e, dim=-1, keepdim=True)
+        between = torch.arccos((forward / (dist_raw + 1e-4)).clamp(-1.0, 1.0))  # the reference's regularized angle
+        omega = K_OMEGA * torch.where(left >= 0, between, -between)  # turn the short way
+        soft = torch.sqrt(e.square().sum(-1, keepdim=True) + 1e-6)
+        r = self.params.max_position_error
+        dist = torch.linalg.vector_norm(e, dim=-1, keepdim=True) * torch.where(
+            soft > r, r / soft, torch.ones_like(soft)
+        )
+        a = -K_A * x[..., V] + K_V * dist
+        return torch.cat((omega, a), -1)
+
+    def command_feature(self, interface: str):
+        if interface not in self.interfaces:
+            raise ValueError(f"the {self.name} has the command interfaces {self.interfaces}, not {interface!r}")
+        return Scalar(2)
+
+    def __repr__(self) -> str:
+        return f"DubinsCar({self.params})"

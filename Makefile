@@ -66,6 +66,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/policy_scaling.py
 	$(PY) benchmarks/filter_cost.py
 	$(PY) benchmarks/agent_latency.py
+	$(PY) benchmarks/gcbfplus_speed.py
 
 clean:
 	rm -rf $(VENV) $(ESCNN_VENV) .pytest_cache .ruff_cache .hypothesis

@@ -31,3 +31,19 @@ def test_filter_cost_benchmark_quick_runs():
     )  # fmt: skip
     assert proc.returncode == 0, f"filter_cost.py exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
     assert "| 16 |" in proc.stdout and "dcbf ms (x policy)" in proc.stdout
+
+
+def test_deployment_and_gcbfplus_benchmarks_quick_run():
+    """benchmarks/agent_latency.py (one agent's step: PyTorch, TorchScript, onnxruntime) and
+    benchmarks/gcbfplus_speed.py (our step against the GCBF+ reference's) in a smoke run, docs untouched."""
+    import pytest
+
+    pytest.importorskip("onnxruntime")
+    for args, expect in (
+        (["agent_latency.py", "--repeats", "1", "--neighbours", "4", "--hits", "4", "--no-write"], "onnxruntime |"),
+        (["gcbfplus_speed.py", "--steps", "1", "--warmup", "1", "--repeats", "1", "--no-write"], "Smallest speed-up"),
+    ):
+        proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / args[0]), *args[1:]], capture_output=True,
+                              text=True, timeout=600, cwd=ROOT)  # fmt: skip
+        assert proc.returncode == 0, f"{args[0]} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+        assert expect in proc.stdout

@@ -56,7 +56,8 @@ def average_checkpoints(a: str | Path, b: str | Path, lam: float, out: str | Pat
     """Write the checkpoint directory ``out`` (``config.json``, ``model.safetensors``, ``state.json``, atomically)
     holding ``lam`` x the weights of checkpoint ``a`` + ``(1 - lam)`` x those of ``b``. ``a`` and ``b`` are checkpoint
     or run directories (a run's ``best/``) of the same method, group, interface and network shapes; anything else
-    raises :class:`~egcbf.checkpoint.CheckpointError` before anything is written. Returns ``out``."""
+    raises :class:`~egcbf.checkpoint.CheckpointError` before anything is written, as does an ``out`` that exists
+    but is not a checkpoint directory, or that is or holds one of the inputs. Returns ``out``."""
     from .algo.learner import GraphCBFLearner
 
     if not 0.0 <= lam <= 1.0:
@@ -73,8 +74,12 @@ def average_checkpoints(a: str | Path, b: str | Path, lam: float, out: str | Pat
     except ValueError as err:
         raise CheckpointError(f"{ca} and {cb}: {err}") from None
     out = Path(out)
-    if out.resolve() in (ca.resolve(), cb.resolve()):
-        raise CheckpointError(f"{out} is one of the checkpoints being averaged")
+    target = out.resolve()
+    for src in (ca, cb):  # never replace an input, nor a directory holding one
+        if src.resolve() == target or src.resolve().is_relative_to(target):
+            raise CheckpointError(f"{out} is (or holds) one of the checkpoints being averaged: {src}")
+    if out.exists() and not (out.is_dir() and (out / "model.safetensors").exists()):
+        raise CheckpointError(f"{out} exists and is not a checkpoint directory: refusing to replace it")
     learner = GraphCBFLearner(cfg_a)
     learner.load_weights(mixed)
     source = {"a": str(ca), "a_sha256": sha256(ca / "model.safetensors"), "lam": lam}

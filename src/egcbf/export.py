@@ -41,6 +41,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from .atomic import write_json_atomic
 from .deploy import AgentController, AgentPolicy
 from .nn.attention import EdgeAttention
 
@@ -65,13 +66,19 @@ def exportable(module: AgentPolicy) -> AgentPolicy:
     return out
 
 
-def example_inputs(module: AgentPolicy, seed: int = 0) -> tuple[Tensor, ...]:
+def example_inputs(module: AgentPolicy, env_config=None, seed: int = 0) -> tuple[Tensor, ...]:
     """Inputs of the right shapes and dtypes for ``module``: agent 0 of a random scene of ``1 + K`` agents (the
-    others its neighbours), random hits around it, about half the rows valid. For tracing, and to check a file."""
+    others its neighbours, drawn nearly without separation in a square of side ``comm_radius``: most are in range),
+    random hits around it, about half the rows valid. ``env_config``: the checkpoint's environment (its robot's
+    parameters; default: the robot's defaults). For tracing, and to check a file."""
+    import dataclasses
+
     from .env import EnvConfig, SwarmEnv
 
     robot, k, h = module.robot, module.max_neighbours, module.max_hits
-    cfg = EnvConfig.for_robot(robot.name, num_agents=1 + k, num_envs=1, area_size=1.5, num_obstacles=0)
+    base = env_config if env_config is not None else EnvConfig.for_robot(robot.name, num_agents=1)
+    cfg = dataclasses.replace(base, num_agents=1 + k, num_envs=1, area_size=module.comm_radius, num_obstacles=0,
+                              start_separation=0.05, max_travel=None, scene="uniform", scene_yaw=0.0)  # fmt: skip
     state = SwarmEnv(cfg, dtype=torch.float32).reset(seed)
     g = torch.Generator().manual_seed(seed)
     x, p = state.x[0], robot.positions(state.x[0, 0])
@@ -118,28 +125,31 @@ def export_controller(ctrl: AgentController, fmt: str, out: str | Path, checkpoi
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     module = exportable(ctrl.module)
-    args = example_inputs(module)
+    args = example_inputs(module, ctrl.env_config)
     info = layout(ctrl, checkpoint)
     with torch.no_grad():
         expected = module(*args)
     tmp = out.with_name(out.name + ".tmp")
-    with warnings.catch_warnings():  # tracing warns about every Python value it records as a constant
-        warnings.simplefilter("ignore")
-        if fmt == "torchscript":
-            with torch.no_grad():
-                traced = torch.jit.trace(module, args, check_trace=False)
-            torch.jit.save(traced, str(tmp), _extra_files={"egcbf.json": json.dumps(info)})
-            got = torch.jit.load(str(tmp))(*args)
-        else:
-            _export_onnx(module, args, tmp, info)
-            got = run_onnx(tmp, args)
-    for name, a, b in zip(OUTPUT_NAMES, got, expected):
-        err = (torch.as_tensor(a) - b).abs().max().item()
-        if not err <= 1e-5:
-            tmp.unlink(missing_ok=True)
-            raise RuntimeError(f"the exported {fmt} file's {name} differs from the PyTorch module's by {err:.3g}")
+    try:
+        with warnings.catch_warnings():  # tracing warns about every Python value it records as a constant
+            warnings.simplefilter("ignore")
+            if fmt == "torchscript":
+                with torch.no_grad():
+                    traced = torch.jit.trace(module, args, check_trace=False)
+                torch.jit.save(traced, str(tmp), _extra_files={"egcbf.json": json.dumps(info)})
+                got = torch.jit.load(str(tmp))(*args)
+            else:
+                _export_onnx(module, args, tmp, info)
+                got = run_onnx(tmp, args)
+        for name, a, b in zip(OUTPUT_NAMES, got, expected):
+            err = (torch.as_tensor(a) - b).abs().max().item()
+            if not err <= 1e-5:
+                raise RuntimeError(f"the exported {fmt} file's {name} differs from the PyTorch module's by {err:.3g}")
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # never leave a half-written or unchecked file
+        raise
+    write_json_atomic(out.with_name(out.name + ".json"), info)
     tmp.replace(out)
-    out.with_name(out.name + ".json").write_text(json.dumps(info, indent=2) + "\n")
     return out
 
 

@@ -192,13 +192,16 @@ class SwarmGraph:
     def frames_per_agent(self) -> int:
         """1, or ``F`` when every agent has a set of ``F`` frames to average over (``frames`` ``(M, F, *element)``:
         robots of a finite-rotation group, :func:`groupcanon.frames.cyclic_frames`)."""
-        return 1 if self.frames.dim() == 2 else self.frames.shape[1]
+        rank = len(self.robot.group.element_shape)
+        return 1 if self.frames.dim() == 1 + rank else self.frames.shape[1]
 
     def expand_frames(self) -> SwarmGraph:
         """For a graph whose agents carry ``F`` frames each: the same graph with every receiver copied ``F`` times
         (receiver ``i * F + k`` is agent ``i`` in its ``k``-th frame, with a copy of each of its incoming edges) and
         one frame per receiver. A network run on it and averaged over each agent's ``F`` rows is frame-averaged:
-        equivariant under the finite group (:meth:`frames_per_agent`). The senders are unchanged."""
+        equivariant under the finite group (:meth:`frames_per_agent`). The senders are unchanged, so the sender
+        layout of the module doc (``goal_offset``, ``hit_offset``, ``hit_owner``) no longer describes the graph: only
+        networks read it, and they read ``edge_index``."""
         f = self.frames_per_agent
         if f == 1:
             return self
@@ -206,9 +209,10 @@ class SwarmGraph:
         rep = functools.partial(torch.repeat_interleave, repeats=f, dim=0)
         k = torch.arange(f, device=self.edge_index.device)
         dst = (self.edge_index[1][:, None] * f + k).reshape(-1)
+        element = self.frames.shape[2:]
         return replace(
             self, x_dst=rep(self.x_dst), edge_index=torch.stack((rep(self.edge_index[0]), dst)),
-            edge_attr=rep(self.edge_attr), edge_kind=rep(self.edge_kind), frames=self.frames.reshape(m * f, -1),
+            edge_attr=rep(self.edge_attr), edge_kind=rep(self.edge_kind), frames=self.frames.reshape(m * f, *element),
             pos_dst=rep(self.pos_dst), batch=rep(self.batch), hit_owner=self.hit_owner * f,
         )  # fmt: skip
 

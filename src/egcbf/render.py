@@ -132,11 +132,11 @@ def render_gif(
         ax.set_ylabel("y [m]")
         ax.set_zlabel("z [m]")
         ax.set_title(f"{title}  t = {t}".strip())
-        for k, (c, r) in enumerate(zip(centers, radii)):
+        for j, (c, r) in enumerate(zip(centers, radii)):
             if rects is None:
                 _sphere(ax, c, r, color="0.5", alpha=0.35, linewidth=0)
             else:  # a planar rectangle: its outline at height 0
-                xy = _corners(c, rects[k])
+                xy = _corners(c, rects[j])
                 ax.plot(*np.vstack((xy, xy[:1])).T, np.zeros(5), color="0.4")
         if goals is not None:
             ax.scatter(*goals.T, marker="x", color="tab:green", s=12, depthshade=False)

@@ -80,6 +80,13 @@ def test_bad_inputs_are_refused(tmp_path):
         average_checkpoints(A, B, 1.5, tmp_path / "x")
     with pytest.raises(CheckpointError, match="one of the checkpoints"):
         average_checkpoints(A, B, 0.5, B)
+    with pytest.raises(CheckpointError, match="one of the checkpoints"):  # a directory holding an input
+        average_checkpoints(A, B, 0.5, B.parent)
+    keep = tmp_path / "runs"
+    (keep / "important").mkdir(parents=True)
+    with pytest.raises(CheckpointError, match="not a checkpoint directory"):
+        average_checkpoints(A, B, 0.5, keep)
+    assert (keep / "important").is_dir()  # nothing was deleted
     assert not (tmp_path / "x").exists()
     with pytest.raises(ValueError, match="different tensors"):
         average_weights({"w": torch.zeros(2)}, {"v": torch.zeros(2)}, 0.5)

@@ -130,3 +130,18 @@ def test_the_command(tmp_path):
         app, ["export", "--checkpoint", str(tmp_path), "--format", "onnx", "--out", str(tmp_path / "b")]
     )
     assert res.exit_code == 2 and "--checkpoint" in res.output
+
+
+def test_every_robot_exports_at_the_default_limits(tmp_path):
+    """The example inputs a file is checked on fit every robot at the default 64 neighbour rows (no sampling
+    separation), and a point-mass policy (frame averaging) traces to the same outputs."""
+    from egcbf.algo import GraphCBFLearner
+    from egcbf.config import TrainConfig
+    from egcbf.env import EnvConfig
+
+    for robot in ("double_integrator", "dubins_car"):
+        learner = GraphCBFLearner(TrainConfig.preset("egcbf+", "cpu", robot=robot))
+        env = EnvConfig.for_robot(robot, num_agents=1)
+        ctrl = AgentController(learner.policy, learner.config.model, env)
+        path = export_controller(ctrl, "torchscript", tmp_path / f"{robot}.pt")
+        assert json.loads(Path(str(path) + ".json").read_text())["max_neighbours"] == 64

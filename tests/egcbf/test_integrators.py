@@ -96,6 +96,24 @@ def test_the_reference_environment_defaults():
     assert torch.equal(robot.heading(x), torch.tensor([1.0, 0.0], dtype=F64).expand(5, 2))  # world-fixed rays
     with pytest.raises(ValueError, match="mass"):
         IntegratorParams(mass=0.0)
+    with pytest.raises(ValueError, match="n_rays"):  # world-fixed rays must be invariant under quarter turns
+        EnvConfig.for_robot("double_integrator", num_agents=4, n_rays=6)
+
+
+def test_gcbf_plus_networks_do_not_average_frames():
+    """The world-frame networks ignore the frame sets: one pass, the same output (no wasted work)."""
+    from egcbf.nn import PolicyNet
+
+    model = TrainConfig.preset("gcbf+", "cpu", robot="double_integrator").model
+    pol = PolicyNet(model).double()
+    cfg = EnvConfig.for_robot("double_integrator", num_agents=5, num_obstacles=1, num_envs=1, area_size=1.0)
+    graph = build_graph(SwarmEnv(cfg, dtype=F64).reset(0), cfg)
+    seen = []
+    hook = pol.encoder.register_forward_hook(lambda _m, args, _out: seen.append(args[0].num_dst))
+    with torch.no_grad():
+        pol(graph), pol.raw(graph)
+    hook.remove()
+    assert seen == [5, 5]
 
 
 @pytest.mark.parametrize("name", ["single_integrator", "double_integrator", "linear_drone"])

@@ -39,7 +39,7 @@ class Samples:
         x: ``(*lead, N, S)`` agent states; goals ``(*lead, N, d)``.
         centers: ``(*lead, K, d)``, radii ``(*lead, K)`` and boxes ``(*lead, K, 4)`` (rectangles) or ``(*lead, K, 0)``
             (round): the obstacles (:meth:`egcbf.env.Obstacles.unpack`).
-        hit_points: ``(*lead, N, H, 3)`` LiDAR hits (world frame) and hit_valid ``(*lead, N, H)``.
+        hit_points: ``(*lead, N, H, d)`` LiDAR hits (world frame) and hit_valid ``(*lead, N, H)``.
         safe, unsafe: ``(*lead, N)`` bool labels (:func:`egcbf.algo.labels.finite_horizon_labels`).
     """
 

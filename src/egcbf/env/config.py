@@ -152,6 +152,10 @@ class EnvConfig:
         need(type(self.params) is type(robot.params), "params", f"a {type(robot.params).__name__}")
         if self.params.radius != self.agent_radius:
             object.__setattr__(self, "params", replace(self.params, radius=float(self.agent_radius)))
+        order = getattr(robot.group, "n", 1)
+        need(not robot.world_fixed_lidar or self.n_rays % order == 0, "n_rays",
+             f"a multiple of {order} for the {robot.name}: its world-fixed rays must be invariant under its "
+             f"{order} rotations")  # fmt: skip
         need(self.obstacle_shape == "round" or robot.dim == 2, "obstacle_shape",
              f"'round' for a {robot.dim}-D robot (rectangles are planar)")  # fmt: skip
 

@@ -122,6 +122,18 @@ class Obstacles:
         if c.numel() and not bool(torch.isfinite(c).all()):
             b, k = (~torch.isfinite(c)).any(-1).nonzero()[0].tolist()
             raise ValueError(f"obstacle centers hold NaN or inf (first: environment {b}, obstacle {k})")
+        if self.boxes is not None and self.boxes.numel():
+            box = self.boxes
+            if not bool(torch.isfinite(box).all()):
+                raise ValueError("obstacle boxes hold NaN or inf")
+            if not bool((box[..., :2] > 0).all()):
+                raise ValueError("rectangle half sides must be > 0")
+            if not bool(((box[..., 2:].norm(dim=-1) - 1).abs() <= 1e-6).all()):
+                raise ValueError("rectangle orientations must be unit vectors (cos, sin)")
+            if not bool((r >= box[..., :2].norm(dim=-1) * (1 - 1e-6)).all()):
+                raise ValueError(
+                    "rectangle radii must be at least their half diagonals (Obstacles.rectangles sets them)"
+                )
         if r.numel() and not bool(((r > 0) & torch.isfinite(r)).all()):
             b, k = (~((r > 0) & torch.isfinite(r))).nonzero()[0].tolist()
             raise ValueError(
@@ -130,7 +142,7 @@ class Obstacles:
 
     @property
     def dim(self) -> int:
-        """The space dimension ``d``: 3 (spheres) or 2 (discs)."""
+        """The space dimension ``d``: 3 (spheres) or 2 (discs, rectangles)."""
         return self.centers.shape[-1]
 
     @property
@@ -159,7 +171,8 @@ class Obstacles:
             raise ValueError(f"points must be (P, {d}) for {d}-D obstacles, got {tuple(points.shape)}")
 
     def surface_distance(self, points: Tensor) -> Tensor:
-        """Signed distance ``||p - c_k|| - r_k`` of ``points`` ``(B, M, d)`` to every obstacle: ``(B, M, K)``.
+        """Signed distance of ``points`` ``(B, M, d)`` to every obstacle, ``(B, M, K)``: ``||p - c_k|| - r_k`` for
+        round ones, the rectangle's signed distance (:func:`egcbf.env.rectangles.signed_distance`) for rectangles.
 
         Dense over obstacles (``K`` is small), linear in the number of points. Broadcasts over environments: ``B``
         may be 1 on either side (the result then has the larger ``B``).
@@ -178,7 +191,8 @@ class Obstacles:
     def near_pairs_flat(
         self, points: Tensor, env: Tensor, margin: float, method: str = "auto"
     ) -> tuple[Tensor, Tensor]:
-        """Pairs (point, obstacle) with ``||p - c_k|| - r_k < margin``, for flat ``points`` ``(P, d)`` whose
+        """Pairs (point, obstacle) closer than ``margin`` to its surface (:meth:`pair_distance`), for flat ``points``
+        ``(P, d)`` whose
         environments are ``env`` ``(P,)`` (long, in ``[0, B)``). Returns ``(point index, obstacle index k)``
         sorted by (point, k).
 
@@ -220,8 +234,8 @@ class Obstacles:
         return pi[keep], ki[keep]
 
     def near_pairs(self, points: Tensor, margin: float, method: str = "auto") -> tuple[Tensor, Tensor, Tensor]:
-        """``(b, m, k)`` index triples with ``||points[b, m] - c[b, k]|| - r[b, k] < margin`` for ``points``
-        ``(B, M, d)``, sorted by (b, m, k). Linear in ``M`` (see :meth:`near_pairs_flat`)."""
+        """``(b, m, k)`` index triples with ``points[b, m]`` closer than ``margin`` to obstacle ``k``'s surface, for
+        ``points`` ``(B, M, d)``, sorted by (b, m, k). Linear in ``M`` (see :meth:`near_pairs_flat`)."""
         self._check_points(points, batched=True)
         b, m, d = points.shape
         env = torch.arange(b, device=points.device).repeat_interleave(m)

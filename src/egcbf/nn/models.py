@@ -99,7 +99,9 @@ def frames_for(group: Group, graph: SwarmGraph) -> Tensor:
     the trivial group."""
     if isinstance(group, Trivial):
         return group.identity(graph.num_dst, dtype=graph.x_dst.dtype, device=graph.x_dst.device)
-    if type(group) is type(graph.robot.group):
+    if graph.frames_per_agent > 1:
+        raise ValueError("these agents carry frame sets: average over them first (SwarmGraph.expand_frames)")
+    if type(group) is type(graph.robot.group) and getattr(group, "n", None) == getattr(graph.robot.group, "n", None):
         return graph.frames
     raise ValueError(f"no frames for {group}: the {graph.robot.name} graph carries {graph.robot.group} frames")
 
@@ -337,7 +339,7 @@ class CBFNet(nn.Module):
     def raw(self, graph: SwarmGraph) -> Tensor:
         """The pre-``tanh`` value ``(M,)`` (mirror-averaged with ``cbf_z_symmetric``; averaged over each agent's
         frames when it has several, :meth:`egcbf.graph.SwarmGraph.expand_frames`)."""
-        f = graph.frames_per_agent
+        f = graph.frames_per_agent if not isinstance(self.encoder.group, Trivial) else 1
         if f > 1:
             return self.raw(graph.expand_frames()).view(-1, f).mean(1)
         out = self._value(graph)
@@ -382,7 +384,7 @@ class PolicyNet(nn.Module):
 
     def raw(self, graph: SwarmGraph) -> Tensor:
         """The pre-``tanh`` output ``(M, k)`` in the agents' own frames (one frame per agent)."""
-        if graph.frames_per_agent > 1:
+        if graph.frames_per_agent > 1 and not isinstance(self.encoder.group, Trivial):
             raise ValueError("PolicyNet.raw is per frame: with several frames per agent, call the policy itself")
         z = self.encoder(graph)
         out = self.head(z)
@@ -391,7 +393,7 @@ class PolicyNet(nn.Module):
         return out
 
     def forward(self, graph: SwarmGraph) -> Tensor:
-        f = graph.frames_per_agent
+        f = graph.frames_per_agent if not isinstance(self.encoder.group, Trivial) else 1
         if f > 1:  # frame averaging: the world-frame outputs of each agent's frames, averaged
             out = self(graph.expand_frames())
             return out.view(-1, f, out.shape[-1]).mean(1)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import functools
 
 from .base import Robot, rk4_step
-from .dubins import DubinsCar
+from .dubins import DubinsCar, DubinsParams
 from .integrators import DoubleIntegrator, IntegratorParams, LinearDrone, SingleIntegrator
 from .quadrotor import Quadrotor
 from .unicycle import Unicycle, UnicycleParams
@@ -20,6 +20,7 @@ __all__ = [
     "ROBOTS",
     "DoubleIntegrator",
     "DubinsCar",
+    "DubinsParams",
     "IntegratorParams",
     "LinearDrone",
     "Quadrotor",

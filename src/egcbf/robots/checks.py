@@ -48,15 +48,18 @@ def generic_states(
 
 
 def _frames_error(robot: Robot, group, g: Tensor, x: Tensor, gx: Tensor, err) -> float:
-    """``frames(phi_g x)`` against ``g frames(x)``; for frame sets ``(batch, F, *element)`` as sets (each frame of
-    the moved state against the nearest moved frame)."""
+    """``frames(phi_g x)`` against ``g frames(x)``; for frame sets ``(batch, F, *element)`` as sets: every frame of
+    either side against the nearest frame of the other (so a set of copies of one frame fails too)."""
     fx, fgx = robot.frames(x), robot.frames(gx)
     if fx.dim() == x.dim() - 1 + 1 + len(group.element_shape):  # (batch, F, *element): a frame set
         f = fx.shape[1]
         moved = group.compose(g[:, None].expand(-1, f, *g.shape[1:]), fx)
         flat = (-1, f, max(1, fx[0, 0].numel()))
-        gap = (fgx.reshape(flat)[:, :, None] - moved.reshape(flat)[:, None]).abs().amax(-1).amin(-1)
-        return float(gap.max() / moved.abs().max().clamp_min(1.0)) if gap.numel() else 0.0
+        dist = (fgx.reshape(flat)[:, :, None] - moved.reshape(flat)[:, None]).abs().amax(-1)  # (batch, F, F)
+        if not dist.numel():
+            return 0.0
+        gap = torch.maximum(dist.amin(-1).amax(-1), dist.amin(-2).amax(-1))
+        return float(gap.max() / moved.abs().max().clamp_min(1.0))
     return err(fgx, group.compose(g, fx))
 
 

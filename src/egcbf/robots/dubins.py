@@ -23,6 +23,8 @@ breaks the rotation symmetry), and the QP's input matrix uses the dynamics' turn
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from typing import ClassVar
 
 import torch
@@ -34,15 +36,32 @@ from groupcanon.frames import planar_frame
 from groupcanon.groups import SE2
 
 from .base import Robot
-from .integrators import IntegratorParams
 
-__all__ = ["DubinsCar"]
+__all__ = ["DubinsCar", "DubinsParams"]
 
 P, H, V = slice(0, 2), slice(2, 4), slice(4, 5)
-TURN_GAIN = 20.0
-MAX_CONTROL = 3.0
-MAX_SPEED = 0.8
-K_OMEGA, K_A, K_V = 1.0, 2.5, 2.3
+
+
+@dataclass(frozen=True)
+class DubinsParams:
+    """The reference's Dubins car (SI units): ``radius`` (m; EnvConfig sets it), ``turn_gain`` (``theta' = turn_gain
+    omega_cmd``), ``max_control`` (the box of both commands), ``max_speed`` (the speed clip), the nominal gains
+    ``k_omega``, ``k_a``, ``k_v`` and ``max_position_error`` (the nominal controller's soft distance clip, m)."""
+
+    radius: float = 0.05
+    turn_gain: float = 20.0
+    max_control: float = 3.0
+    max_speed: float = 0.8
+    k_omega: float = 1.0
+    k_a: float = 2.5
+    k_v: float = 2.3
+    max_position_error: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("radius", "turn_gain", "max_control", "max_speed", "k_omega", "k_a", "k_v", "max_position_error"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"DubinsParams.{name} must be a finite number > 0, got {v!r}")
 
 
 def _perp(h: Tensor) -> Tensor:
@@ -72,10 +91,10 @@ class DubinsCar(Robot):
         "max_steps": 256,
     }
 
-    def __init__(self, params: IntegratorParams | None = None):
-        if params is not None and not isinstance(params, IntegratorParams):
-            raise TypeError(f"DubinsCar params must be an IntegratorParams, got {type(params).__name__}")
-        self.params = IntegratorParams() if params is None else params
+    def __init__(self, params: DubinsParams | None = None):
+        if params is not None and not isinstance(params, DubinsParams):
+            raise TypeError(f"DubinsCar params must be a DubinsParams, got {type(params).__name__}")
+        self.params = DubinsParams() if params is None else params
         self.group = SE2()
         self.state_type = FieldType(self.group, {"p": Point(2), "h": Vector(2), "v": Scalar(1)})
         self.control_type = FieldType(self.group, {"u": Scalar(2)})
@@ -91,7 +110,7 @@ class DubinsCar(Robot):
 
     def f1(self, x: Tensor) -> Tensor:
         out = x.new_zeros(*x.shape[:-1], 5, 2)
-        out[..., H, 0] = TURN_GAIN * _perp(x[..., H])
+        out[..., H, 0] = self.params.turn_gain * _perp(x[..., H])
         out[..., 4, 1] = 1.0
         return out
 
@@ -103,14 +122,15 @@ class DubinsCar(Robot):
         h = dt / int(substeps)
         for _ in range(int(substeps)):
             p, head, v = x[..., P], x[..., H], x[..., V]
-            turn = TURN_GAIN * u[..., 0:1] * h
+            turn = self.params.turn_gain * u[..., 0:1] * h
             c, s = torch.cos(turn), torch.sin(turn)
             new_head = c * head + s * _perp(head)  # the angle's Euler step, exactly on the unit circle
-            x = torch.cat((p + h * v * head, new_head, (v + h * u[..., 1:2]).clamp(-MAX_SPEED, MAX_SPEED)), -1)
+            speed = (v + h * u[..., 1:2]).clamp(-self.params.max_speed, self.params.max_speed)
+            x = torch.cat((p + h * v * head, new_head, speed), -1)
         return x
 
     def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
-        hi = torch.full((2,), MAX_CONTROL, dtype=like.dtype, device=like.device)
+        hi = torch.full((2,), self.params.max_control, dtype=like.dtype, device=like.device)
         return -hi, hi
 
     def check_state(self, x: Tensor, atol: float = 1e-3) -> None:
@@ -152,13 +172,14 @@ class DubinsCar(Robot):
         left = head[..., 0:1] * e[..., 1:2] - head[..., 1:2] * e[..., 0:1]
         dist_raw = torch.linalg.vector_norm(e, dim=-1, keepdim=True)
         between = torch.arccos((forward / (dist_raw + 1e-4)).clamp(-1.0, 1.0))  # the reference's regularized angle
-        omega = K_OMEGA * torch.where(left >= 0, between, -between)  # turn the short way
+        q = self.params
+        omega = q.k_omega * torch.where(left >= 0, between, -between)  # turn the short way
         soft = torch.sqrt(e.square().sum(-1, keepdim=True) + 1e-6)
-        r = self.params.max_position_error
+        r = q.max_position_error
         dist = torch.linalg.vector_norm(e, dim=-1, keepdim=True) * torch.where(
             soft > r, r / soft, torch.ones_like(soft)
         )
-        a = -K_A * x[..., V] + K_V * dist
+        a = -q.k_a * x[..., V] + q.k_v * dist
         return torch.cat((omega, a), -1)
 
     def command_feature(self, interface: str):

@@ -98,7 +98,7 @@ def discrete_lqr(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray) -> 
 
 
 class _PointMass(Robot):
-    """What the two integrators share: planar positions, world-fixed LiDAR, the four C4 frames, the LQR law."""
+    """What GCBF+'s point masses share: positions, world-fixed LiDAR, the four quarter-turn frames, the LQR law."""
 
     dim = 2
     control_dim = 2

@@ -163,6 +163,11 @@ class Robot:
         output type (a ``Vector`` for a world-frame command, a ``Scalar`` for an invariant one)."""
         raise _not_implemented(self, "command_feature")
 
+    def check_interface(self, name: str) -> None:
+        """Raise ``ValueError`` unless ``name`` is one of this robot's command :attr:`interfaces`."""
+        if name not in self.interfaces:
+            raise ValueError(f"the {self.name} has the command interfaces {self.interfaces}, not {name!r}")
+
     # ------------------------------------------------------------------------------------------- identity
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"

@@ -36,6 +36,7 @@ from groupcanon.frames import planar_frame
 from groupcanon.groups import SE2
 
 from .base import Robot
+from .integrators import PLANAR_DEFAULTS
 
 __all__ = ["DubinsCar", "DubinsParams"]
 
@@ -77,19 +78,7 @@ class DubinsCar(Robot):
     control_dim = 2
     group_name = "se2"
     interfaces = ("control",)
-    env_defaults: ClassVar[dict] = {
-        "area_size": 4.0,
-        "agent_radius": 0.05,
-        "comm_radius": 0.5,
-        "obstacle_shape": "rectangle",
-        "obstacle_side_range": (0.1, 0.6),
-        "n_rays": 32,
-        "lidar_max_hits": 32,
-        "dt": 0.03,
-        "substeps": 1,
-        "integrator": "euler",
-        "max_steps": 256,
-    }
+    env_defaults: ClassVar[dict] = PLANAR_DEFAULTS  # the reference's planar environments (rectangles, r, R, dt)
 
     def __init__(self, params: DubinsParams | None = None):
         if params is not None and not isinstance(params, DubinsParams):
@@ -183,8 +172,7 @@ class DubinsCar(Robot):
         return torch.cat((omega, a), -1)
 
     def command_feature(self, interface: str):
-        if interface not in self.interfaces:
-            raise ValueError(f"the {self.name} has the command interfaces {self.interfaces}, not {interface!r}")
+        self.check_interface(interface)
         return Scalar(2)
 
     def __repr__(self) -> str:

@@ -48,11 +48,18 @@ from groupcanon.groups import CyclicSE2, CyclicSE2xR
 
 from .base import Robot, rk4_step
 
-__all__ = ["DoubleIntegrator", "IntegratorParams", "LinearDrone", "SingleIntegrator", "discrete_lqr"]
+__all__ = [
+    "PLANAR_DEFAULTS",
+    "DoubleIntegrator",
+    "IntegratorParams",
+    "LinearDrone",
+    "SingleIntegrator",
+    "discrete_lqr",
+]
 
 #: GCBF+'s planar environment defaults: rotated rectangles with sides in [0.1, 0.6] m (the double integrator's are
 #: [0.1, 0.5]), 32 world-fixed rays, all kept
-_PLANAR_DEFAULTS: dict = {
+PLANAR_DEFAULTS: dict = {
     "area_size": 4.0,
     "agent_radius": 0.05,
     "comm_radius": 0.5,
@@ -104,7 +111,7 @@ class _PointMass(Robot):
     control_dim = 2
     group_name = "se2c4"
     interfaces = ("control",)
-    env_defaults: ClassVar[dict] = _PLANAR_DEFAULTS
+    env_defaults: ClassVar[dict] = PLANAR_DEFAULTS
     #: the LiDAR rays are fixed in the world (``heading`` is no vector of the group): check_robot skips that claim
     world_fixed_lidar: ClassVar[bool] = True
 
@@ -165,8 +172,7 @@ class _PointMass(Robot):
         return self.clip_control(e @ self._gain.to(dtype=x.dtype, device=x.device).T)
 
     def command_feature(self, interface: str):
-        if interface not in self.interfaces:
-            raise ValueError(f"the {self.name} has the command interfaces {self.interfaces}, not {interface!r}")
+        self.check_interface(interface)
         return Vector(self.dim)
 
     def __repr__(self) -> str:
@@ -206,7 +212,7 @@ class DoubleIntegrator(_PointMass):
 
     name = "double_integrator"
     state_dim = 4
-    env_defaults: ClassVar[dict] = {**_PLANAR_DEFAULTS, "obstacle_side_range": (0.1, 0.5)}
+    env_defaults: ClassVar[dict] = {**PLANAR_DEFAULTS, "obstacle_side_range": (0.1, 0.5)}
 
     def __init__(self, params: IntegratorParams | None = None):
         super().__init__(params)
@@ -242,7 +248,7 @@ class DoubleIntegrator(_PointMass):
 
 #: GCBF+'s linear drone's environment defaults: spheres of radius 0.075-0.15 m, 3-D LiDAR, 16 hits kept
 _DRONE_DEFAULTS: dict = {
-    **_PLANAR_DEFAULTS,
+    **PLANAR_DEFAULTS,
     "area_size": 4.0,
     "obstacle_shape": "round",
     "obstacle_radius_range": (0.075, 0.15),

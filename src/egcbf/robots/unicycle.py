@@ -207,12 +207,8 @@ class Unicycle(Robot):
 
     def command_feature(self, interface: str):
         """The policy output's feature type for ``interface``: the normalized control, invariant."""
-        self._check_interface(interface)
+        self.check_interface(interface)
         return Scalar(2)
-
-    def _check_interface(self, name: str) -> None:
-        if name not in self.interfaces:
-            raise ValueError(f"the {self.name} has the command interfaces {self.interfaces}, not {name!r}")
 
     def __repr__(self) -> str:
         return f"Unicycle({self.params})"

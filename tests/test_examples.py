@@ -23,3 +23,14 @@ def test_api_reference_is_in_sync():
     root = Path(__file__).resolve().parents[1]
     res = subprocess.run([sys.executable, str(root / "docs" / "gen_api.py"), "--check"], capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_the_gcbfplus_report_is_generated_from_its_cells():
+    """docs/gcbfplus.md is what docs/gen_gcbfplus.py writes from the committed cells (regenerate after new cells)."""
+    import importlib.util
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("gen_gcbfplus", root / "docs" / "gen_gcbfplus.py")
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    assert (root / "docs" / "gcbfplus.md").read_text() == gen.report()

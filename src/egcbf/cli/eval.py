@@ -157,7 +157,7 @@ def run_eval(
     robot of a hand-crafted controller's swarm (a checkpoint's robot is its own; a different ``robot`` is an error).
     """
     from ..algo.filtered import FILTERS, FilterConfig, FilteredController
-    from ..control.controllers import CONTROLLERS, make_controller
+    from ..control.controllers import CONTROLLERS, POINT_MASSES, make_controller
     from ..evaluate import evaluate
     from ..filter_names import join_method
     from ..robots import ROBOTS
@@ -203,10 +203,11 @@ def run_eval(
             controller = join_method("nominal", filter)
     robot = robot or "quadrotor"
     require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
-    if (controller in ("ccbf", "dcbf") or filter_config is not None) and robot != "quadrotor":
+    point_mass_dcbf = controller == "dcbf" and robot in POINT_MASSES and filter_config is None
+    if (controller in ("ccbf", "dcbf") or filter_config is not None) and robot != "quadrotor" and not point_mass_dcbf:
         usage_error(
             f"--controller {controller}: the hand-crafted CBF-QPs and the run-time filters are written for the "
-            f"quadrotor, not a {robot}"
+            f"quadrotor (and the dCBF-QP for the point masses {', '.join(POINT_MASSES)}), not a {robot}"
         )
     require(math.isfinite(scene_yaw), f"--scene-yaw must be a finite number of degrees, got {scene_yaw}")
     if scene != "uniform" or scene_yaw != 0:  # else the environment's defaults, as every earlier run recorded them
@@ -264,7 +265,7 @@ def run_eval(
         if checkpoint is not None
         else (lambda cfg: filtered_nominal)
         if filter_config is not None
-        else (lambda cfg: make_controller(controller)),
+        else (lambda cfg: make_controller(controller, robot=robot)),
         sizes,
         area_size=area,
         num_obstacles=obstacles,

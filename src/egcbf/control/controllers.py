@@ -50,15 +50,27 @@ class NominalController:
 
 
 CONTROLLERS = {"nominal": NominalController, "ccbf": CentralizedCBFQP, "dcbf": DecentralizedCBFQP}
+#: robots whose "dcbf" is the point-mass dCBF-QP (:mod:`egcbf.control.point_mass_qp`)
+POINT_MASSES = ("single_integrator", "double_integrator", "linear_drone")
 
 
-def make_controller(name: str, **kwargs):
-    """Controller by name: ``"nominal"``, ``"ccbf"`` (centralized CBF-QP), ``"dcbf"`` (decentralized CBF-QP).
+def make_controller(name: str, robot: str = "quadrotor", **kwargs):
+    """Controller by name: ``"nominal"``, ``"ccbf"`` (centralized CBF-QP), ``"dcbf"`` (decentralized CBF-QP), for
+    ``robot`` (the quadrotor's QPs; for GCBF+'s point masses ``"dcbf"`` is
+    :class:`egcbf.control.point_mass_qp.PointMassDCBF`, and ``"ccbf"`` is not available yet).
 
     Keyword arguments go to the constructor: for the CBF-QPs a ``config=CBFQPConfig(...)`` and/or overrides of its
     fields or of :class:`egcbf.control.barriers.BarrierConfig`'s (e.g. ``make_controller("ccbf", kind="hocbf",
     solver="proxsuite")``); for the nominal controller ``gains`` and ``max_position_error``.
     """
+    if name in ("ccbf", "dcbf") and robot in POINT_MASSES:
+        if name == "ccbf":
+            raise ValueError(f"the centralized CBF-QP is written for the quadrotor; the {robot} has 'dcbf' only")
+        from .point_mass_qp import PointMassDCBF
+
+        return PointMassDCBF(**kwargs)
+    if name in ("ccbf", "dcbf") and robot != "quadrotor":
+        raise ValueError(f"the hand-crafted CBF-QPs are written for the quadrotor and the point masses, not a {robot}")
     try:
         cls = CONTROLLERS[name]
     except KeyError:

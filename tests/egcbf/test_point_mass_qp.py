@@ -1,0 +1,51 @@
+"""The point masses' dCBF-QP (egcbf.control.point_mass_qp): it commutes with the robots' quarter turns and
+translations (float64, 1e-9), keeps the box, returns the nominal control where no row binds, and is refused where it
+does not apply."""
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from egcbf.control.controllers import make_controller
+from egcbf.env import EnvConfig, SwarmEnv
+from groupcanon import FieldType
+from groupcanon.features import Vector
+
+F64 = torch.float64
+
+
+@pytest.mark.parametrize("robot", ["single_integrator", "double_integrator", "linear_drone"])
+@given(seed=st.integers(0, 2**16), k=st.integers(0, 3), t=st.lists(st.floats(-3, 3), min_size=3, max_size=3))
+@settings(max_examples=6, deadline=None)
+def test_the_dcbf_qp_is_c4_equivariant(robot, seed, k, t):
+    cfg = EnvConfig.for_robot(robot, num_agents=12, num_obstacles=3, num_envs=1, area_size=1.2)
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(seed)
+    ctrl = make_controller("dcbf", robot=robot)
+    for _ in range(3):
+        state, _ = env.step(state, ctrl(state, cfg)[0])
+    group, d = cfg.make_robot().group, cfg.dim
+    g = torch.cat((group.rotation_element(torch.tensor([k]), dtype=F64)[:, :2], torch.tensor([t[:d]], dtype=F64)), -1)
+    u, info = ctrl(state, cfg)
+    u_moved, _ = ctrl(state.transform(g), cfg)
+    rotate = FieldType(group, [Vector(d)])
+    assert (rotate.act(g.expand(12, g.shape[-1]), u[0]) - u_moved[0]).abs().max() <= 1e-9
+    lo, hi = cfg.make_robot().control_bounds(u)
+    assert bool(((u >= lo - 1e-12) & (u <= hi + 1e-12)).all()) and info["num_failed"] == 0
+
+
+def test_agents_far_from_everything_keep_their_nominal_control():
+    cfg = EnvConfig.for_robot("double_integrator", num_agents=2, num_obstacles=0, num_envs=1, area_size=4.0)
+    state = SwarmEnv(cfg, dtype=F64).reset(0)
+    state.x[0, 0, :2] = torch.tensor([0.5, 0.5], dtype=F64)
+    state.x[0, 1, :2] = torch.tensor([3.5, 3.5], dtype=F64)  # far outside the communication radius
+    u, info = make_controller("dcbf", robot="double_integrator")(state, cfg)
+    assert torch.allclose(u, info["u_ref"], atol=1e-12)
+
+
+def test_where_it_does_not_apply():
+    with pytest.raises(ValueError, match="centralized"):
+        make_controller("ccbf", robot="double_integrator")
+    with pytest.raises(ValueError, match="dubins_car"):
+        make_controller("dcbf", robot="dubins_car")

@@ -123,7 +123,7 @@ def test_a_failure_at_a_later_size_keeps_the_finished_rows(cli, tmp_path, monkey
 
     real = controllers.make_controller
 
-    def failing(name):
+    def failing(name, robot="quadrotor"):
         ctrl = real(name)
 
         def run(state, config):

@@ -34,13 +34,8 @@ from egcbf.threads import busy_cpus
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = ROOT / "docs" / "results" / "gcbfplus" / "reference.json"
-ROBOTS = {
-    "SingleIntegrator": "single_integrator",
-    "DoubleIntegrator": "double_integrator",
-    "DubinsCar": "dubins_car",
-    "LinearDrone": "linear_drone",
-    "CrazyFlie": "quadrotor",
-}
+#: the reference's environments -> our robots (CrazyFlie: our quadrotor, another plant)
+ROBOTS = json.loads((REFERENCE).read_text())["robots"]
 METHODS = ("gcbf+", "egcbf+")
 
 

@@ -25,13 +25,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results" / "gcbfplus"
-ROBOTS = {
-    "SingleIntegrator": "single_integrator",
-    "DoubleIntegrator": "double_integrator",
-    "DubinsCar": "dubins_car",
-    "LinearDrone": "linear_drone",
-    "CrazyFlie": "quadrotor",
-}
+#: the reference's environments -> our robots (CrazyFlie: our quadrotor, another plant)
+ROBOTS = json.loads((RESULTS / "reference.json").read_text())["robots"]
 METHODS = ("nominal", "dcbf", "gcbf+", "egcbf+")
 
 

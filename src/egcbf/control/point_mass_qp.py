@@ -153,11 +153,7 @@ def _nearest_surface_point(obs, points: Tensor, env: Tensor, k: Tensor) -> Tenso
     if obs.boxes is None:  # a sphere or disc: along the ray from its centre
         d = points - c
         return c + d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12) * obs.radii[env, k].to(points.dtype)[:, None]
+    from ..env.rectangles import nearest_point
+
     box = obs.boxes[env, k].to(points.dtype)
-    half, cs = box[:, :2], box[:, 2:]
-    rel = points - c
-    local = torch.stack((cs[:, 0] * rel[:, 0] + cs[:, 1] * rel[:, 1], cs[:, 0] * rel[:, 1] - cs[:, 1] * rel[:, 0]), -1)
-    clamped = torch.maximum(torch.minimum(local, half), -half)
-    back = torch.stack((cs[:, 0] * clamped[:, 0] - cs[:, 1] * clamped[:, 1],
-                        cs[:, 1] * clamped[:, 0] + cs[:, 0] * clamped[:, 1]), -1)  # fmt: skip
-    return c + back
+    return nearest_point(points, c, box[:, :2], box[:, 2:])

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["Rectangles", "ray_distances", "sample_rectangles", "signed_distance"]
+__all__ = ["Rectangles", "nearest_point", "ray_distances", "sample_rectangles", "signed_distance"]
 
 
 def _to_local(d: Tensor, orientation: Tensor) -> Tensor:
@@ -44,6 +44,14 @@ def signed_distance(points: Tensor, centers: Tensor, half_sizes: Tensor, orienta
     q = _to_local(points - centers, orientations).abs() - half_sizes
     outside = torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1)
     return outside + q.amax(-1).clamp_max(0.0)
+
+
+def nearest_point(points: Tensor, centers: Tensor, half_sizes: Tensor, orientations: Tensor) -> Tensor:
+    """The point of each rectangle nearest to ``points`` (all ``(..., 2)``, broadcasting; the point itself inside)."""
+    local = _to_local(points - centers, orientations)
+    clamped = torch.maximum(torch.minimum(local, half_sizes), -half_sizes)
+    c, s = orientations[..., 0:1], orientations[..., 1:2]
+    return centers + c * clamped + s * torch.stack((-clamped[..., 1], clamped[..., 0]), -1)
 
 
 def ray_distances(origins: Tensor, directions: Tensor, centers: Tensor, half_sizes: Tensor,

@@ -25,6 +25,7 @@ the two implementations; ``examples/new_robot.py`` and docs/robots.md show how t
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any, ClassVar
 
 import torch
@@ -34,7 +35,16 @@ from groupcanon import FeatureType, FieldType, Group
 from groupcanon.features import Scalar
 from groupcanon.groups import Trivial
 
-__all__ = ["Robot", "rk4_step"]
+__all__ = ["Robot", "require_positive", "rk4_step"]
+
+
+def require_positive(params, names) -> None:
+    """Raise ``ValueError`` naming the first of ``params``' fields ``names`` that is not a finite number ``> 0``
+    (the check of every robot's parameter dataclass)."""
+    for name in names:
+        v = getattr(params, name)
+        if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{type(params).__name__}.{name} must be a finite number > 0, got {v!r}")
 
 
 def _not_implemented(robot, method: str) -> NotImplementedError:

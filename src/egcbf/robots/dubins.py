@@ -23,7 +23,6 @@ breaks the rotation symmetry), and the QP's input matrix uses the dynamics' turn
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -35,7 +34,7 @@ from groupcanon.features import Point, Scalar, Vector
 from groupcanon.frames import planar_frame
 from groupcanon.groups import SE2
 
-from .base import Robot
+from .base import Robot, require_positive
 from .integrators import PLANAR_DEFAULTS
 
 __all__ = ["DubinsCar", "DubinsParams"]
@@ -59,10 +58,9 @@ class DubinsParams:
     max_position_error: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("radius", "turn_gain", "max_control", "max_speed", "k_omega", "k_a", "k_v", "max_position_error"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"DubinsParams.{name} must be a finite number > 0, got {v!r}")
+        require_positive(
+            self, ("radius", "turn_gain", "max_control", "max_speed", "k_omega", "k_a", "k_v", "max_position_error")
+        )
 
 
 def _perp(h: Tensor) -> Tensor:

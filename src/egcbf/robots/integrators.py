@@ -33,7 +33,6 @@ the group, so the hits move with the scene.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -46,7 +45,7 @@ from groupcanon.features import Point, Vector
 from groupcanon.frames import cyclic_frames
 from groupcanon.groups import CyclicSE2, CyclicSE2xR
 
-from .base import Robot, rk4_step
+from .base import Robot, require_positive, rk4_step
 
 __all__ = [
     "PLANAR_DEFAULTS",
@@ -89,10 +88,7 @@ class IntegratorParams:
     dt: float = 0.03
 
     def __post_init__(self) -> None:
-        for name in ("radius", "mass", "max_control", "max_speed", "max_position_error", "dt"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"IntegratorParams.{name} must be a finite number > 0, got {v!r}")
+        require_positive(self, ("radius", "mass", "max_control", "max_speed", "max_position_error", "dt"))
 
 
 def discrete_lqr(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:

@@ -24,7 +24,6 @@ the actuator box. Invariant inputs give an invariant control: ``u(phi_g x, g goa
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -36,7 +35,7 @@ from groupcanon.features import Point, Scalar, Vector
 from groupcanon.frames import planar_frame
 from groupcanon.groups import SE2
 
-from .base import Robot, rk4_step
+from .base import Robot, require_positive, rk4_step
 
 __all__ = ["Unicycle", "UnicycleParams"]
 
@@ -68,11 +67,20 @@ class UnicycleParams:
     goal_fade: float = 0.05
 
     def __post_init__(self) -> None:
-        for name in ("radius", "max_turn_rate", "max_accel", "max_speed", "k_omega", "k_p", "k_v",
-                     "max_position_error", "goal_fade"):  # fmt: skip
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"UnicycleParams.{name} must be a finite number > 0, got {v!r}")
+        require_positive(
+            self,
+            (
+                "radius",
+                "max_turn_rate",
+                "max_accel",
+                "max_speed",
+                "k_omega",
+                "k_p",
+                "k_v",
+                "max_position_error",
+                "goal_fade",
+            ),
+        )
 
 
 def _perp(h: Tensor) -> Tensor:

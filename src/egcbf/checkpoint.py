@@ -265,8 +265,11 @@ def write_checkpoint_dir(learner: GraphCBFLearner, final: Path, state: dict, ext
     return replace_dir(tmp, final)
 
 
-def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: int = 0, buffers: bool = True) -> Path:
-    """Write the learner's checkpoint ``OUT/checkpoints/step_XXXXXX`` atomically; keep the newest ``keep`` (0: all)."""
+def save_checkpoint(
+    learner: GraphCBFLearner, out: Path, wall_s: float, keep: int = 0, buffers: bool = True, cpu_s: float = 0.0
+) -> Path:
+    """Write the learner's checkpoint ``OUT/checkpoints/step_XXXXXX`` atomically (``wall_s`` and ``cpu_s``: the
+    run's training wall and process CPU time so far, for a resumed run's budgets); keep the newest ``keep`` (0: all)."""
 
     def training_files(tmp: Path, at) -> None:
         with open(at(tmp / "training_state.pt"), "wb") as f:  # a file object: a failed write's OSError is kept
@@ -277,6 +280,7 @@ def save_checkpoint(learner: GraphCBFLearner, out: Path, wall_s: float, keep: in
     state = {
         "step": learner.step,
         "wall_s": wall_s,
+        "cpu_s": cpu_s,
         "algo": learner.config.algo,
         "torch": torch.__version__,
         "python": sys.version.split()[0],

@@ -96,7 +96,9 @@ class TrainConfig:
     interface), with the class-K gain ``qp_edge_alpha`` (1/s, per-edge barriers in m).
 
     Run: ``steps`` (updates), ``max_wall_minutes`` (stop earlier, after the first update that ends past this much
-    training wall time, with a final evaluation and checkpoint; ``None``: no limit), ``seed``, ``device``,
+    training wall time, with a final evaluation and checkpoint; ``None``: no limit), ``max_cpu_minutes`` (the same
+    on the training process's CPU time, all its threads: a budget that other jobs on the machine do not eat into,
+    for comparisons run beside other work; ``None``: no limit), ``seed``, ``device``,
     ``dtype``, ``deterministic``
     (``torch.use_deterministic_algorithms``), ``num_threads`` (0: leave torch's default), ``eval_interval``,
     ``eval_episodes``, ``eval_num_agents``, ``eval_area_size``, ``eval_num_obstacles``, ``eval_max_steps``
@@ -160,6 +162,7 @@ class TrainConfig:
     # run
     steps: int = 1000
     max_wall_minutes: float | None = None
+    max_cpu_minutes: float | None = None
     seed: int = 0
     device: str = "cpu"
     dtype: str = "float32"
@@ -216,9 +219,10 @@ class TrainConfig:
             v = getattr(self, name)
             need(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0, name, "a finite number >= 0")
         need(0 <= self.target_tau <= 1, "target_tau", "in [0, 1]")
-        if self.max_wall_minutes is not None:
-            v = self.max_wall_minutes
-            need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, "max_wall_minutes", "None or > 0")
+        for name in ("max_wall_minutes", "max_cpu_minutes"):
+            v = getattr(self, name)
+            ok = v is None or (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0)
+            need(ok, name, "None or > 0")
         need(self.control_loss in ("squared", "norm"), "control_loss", "'squared' or 'norm'")
         need(self.init_from is None or (isinstance(self.init_from, str) and self.init_from.strip() != ""),
              "init_from", "None or a checkpoint path")  # fmt: skip

@@ -60,7 +60,11 @@ from .evaluate import episode_seed, run_episodes
 
 __all__ = ["METRICS_FIELDS", "evaluate_policy", "require_tensorboard", "train"]
 
-METRICS_FIELDS = ("step", "wall_s", "safe_rate", "reach_rate", "success_rate", "cost", "reward", "num_episodes")
+METRICS_FIELDS = (
+    "step", "wall_s", "safe_rate", "reach_rate", "success_rate", "cost", "reward", "num_episodes", "cpu_s"
+)  # fmt: skip
+#: columns a log written before they existed leaves empty (``cpu_s``: process CPU time, added 2026-11)
+_OPTIONAL_FIELDS = frozenset({"cpu_s"})
 
 
 # ---------------------------------------------------------------------------------------------------- logging
@@ -108,7 +112,7 @@ class _Logger:
         with writing(self.out / "metrics.csv", _ROWS_KEPT), open(self.out / "metrics.csv", "a", newline="") as f:
             csv.DictWriter(f, METRICS_FIELDS, extrasaction="ignore").writerow(row)
         if self.tb is not None:
-            for k in METRICS_FIELDS[2:]:
+            for k in METRICS_FIELDS[2:-1]:
                 self.tb.add_scalar(f"eval/{k}", float(row[k]), int(row["step"]))
 
     def close(self) -> None:
@@ -118,7 +122,7 @@ class _Logger:
 
 def _complete_row(row: dict, keep_upto: int) -> bool:
     """A whole row (a kill in the middle of an append leaves a short last line) of a step ``<= keep_upto``."""
-    if None in row or any(v is None or v == "" for v in row.values()):
+    if None in row or any(v is None or (v == "" and k not in _OPTIONAL_FIELDS) for k, v in row.items()):
         return False
     try:
         return int(row["step"]) <= keep_upto
@@ -246,7 +250,8 @@ def train(
     log = log or tqdm.write
     if resume:
         learner, config, ckpt, saved = _resume(out, steps, log)
-        wall0 = float(read_state(ckpt).get("wall_s", 0.0))
+        state = read_state(ckpt)
+        wall0, cpu0 = float(state.get("wall_s", 0.0)), float(state.get("cpu_s", 0.0))
         log(f"resumed {config.algo} from {ckpt} at update {learner.step}")
     else:
         if list_checkpoints(out):
@@ -264,19 +269,30 @@ def train(
             _restore_torch(saved)
             raise
         out.mkdir(parents=True, exist_ok=True)
-        wall0 = 0.0
+        wall0 = cpu0 = 0.0
     write_json_atomic(out / "config.json", config.to_dict())  # a kill never leaves a half-written config
     logger = _Logger(out, learner.step, tensorboard)
     best_row = best_metrics(out) if resume else None
     best = [_selection_key(best_row) if best_row is not None else None]
-    t_start = time.perf_counter()
+    t_start, c_start = time.perf_counter(), time.process_time()
 
     def wall() -> float:
         return wall0 + time.perf_counter() - t_start
 
+    def cpu() -> float:
+        return cpu0 + time.process_time() - c_start
+
+    def budget_spent() -> str | None:
+        """Which time budget is spent (``"max_wall_minutes=30"``), or ``None``."""
+        for name, used in (("max_wall_minutes", wall), ("max_cpu_minutes", cpu)):
+            limit = getattr(config, name)
+            if limit is not None and used() >= 60.0 * limit:
+                return f"{name}={limit:g}"
+        return None
+
     def evaluate_now() -> None:
         row = evaluate_policy(learner, config)
-        row.update(step=learner.step, wall_s=round(wall(), 3))
+        row.update(step=learner.step, wall_s=round(wall(), 3), cpu_s=round(cpu(), 3))
         logger.metrics(row)
         key = _selection_key(row)
         if best[0] is None or key >= best[0]:
@@ -297,14 +313,15 @@ def train(
             logger.scalars(learner.step, wall(), info)
             bar.update(1)
             bar.set_postfix(loss=f"{info['loss/total']:.4f}", unsafe=int(info["data/unsafe"]), refresh=False)
-            out_of_time = config.max_wall_minutes is not None and wall() >= 60.0 * config.max_wall_minutes
-            last = learner.step == config.steps or out_of_time
+            out_of_time = budget_spent()
+            last = learner.step == config.steps or out_of_time is not None
             if learner.step % config.eval_interval == 0 or last:
                 evaluate_now()
             if learner.step % config.checkpoint_interval == 0 or last:
-                save_checkpoint(learner, out, wall(), keep=config.keep_checkpoints, buffers=config.save_buffers)
-            if out_of_time and learner.step < config.steps:
-                log(f"[{config.algo}] stopped at update {learner.step}: max_wall_minutes={config.max_wall_minutes:g}")
+                save_checkpoint(learner, out, wall(), keep=config.keep_checkpoints, buffers=config.save_buffers,
+                                cpu_s=cpu())  # fmt: skip
+            if out_of_time is not None and learner.step < config.steps:
+                log(f"[{config.algo}] stopped at update {learner.step}: {out_of_time}")
                 break
     finally:
         bar.close()

@@ -26,7 +26,8 @@ def test_every_arm_builds_and_keeps_its_checkpoints_where_reproduce_looks():
     for a in ARMS:
         for run in a.all_runs():
             cfg = a.config(run.algo, run.seed)
-            assert cfg.algo == run.algo and cfg.seed == run.seed and cfg.max_wall_minutes == a.minutes
+            assert cfg.algo == run.algo and cfg.seed == run.seed and cfg.max_cpu_minutes == a.minutes
+            assert cfg.max_wall_minutes is None
             assert run.checkpoint_dir("R") == checkpoint_dir(Path("R") / "checkpoints" / a.name, run.algo, run.seed)
         if a.evaluation == "table":
             cfg = sweep_config(a, "R")
@@ -44,7 +45,7 @@ def test_train_command_starts_fresh_then_resumes(tmp_path):
     cmd = train_command(run, a, tmp_path)
     assert cmd[2:5] == ["egcbf", "train", "--out"] and "--resume" not in cmd and cmd[cmd.index("--seed") + 1] == "0"
     fields = json.loads((tmp_path / "cpu-20" / "egcbf+-s0.config.json").read_text())
-    assert fields == {"preset": "cpu", "max_wall_minutes": 20.0, "seed": 0}
+    assert fields == {"preset": "cpu", "max_wall_minutes": None, "max_cpu_minutes": 20.0, "seed": 0}
     (tmp_path / "cpu-20" / "egcbf+-s0" / "checkpoints" / "step_00000002").mkdir(parents=True)
     assert train_command(run, a, tmp_path)[-1] == "--resume"
 
@@ -70,7 +71,10 @@ def test_tiny_runs_train_resume_and_evaluate_end_to_end(tmp_path):
     assert sorted(r.name for r in done) == ["egcbf+-s0", "gcbf+-s0"] and not pending_runs([tiny], root)
     for r in done:
         d = r.checkpoint_dir(root)
-        assert {p.name for p in d.iterdir()} == {"config.json", "model.safetensors", "state.json", "metrics.csv"}
+        names = {p.name for p in d.iterdir()}
+        assert names == {"config.json", "model.safetensors", "state.json", "metrics.csv", "machine.json"}
+        assert json.loads((d / "machine.json").read_text())["cores"] >= 1
+        assert json.loads((d / "config.json").read_text())["max_cpu_minutes"] is not None
         assert (runs / "tiny" / r.name / "study_done.json").exists()
     assert train_runs([tiny], root=root, runs_dir=runs, log=lambda s: None) == []
     evaluate_arm(tiny, root, workers=1, log=lambda s: None)

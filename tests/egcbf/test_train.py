@@ -107,8 +107,12 @@ def test_resume_continues_bit_for_bit(tmp_path, monkeypatch):
     assert torch.equal(full.buffer.data.x, resumed.buffer.data.x) and len(full.unsafe_buffer) == len(
         resumed.unsafe_buffer
     )
-    strip = [{k: v for k, v in r.items() if k != "wall_s"} for r in _rows(tmp_path / "full" / "metrics.csv")]
-    assert strip == [{k: v for k, v in r.items() if k != "wall_s"} for r in _rows(tmp_path / "part" / "metrics.csv")]
+
+    def untimed(run):
+        rows = _rows(tmp_path / run / "metrics.csv")
+        return [{k: v for k, v in r.items() if k not in ("wall_s", "cpu_s")} for r in rows]
+
+    assert untimed("full") == untimed("part")
     steps = [int(r["step"]) for r in _rows(tmp_path / "part" / "scalars.csv")]
     assert steps == sorted(steps) and max(steps) == 4  # rows after the checkpoint were replaced, not duplicated
     with pytest.raises(FileExistsError):
@@ -194,6 +198,32 @@ def test_max_wall_minutes_stops_with_a_final_evaluation_and_checkpoint(tmp_path)
     assert TrainConfig.preset("egcbf+", "cpu").max_wall_minutes == 60.0
     with pytest.raises(ValueError, match="max_wall_minutes"):
         TrainConfig.preset("gcbf", "tiny", max_wall_minutes=0)
+
+
+def test_max_cpu_minutes_counts_process_time_and_survives_resume(tmp_path):
+    """The CPU-time budget stops a run like the wall-time one, is logged (``cpu_s``), is stored in each checkpoint
+    and continues from it on resume; a log written before ``cpu_s`` existed resumes without losing its rows."""
+    cfg = TrainConfig.preset("gcbf", "tiny", steps=6, max_cpu_minutes=1e-9)
+    learner = _quiet(cfg, tmp_path / "a")
+    assert learner.step == 1
+    rows = _rows(tmp_path / "a" / "metrics.csv")
+    assert [int(r["step"]) for r in rows] == [0, 1] and float(rows[1]["cpu_s"]) > 0
+    state = json.loads((find_checkpoint(tmp_path / "a") / "state.json").read_text())
+    assert state["cpu_s"] >= float(rows[1]["cpu_s"]) > 0
+    # resume: the clock starts where the checkpoint left it (a budget of 1000 CPU-minutes already spent)
+    with pytest.raises(ValueError, match="max_cpu_minutes"):
+        TrainConfig.preset("gcbf", "tiny", max_cpu_minutes=-1.0)
+    run = tmp_path / "b"
+    _quiet(TrainConfig.preset("gcbf", "tiny", steps=2, max_cpu_minutes=1000.0), run)
+    ckpt = find_checkpoint(run)
+    state = json.loads((ckpt / "state.json").read_text())
+    (ckpt / "state.json").write_text(json.dumps({**state, "cpu_s": 1000.0 * 60.0}))
+    metrics = run / "metrics.csv"
+    old = [line.rsplit(",", 1)[0] for line in metrics.read_text().splitlines()]  # a log without the cpu_s column
+    metrics.write_text("\n".join(old) + "\n")
+    resumed = _quiet(TrainConfig.preset("gcbf", "tiny", steps=2), run, resume=True, steps=6)
+    assert resumed.step == 3  # one more update, then the (already spent) budget stops it
+    assert [int(r["step"]) for r in _rows(metrics)] == [0, 2, 3]  # the old rows kept (tiny evaluates every 2)
 
 
 def test_warm_start_from_a_checkpoint(tmp_path):

@@ -33,7 +33,8 @@ DONE = "study_done.json"
 
 def _config_fields(run: Run, arm: Arm) -> dict:
     """The ``--config`` JSON of a run: its arm's preset and overrides, the wall-time budget and the seed."""
-    fields = {"preset": arm.preset, "max_wall_minutes": float(arm.minutes), "seed": run.seed, **arm.overrides}
+    fields = {"preset": arm.preset, "max_wall_minutes": None, "max_cpu_minutes": float(arm.minutes), "seed": run.seed,
+              **arm.overrides}  # fmt: skip
     arm.config(run.algo, run.seed)  # a clear error now for a recipe that does not build
     return fields
 
@@ -67,6 +68,9 @@ def _collect(run: Run, runs_dir: Path, root: Path) -> None:
     for name in ("config.json", "model.safetensors", "state.json"):
         shutil.copy2(best / name, tmp / name)
     shutil.copy2(out / "metrics.csv", tmp / "metrics.csv")
+    from ..report import machine_info
+
+    write_json_atomic(tmp / "machine.json", machine_info())  # where the CPU-minute budget was spent
     shutil.rmtree(dest, ignore_errors=True)
     tmp.rename(dest)
     write_json_atomic(out / DONE, {"checkpoint": str(dest), "finished": time.strftime("%Y-%m-%dT%H:%M:%S")})

@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 
 from .env import EnvConfig, SwarmEnv, SwarmState
 from .env.obstacles import Obstacles
+from .faults import FaultConfig, FaultProcess
 from .metrics import EpisodeStats, summarize
 
 __all__ = [
@@ -82,6 +83,18 @@ def _new_timing() -> dict:
     return {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0, "num_active": 0, "num_filtered": 0}
 
 
+def _require_fault_support(controller, faults: FaultConfig) -> None:
+    """Faults on messages and LiDAR reach a controller only through the graph it builds from the state
+    (:class:`egcbf.faults.Sensing`); a controller that reads the state otherwise would silently ignore them."""
+    if faults.edge_faults and not getattr(controller, "reads_sensing", False):
+        name = getattr(controller, "name", type(controller).__name__)
+        raise ValueError(
+            f"faults {faults.spec()!r}: message and LiDAR faults (msg_loss, msg_delay, lidar_noise, lidar_drop) reach "
+            f"only controllers that build their graph from the observed state (the learned policies); {name!r} "
+            "does not read them. Evaluate it with the state-level faults only (noise, actuation, wind, noncoop)."
+        )
+
+
 def run_episodes(
     controller: Controller,
     config: EnvConfig,
@@ -91,15 +104,27 @@ def run_episodes(
     dtype: torch.dtype = torch.float32,
     record: bool = False,
     progress: tqdm | None = None,
+    faults: FaultConfig | None = None,
+    fault_rotation: Tensor | None = None,
 ) -> tuple[EpisodeStats, dict, EpisodeRecord | None]:
     """Simulate ``len(seeds)`` episodes together; returns their stats, timing lists and (optionally) the record
-    of the first episode."""
+    of the first episode.
+
+    ``faults`` (:mod:`egcbf.faults`; ``None`` or all zero: the perfect world, bit for bit): the controller sees the
+    agents' corrupted perception, its commands reach the rotors corrupted, wind pushes the agents; the metrics read
+    the true states and count the cooperative agents only. ``fault_rotation`` rotates the faults' world-frame draws
+    (:class:`egcbf.faults.FaultProcess`; the equivariance tests)."""
     single = dataclasses.replace(config, num_envs=1)
     env1 = SwarmEnv(single, device=device, dtype=dtype)
     state = concat_states([env1.reset(s) for s in seeds])
     env = SwarmEnv(dataclasses.replace(config, num_envs=len(seeds)), device=device, dtype=dtype)
     robot = env.robot
-    stats = EpisodeStats(len(seeds), config.num_agents, device=device)
+    process = None
+    if faults is not None and not faults.is_null:
+        process = FaultProcess(faults, env.config, robot, seeds, device=device, dtype=dtype, rotation=fault_rotation)
+        _require_fault_support(controller, faults)
+    counted = None if process is None or not bool(process.noncoop.any()) else ~process.noncoop
+    stats = EpisodeStats(len(seeds), config.num_agents, device=device, counted=counted)
     timing = _new_timing()
     rec = None
     if record:
@@ -112,11 +137,17 @@ def run_episodes(
         rec.collided.append(torch.zeros(config.num_agents, dtype=torch.bool))
     for _ in range(config.max_steps):
         t0 = time.perf_counter()
-        u, info = controller(state, env.config)
+        seen = state if process is None else process.observe(state)
+        u, info = controller(seen, env.config)
         u_ref = info.get("u_ref")
         if u_ref is None:  # the reward compares u with the nominal control at the same state
-            u_ref = robot.nominal_control(state.x, state.goals)
+            u_ref = robot.nominal_control(seen.x, seen.goals)
+        if process is not None:
+            u = process.actuate(u, state)
         state, step_info = env.step(state, u)
+        if process is not None and (faults.wind or faults.gust > 0):
+            state = process.push(state)
+            step_info = env.info(state, u=step_info.u)
         timing["step_ms"].append(1e3 * (time.perf_counter() - t0))
         stats.update(step_info, u=step_info.u, u_ref=u_ref.to(step_info.u.dtype))
         if "qp_ms" in info:
@@ -151,6 +182,7 @@ def evaluate(
     env_overrides: dict | None = None,
     on_size: Callable[[list[dict], EpisodeRecord | None], None] | None = None,
     robot: str = "quadrotor",
+    faults: FaultConfig | None = None,
 ) -> tuple[list[dict], dict[int, EpisodeRecord]]:
     """Evaluate a controller at each swarm size; returns one metrics row per size (see ``docs/metrics.md``; its
     ``per_episode`` holds the lists of :data:`PER_EPISODE_KEYS` over the episodes, in episode order) and the recorded
@@ -158,7 +190,9 @@ def evaluate(
 
     ``on_size(rows, record)`` is called as soon as each size is finished, with the rows so far and that size's
     record (or ``None``): the CLI writes its results there, so that a later failure loses no finished size.
-    ``robot`` (:mod:`egcbf.robots`) sets the environment's defaults (:meth:`EnvConfig.for_robot`).
+    ``robot`` (:mod:`egcbf.robots`) sets the environment's defaults (:meth:`EnvConfig.for_robot`). ``faults``
+    (:mod:`egcbf.faults`): evaluate under these faults (see :func:`run_episodes`); the rows then hold ``faults``, the
+    spec string.
     """
     if not callable(make_controller):
         raise TypeError(
@@ -193,7 +227,14 @@ def evaluate(
         for k in range(0, episodes, b):
             chunk = seeds[k : k + b]
             stats, t, rec = run_episodes(
-                controller, config, chunk, device=device, dtype=dtype, record=record and k == 0, progress=bar
+                controller,
+                config,
+                chunk,
+                device=device,
+                dtype=dtype,
+                record=record and k == 0,
+                progress=bar,
+                faults=faults,
             )
             per_episode.append(stats.per_episode())
             for key in ("step_ms", "qp_ms"):
@@ -209,6 +250,8 @@ def evaluate(
         # each episode's own values, in episode order: what a confidence interval over episodes resamples
         row["per_episode"] = {k: pooled[k].double().tolist() for k in PER_EPISODE_KEYS}
         row["step_ms_median"] = statistics.median(timing["step_ms"])
+        if faults is not None and not faults.is_null:
+            row["faults"] = faults.spec()
         if timing["qp_ms"] and max(timing["qp_ms"]) > 0:  # controllers without a QP report 0
             row["qp_ms_median"] = statistics.median(timing["qp_ms"])
             row["qp_slack_steps"] = timing["num_slack"]

@@ -288,8 +288,12 @@ def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None
     device = x.device
     xf = x.reshape(m, -1)
     p = robot.positions(xf)
+    sensing = state.sensing  # faults (egcbf.faults): the scan and the messages as the agents receive them
     if lidar is None:
-        lidar = cast_lidar(config, state.positions, robot.heading(x), state.obstacles)
+        if sensing is not None:
+            lidar = sensing.scan(config)
+        else:
+            lidar = cast_lidar(config, state.positions, robot.heading(x), state.obstacles)
     valid = lidar.valid.reshape(m, -1)
     owner, _slot = valid.nonzero(as_tuple=True)  # row-major: owner-major, closest first
     hit_pos = lidar.points.reshape(m, -1, d)[valid]  # same order as nonzero
@@ -320,7 +324,7 @@ def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None
     edge_kind = src_kind.index_select(0, edge_index[0])
     edge_attr = edge_vectors(pos_src, p, edge_index, edge_kind, config.comm_radius)
 
-    return SwarmGraph(
+    graph = SwarmGraph(
         x_src=x_src,
         x_dst=agent_feat,
         edge_index=edge_index,
@@ -338,6 +342,7 @@ def build_graph(state: SwarmState, config: EnvConfig, *, lidar: LidarScan | None
         comm_radius=float(config.comm_radius),
         robot=robot,
     )
+    return graph if sensing is None else sensing.messages(graph)
 
 
 def refresh_graph(graph: SwarmGraph, x: Tensor) -> SwarmGraph:

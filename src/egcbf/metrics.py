@@ -31,13 +31,35 @@ class EpisodeStats:
     ``stats = EpisodeStats(B, N)``; every step ``stats.update(info, u=u, u_ref=u_nom)``; at the end
     ``stats.result()`` (a dict row) or ``stats.per_episode()`` (``(B,)`` tensors, to pool several batches with
     :func:`summarize`).
+
+    ``counted`` (``(B, N)`` bool, ``None``: every agent): the agents the episode values average over (non-cooperative
+    agents under :mod:`egcbf.faults` are not counted; collisions with them are); every episode must count the same
+    number of agents, so that pooled means stay means over agents.
     """
 
-    def __init__(self, num_envs: int, num_agents: int, device: torch.device | str | None = None):
+    def __init__(
+        self,
+        num_envs: int,
+        num_agents: int,
+        device: torch.device | str | None = None,
+        counted: Tensor | None = None,
+    ):
         if int(num_envs) != num_envs or num_envs < 1 or int(num_agents) != num_agents or num_agents < 1:
             raise ValueError(f"EpisodeStats needs num_envs, num_agents >= 1, got {num_envs!r}, {num_agents!r}")
         self.num_envs, self.num_agents = int(num_envs), int(num_agents)
         shape = (self.num_envs, self.num_agents)
+        if counted is not None:
+            if tuple(counted.shape) != shape or counted.dtype != torch.bool:
+                raise ValueError(
+                    f"counted must be a bool tensor of shape {shape}, got {counted.dtype} {tuple(counted.shape)}"
+                )
+            per_env = counted.sum(1)
+            if bool((per_env == 0).any()) or bool((per_env != per_env[0]).any()):
+                raise ValueError(
+                    f"counted must keep the same number (>= 1) of agents in every episode, got {per_env.tolist()}"
+                )
+            counted = counted.to(device)
+        self.counted = counted
         self.ever_collided = torch.zeros(shape, dtype=torch.bool, device=device)
         self.ever_reached = torch.zeros(shape, dtype=torch.bool, device=device)
         self.prev_collision = torch.zeros(shape, dtype=torch.bool, device=device)
@@ -77,13 +99,23 @@ class EpisodeStats:
         """``(B,)`` float64 tensors: ``safe_rate``, ``reach_rate``, ``success_rate``, ``cost``, ``reward``,
         ``collision_steps`` (agent averages of each episode)."""
         safe = ~self.ever_collided
+        if self.counted is None:
+
+            def mean(v: Tensor) -> Tensor:
+                return v.double().mean(1)
+        else:
+            w = self.counted.double()
+
+            def mean(v: Tensor) -> Tensor:
+                return (v.double() * w).sum(1) / w.sum(1)
+
         return {
-            "safe_rate": safe.double().mean(1),
-            "reach_rate": self.ever_reached.double().mean(1),
-            "success_rate": (safe & self.ever_reached).double().mean(1),
-            "cost": self.collision_events.double().mean(1),
-            "reward": self.reward.mean(1),
-            "collision_steps": self.collision_steps.double().mean(1),
+            "safe_rate": mean(safe),
+            "reach_rate": mean(self.ever_reached),
+            "success_rate": mean(safe & self.ever_reached),
+            "cost": mean(self.collision_events),
+            "reward": mean(self.reward),
+            "collision_steps": mean(self.collision_steps),
         }
 
     def result(self) -> dict[str, float | int]:

@@ -60,6 +60,8 @@ class LearnedController:
     """
 
     name = "learned"
+    #: builds its graph from the observed state, so message and LiDAR faults reach it (:mod:`egcbf.faults`)
+    reads_sensing = True
 
     def __init__(self, policy: PolicyNet, model_config: ModelConfig):
         self.policy = policy

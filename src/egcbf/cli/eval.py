@@ -148,6 +148,7 @@ def run_eval(
     scene: str = "uniform",
     scene_yaw: float = 0.0,
     max_travel: float | None = None,
+    faults: str = "none",
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -178,6 +179,20 @@ def run_eval(
         except ValueError as err:
             usage_error(str(err).replace("FilterConfig.alpha", "--filter-alpha").replace("FilterConfig.margin",
                         "--filter-margin"), err)  # fmt: skip
+    from ..faults import parse_faults
+
+    try:
+        fault_config = parse_faults(faults)
+    except ValueError as err:
+        usage_error(f"--faults: {err}", err)
+    require(
+        not fault_config.edge_faults or (checkpoint is not None and filter == "none"),
+        f"--faults {fault_config.spec()}: message and LiDAR faults (msg_loss, msg_delay, lidar_noise, lidar_drop) "
+        "reach only a learned policy alone (--checkpoint without --filter), which builds its graph from what the "
+        "agents perceive; the hand-crafted controllers and the filters read neighbours from the state. Give this "
+        "controller the state-level faults only (pos, vel, gain, thrust_gain, torque_gain, torque_bias, act_delay, "
+        "wind, gust, noncoop)",
+    )
     sizes = parse_sizes(num_agents)
     dev = parse_device(device)
     env_overrides, ckpt = None, None
@@ -236,6 +251,7 @@ def run_eval(
         "obstacles": obstacles,
         **({"scene": scene, "scene_yaw": float(scene_yaw)} if scene != "uniform" or scene_yaw != 0 else {}),
         **({"max_travel": float(max_travel)} if max_travel is not None else {}),
+        **({"faults": fault_config.to_dict()} if not fault_config.is_null else {}),
         "episodes": episodes,
         "seed": seed,
         "wall_s": 0.0,
@@ -280,10 +296,14 @@ def run_eval(
         env_overrides=env_overrides,
         on_size=save_size,
         robot=robot,
+        faults=fault_config,
     )
     meta.update(complete=True, wall_s=round(time.time() - t0, 1))
     write_json_atomic(out / "run.json", meta)
-    typer.echo(format_table(rows, title=f"{controller}: l={area:g}, {obstacles} obstacles, {episodes} episodes"))
+    title = f"{controller}: l={area:g}, {obstacles} obstacles, {episodes} episodes"
+    if not fault_config.is_null:
+        title += f", faults {fault_config.spec()}"
+    typer.echo(format_table(rows, title=title))
     for p in written:
         typer.echo(f"wrote {p}")
     typer.echo(f"wrote {out / 'metrics.json'}")
@@ -352,6 +372,14 @@ def eval_cmd(
         float | None,
         typer.Option(help="each goal within this distance (m) of its agent's start (GCBF+'s --max-travel)"),
     ] = None,
+    faults: Annotated[
+        str,
+        typer.Option(
+            help="real-world faults (docs/robustness.md): 'none', 'default' (the default field conditions), key=value "
+            "pairs such as 'pos=0.01,vel=0.02,loss=0.1,delay=1,thrust_gain=0.1,noncoop=0.05' (after 'default' they "
+            "override it), or a JSON file of egcbf.faults.FaultConfig fields"
+        ),
+    ] = "none",
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)
@@ -381,4 +409,5 @@ def eval_cmd(
             scene=scene.value,
             scene_yaw=scene_yaw,
             max_travel=max_travel,
+            faults=faults,
         )

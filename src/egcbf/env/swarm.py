@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -70,6 +71,9 @@ class SwarmState:
         obstacles: spheres (discs in 2-D), ``centers`` ``(B, K, d)``, ``radii`` ``(B, K)``.
         t: steps taken since reset (all environments step together).
         robot: the robot the states belong to (``None``: the quadrotor).
+        sensing: ``None`` (a perfect world), or how the agents perceive it under faults
+            (:class:`egcbf.faults.Sensing`: ``x`` is then what the agents estimate, and :func:`egcbf.graph.build_graph`
+            takes its LiDAR scan and its messages from it). Only :mod:`egcbf.faults` sets it.
     """
 
     x: Tensor
@@ -77,6 +81,7 @@ class SwarmState:
     obstacles: Obstacles
     t: int = 0
     robot: Robot | None = None
+    sensing: Any = None
 
     def __post_init__(self) -> None:
         if self.robot is None:
@@ -128,11 +133,13 @@ class SwarmState:
     def to(self, *args, **kwargs) -> SwarmState:
         return SwarmState(
             self.x.to(*args, **kwargs), self.goals.to(*args, **kwargs), self.obstacles.to(*args, **kwargs), self.t,
-            self.robot,
+            self.robot, self.sensing,
         )  # fmt: skip
 
     def detach(self) -> SwarmState:
-        return SwarmState(self.x.detach(), self.goals.detach(), self.obstacles.detach(), self.t, self.robot)
+        return SwarmState(
+            self.x.detach(), self.goals.detach(), self.obstacles.detach(), self.t, self.robot, self.sensing
+        )
 
     def transform(self, g: Tensor) -> SwarmState:
         """The scene moved by ``g`` ``(B, *element)``, one element of the robot's group per environment (SE2xR

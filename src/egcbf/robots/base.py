@@ -76,6 +76,13 @@ class Robot:
     world_fixed_lidar: ClassVar[bool] = False
     #: :class:`egcbf.env.EnvConfig` defaults for this robot (fields not named keep the EnvConfig defaults)
     env_defaults: ClassVar[dict[str, Any]] = {}
+    #: where the state holds the world position and the world velocity (:meth:`perturbed`); ``None``: not a slice
+    #: of the state (a robot without one overrides :meth:`perturbed`)
+    position_index: ClassVar[slice | None] = None
+    velocity_index: ClassVar[slice | None] = None
+    #: named groups of control channels (:mod:`egcbf.faults`: a per-agent gain error on ``"thrust"``, a gain and a
+    #: bias on ``"torque"``); a robot without them only takes the faults' ``gain`` on every channel
+    actuator_groups: ClassVar[dict[str, tuple[int, ...]]] = {}
 
     #: the robot's parameters (a frozen dataclass; ``None`` if it has none)
     params: Any = None
@@ -127,6 +134,18 @@ class Robot:
     def velocities(self, x: Tensor) -> Tensor:
         """World-frame velocities ``(*batch, dim)``."""
         raise _not_implemented(self, "velocities")
+
+    def perturbed(self, x: Tensor, dp: Tensor, dv: Tensor | None = None) -> Tensor:
+        """The state ``x`` with its world position moved by ``dp`` and its world velocity changed by ``dv``
+        ``(*batch, dim)`` (as far as the state holds a velocity: a kinematic robot keeps none, a car keeps the
+        component along its heading). Sensing noise and external pushes (:mod:`egcbf.faults`) use it."""
+        if self.position_index is None:
+            raise _not_implemented(self, "perturbed")
+        out = x.clone()
+        out[..., self.position_index] += dp.to(x.dtype)
+        if dv is not None and self.velocity_index is not None:
+            out[..., self.velocity_index] += dv.to(x.dtype)
+        return out
 
     def heading(self, x: Tensor) -> Tensor:
         """Unit heading ``(*batch, dim)`` (horizontal for 3-D robots): the LiDAR pattern turns with it."""

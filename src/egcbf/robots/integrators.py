@@ -110,6 +110,7 @@ class _PointMass(Robot):
     env_defaults: ClassVar[dict] = PLANAR_DEFAULTS
     #: the LiDAR rays are fixed in the world (``heading`` is no vector of the group): check_robot skips that claim
     world_fixed_lidar: ClassVar[bool] = True
+    position_index = slice(0, 2)
 
     def __init__(self, params: IntegratorParams | None = None):
         if params is not None and not isinstance(params, IntegratorParams):
@@ -208,6 +209,7 @@ class DoubleIntegrator(_PointMass):
 
     name = "double_integrator"
     state_dim = 4
+    velocity_index = slice(2, 4)
     env_defaults: ClassVar[dict] = {**PLANAR_DEFAULTS, "obstacle_side_range": (0.1, 0.5)}
 
     def __init__(self, params: IntegratorParams | None = None):
@@ -263,6 +265,7 @@ class LinearDrone(_PointMass):
     name = "linear_drone"
     dim = 3
     state_dim = 6
+    position_index, velocity_index = slice(0, 3), slice(3, 6)
     control_dim = 3
     group_name = "se2xrc4"
     env_defaults: ClassVar[dict] = _DRONE_DEFAULTS

@@ -35,6 +35,8 @@ class Quadrotor(Robot):
     group_name = "se2xr"
     interfaces = ("accel", "torque")
     env_defaults: ClassVar[dict] = {}  # EnvConfig's own defaults are the quadrotor's
+    position_index, velocity_index = dyn.P, dyn.V
+    actuator_groups: ClassVar[dict[str, tuple[int, ...]]] = {"torque": (0, 1, 2), "thrust": (3,)}
 
     def __init__(self, params: dyn.QuadrotorParams | None = None):
         if params is not None and not isinstance(params, dyn.QuadrotorParams):

@@ -180,6 +180,15 @@ class Unicycle(Robot):
     def velocities(self, x: Tensor) -> Tensor:
         return x[..., V] * x[..., H]
 
+    def perturbed(self, x: Tensor, dp: Tensor, dv: Tensor | None = None) -> Tensor:
+        """Position moved by ``dp``; the speed changed by the component of ``dv`` along the heading (the state
+        holds no lateral velocity)."""
+        out = x.clone()
+        out[..., P] += dp.to(x.dtype)
+        if dv is not None:
+            out[..., V] += (dv.to(x.dtype) * x[..., H]).sum(-1, keepdim=True)
+        return out
+
     def heading(self, x: Tensor) -> Tensor:
         return planar_frame(x[..., H])
 

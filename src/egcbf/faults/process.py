@@ -1,0 +1,176 @@
+"""The faults of one batch of episodes, step by step: what the controller sees, what the rotors do, what the wind
+pushes (:class:`FaultProcess`).
+
+The evaluation loop (:func:`egcbf.evaluate.run_episodes`) runs, each step::
+
+    seen = faults.observe(state)            # the agents' estimates, with a Sensing for scans and messages
+    u, info = controller(seen, env_config)  # the controller is unchanged
+    u = faults.actuate(u, state)            # non-cooperative agents, actuation delay, gain and bias errors
+    state, info = env.step(state, u)        # the true dynamics and the true safety masks
+    state = faults.push(state)              # wind and gusts (before the masks of the next step are read)
+
+Every random number is a counter-based draw addressed by (episode seed, stream, step, agent, ...)
+(:mod:`egcbf.faults.draws`), so results do not depend on batching. ``rotation`` (``(d, d)``) rotates every
+world-frame draw and the wind: a scene rotated by ``R`` with ``rotation = R`` gets the rotated faults, which is how
+the tests check that the closed loop under faults stays equivariant (isotropic noise has the same law rotated).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from ..env.config import EnvConfig
+from ..env.swarm import SwarmState
+from ..robots import Robot
+from . import draws
+from .sensing import STREAMS, Sensing
+from .spec import FaultConfig
+
+__all__ = ["FaultProcess", "noncooperative_mask"]
+
+
+def noncooperative_mask(faults: FaultConfig, seeds: Tensor, num_agents: int) -> Tensor:
+    """``(B, N)`` bool: the ``round(noncoop * N)`` agents of each episode that ignore their controller (the ones
+    with the smallest draws of their episode; a pure function of the episode seed)."""
+    b = seeds.shape[0]
+    k = round(faults.noncoop * num_agents)
+    mask = torch.zeros(b, num_agents, dtype=torch.bool, device=seeds.device)
+    if k > 0:
+        u = draws.uniform(STREAMS["noncoop"], seeds.view(b, 1), torch.arange(num_agents, device=seeds.device))
+        mask.scatter_(1, u.argsort(dim=1)[:, :k], True)
+    return mask
+
+
+class FaultProcess:
+    """The faults of ``len(seeds)`` episodes simulated together (module doc).
+
+    Args:
+        faults: the fault levels.
+        env_config: the environment (``dt``, ``num_agents``).
+        robot: the agents' robot.
+        seeds: the episode seed of each environment (:func:`egcbf.evaluate.episode_seed`).
+        rotation: ``None``, or a ``(d, d)`` rotation applied to every world-frame draw and to the wind.
+    """
+
+    def __init__(
+        self,
+        faults: FaultConfig,
+        env_config: EnvConfig,
+        robot: Robot,
+        seeds: Sequence[int],
+        *,
+        device: str | torch.device = "cpu",
+        dtype: torch.dtype = torch.float32,
+        rotation: Tensor | None = None,
+    ):
+        if faults.wind and len(faults.wind) != robot.dim:
+            raise ValueError(f"faults: wind needs {robot.dim} numbers for the {robot.name}, got {faults.wind}")
+        groups = robot.actuator_groups
+        for name, group in (("thrust_gain", "thrust"), ("torque_gain", "torque"), ("torque_bias", "torque")):
+            if getattr(faults, name) > 0 and group not in groups:
+                raise ValueError(
+                    f"faults: {name} needs the robot's {group!r} channels; the {robot.name} has "
+                    f"{sorted(groups) or 'no named actuator groups'} (use gain= for every channel)"
+                )
+        self.faults, self.config, self.robot = faults, env_config, robot
+        self.device, self.dtype = torch.device(device), dtype
+        self.seeds = torch.as_tensor([int(s) for s in seeds], dtype=torch.int64, device=self.device)
+        b, n, d = len(seeds), env_config.num_agents, robot.dim
+        self.rotation = None if rotation is None else torch.as_tensor(rotation, dtype=torch.float64, device=device)
+        self._agents = torch.arange(n, device=self.device).view(1, n, 1)
+        self._axes = torch.arange(d, device=self.device).view(1, 1, d)
+        self.noncoop = noncooperative_mask(faults, self.seeds, n)
+        self.gains, self.bias = self._actuator_errors(b, n)
+        self._seen: deque[Tensor] = deque(maxlen=faults.msg_delay + 1)
+        self._commands: deque[Tensor] = deque()
+        self._starts: Tensor | None = None
+        self._gust = self._world(faults.gust * draws.normal(STREAMS["gust"], self.seeds.view(b, 1), -1,
+                                                            self._axes[0]))  # fmt: skip
+        wind = torch.zeros(d, dtype=torch.float64, device=self.device)
+        if faults.wind:
+            wind = self._world(torch.tensor(faults.wind, dtype=torch.float64, device=self.device))
+        self._wind = wind
+
+    # ---------------------------------------------------------------------------------------------- helpers
+    def _world(self, v: Tensor) -> Tensor:
+        """A world-frame draw, rotated by ``rotation`` when one is set."""
+        return v if self.rotation is None else v @ self.rotation.T
+
+    def _actuator_errors(self, b: int, n: int) -> tuple[Tensor, Tensor]:
+        f, robot = self.faults, self.robot
+        k = robot.control_dim
+        half = torch.full((k,), f.gain, dtype=torch.float64)
+        for name, group in (("thrust_gain", "thrust"), ("torque_gain", "torque")):
+            if getattr(f, name) > 0:
+                half[list(robot.actuator_groups[group])] = getattr(f, name)
+        channels = torch.arange(k, device=self.device).view(1, 1, k)
+        seeds = self.seeds.view(b, 1, 1)
+        u = draws.uniform(STREAMS["gain"], seeds, self._agents, channels)
+        gains = 1.0 + half.to(self.device) * (2.0 * u - 1.0)
+        bias = torch.zeros(b, n, k, dtype=torch.float64, device=self.device)
+        if f.torque_bias > 0:
+            idx = list(robot.actuator_groups["torque"])
+            v = draws.uniform(STREAMS["bias"], seeds, self._agents, channels)
+            bias[..., idx] = (f.torque_bias * (2.0 * v - 1.0))[..., idx]
+        return gains, bias
+
+    def _noise(self, stream: str, std: float, t: int) -> Tensor:
+        b = self.seeds.shape[0]
+        z = draws.normal(STREAMS[stream], self.seeds.view(b, 1, 1), t, self._agents, self._axes)
+        return self._world(std * z)
+
+    # -------------------------------------------------------------------------------------------------- steps
+    def observe(self, state: SwarmState) -> SwarmState:
+        """What the agents perceive of ``state``: their noisy estimates (broadcast to their neighbours as well),
+        with a :class:`~egcbf.faults.sensing.Sensing` for LiDAR and messages when such faults are on."""
+        f, robot = self.faults, self.robot
+        if self._starts is None:
+            self._starts = robot.positions(state.x).clone()
+        seen = state.x
+        if f.pos_noise > 0 or f.vel_noise > 0:
+            dp = self._noise("pos", f.pos_noise, state.t)
+            dv = self._noise("vel", f.vel_noise, state.t) if f.vel_noise > 0 else None
+            seen = robot.perturbed(state.x, dp, dv)
+        self._seen.append(seen)
+        sensing = None
+        if f.edge_faults:
+            sensing = Sensing(f, robot, self.seeds, state.t, state.x, seen, self._seen[0], state.obstacles)
+        return SwarmState(seen, state.goals, state.obstacles, state.t, state.robot, sensing)
+
+    def actuate(self, u: Tensor, state: SwarmState) -> Tensor:
+        """The command the actuators apply at ``state`` (true) for the controller's ``u`` ``(B, N, control_dim)``:
+        non-cooperative agents' own commands, then the actuation delay, then the gain and bias errors."""
+        f, robot = self.faults, self.robot
+        if f.noncoop > 0 and bool(self.noncoop.any()):
+            target = self._starts if f.noncoop_mode == "hover" else state.goals
+            own = robot.nominal_control(state.x, target.to(state.x.dtype)).to(u.dtype)
+            u = torch.where(self.noncoop[..., None], own, u)
+        if f.act_delay > 0:
+            if not self._commands:
+                hover = robot.nominal_control(state.x, robot.positions(state.x)).to(u.dtype)
+                self._commands.extend([hover] * f.act_delay)
+            self._commands.append(u)
+            u = self._commands.popleft()
+        if f.gain > 0 or f.thrust_gain > 0 or f.torque_gain > 0 or f.torque_bias > 0:
+            u = u * self.gains.to(u.dtype) + self.bias.to(u.dtype)
+        return u
+
+    def push(self, state: SwarmState) -> SwarmState:
+        """``state`` after the wind and gust acceleration of the step just taken (operator splitting: the
+        velocity changes by ``a dt`` and the position by ``a dt^2 / 2``)."""
+        f = self.faults
+        if not f.wind and f.gust == 0:
+            return state
+        dt = self.config.dt
+        a = self._wind.view(1, 1, -1) + self._gust.view(self._gust.shape[0], 1, -1)
+        x = self.robot.perturbed(state.x, 0.5 * a * dt * dt, a * dt)
+        if f.gust > 0:  # Ornstein-Uhlenbeck, exact discretization
+            rho = math.exp(-dt / f.gust_tau)
+            z = draws.normal(STREAMS["gust"], self.seeds.view(-1, 1), state.t, self._axes[0])
+            self._gust = rho * self._gust + f.gust * math.sqrt(1 - rho * rho) * self._world(z)
+        return SwarmState(x, state.goals, state.obstacles, state.t, state.robot)

@@ -1,0 +1,212 @@
+"""What can go wrong in a real swarm (:class:`FaultConfig`), its units, and the ``--faults`` spec.
+
+Every fault is off by default (zero level); a :class:`FaultConfig` of all zeros simulates exactly the fault-free
+world. Faults act where they would in a real swarm (:mod:`egcbf.faults.process`): the controller sees corrupted
+observations and its commands are corrupted on their way to the rotors; the simulator, and so every safety metric,
+keeps the true states.
+
+Spec strings (``egcbf eval --faults``): comma-separated ``key=value`` pairs with the short names of
+:data:`ALIASES` or the field names, optionally starting with ``default`` (the :data:`DEFAULT_FIELD` conditions,
+overridden by what follows), e.g. ``"default"``, ``"pos=0.02,loss=0.2"``,
+``"default,wind=1/0/0,noncoop_mode=straight"``; vectors are ``/``-separated. A path to a JSON file of field
+names works too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["ALIASES", "DEFAULT_FIELD", "NONCOOP_MODES", "FaultConfig", "parse_faults"]
+
+#: how a non-cooperative agent flies: ``"hover"`` holds its start position, ``"straight"`` flies the nominal
+#: controller to its goal as if alone (a straight line at the nominal cruise speed)
+NONCOOP_MODES = ("hover", "straight")
+
+
+@dataclass(frozen=True)
+class FaultConfig:
+    """The fault levels of one evaluation (all zero: the fault-free world).
+
+    Sensing (each agent's own estimate, which it also broadcasts to its neighbours):
+        pos_noise: std (m) of the Gaussian error of each position coordinate, drawn fresh every step.
+        vel_noise: std (m/s) of each velocity coordinate's error, drawn fresh every step.
+        lidar_noise: std (m) of each LiDAR range's error.
+        lidar_drop: probability that a LiDAR return is lost (each ray, each step).
+
+    Communication (each agent-to-agent edge of the graph carries the sender's broadcast state):
+        msg_loss: probability that the message of an edge is lost in a step (the receiver does not see that
+            neighbour in that step).
+        msg_delay: control steps a message arrives late (the receiver sees the sender's estimate of ``msg_delay``
+            steps ago, placed relative to its own current estimate).
+
+    Actuation (per agent, drawn once per episode, acting on the command after the controller):
+        gain: every control channel's gain is uniform in ``[1 - gain, 1 + gain]``.
+        thrust_gain, torque_gain: the same on the robot's ``"thrust"`` / ``"torque"`` channels
+            (:attr:`egcbf.robots.Robot.actuator_groups`; the quadrotor has both).
+        torque_bias: each torque channel gets a constant bias uniform in ``[-torque_bias, torque_bias]`` (N m,
+            body frame).
+        act_delay: control steps between a command and its actuation (the first ``act_delay`` steps apply a
+            hover command: the nominal control to the agent's own position).
+
+    Environment:
+        wind: constant world acceleration (m/s^2, ``dim`` numbers, or empty for none) from wind force over mass.
+        gust: std (m/s^2) per axis of a gust acceleration per environment, an Ornstein-Uhlenbeck process with
+            time constant ``gust_tau`` (s) started from its stationary law.
+
+    Agents:
+        noncoop: fraction of agents (rounded, per environment, drawn once per episode) that ignore their
+            controller and fly ``noncoop_mode`` (:data:`NONCOOP_MODES`); the others must avoid them. Metrics
+            count the cooperative agents only (their collisions with non-cooperative ones count).
+    """
+
+    pos_noise: float = 0.0
+    vel_noise: float = 0.0
+    lidar_noise: float = 0.0
+    lidar_drop: float = 0.0
+    msg_loss: float = 0.0
+    msg_delay: int = 0
+    gain: float = 0.0
+    thrust_gain: float = 0.0
+    torque_gain: float = 0.0
+    torque_bias: float = 0.0
+    act_delay: int = 0
+    wind: tuple[float, ...] = ()
+    gust: float = 0.0
+    gust_tau: float = 1.0
+    noncoop: float = 0.0
+    noncoop_mode: str = "hover"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "wind", tuple(float(w) for w in self.wind))
+        for name in ("pos_noise", "vel_noise", "lidar_noise", "gain", "thrust_gain", "torque_gain", "torque_bias",
+                     "gust"):  # fmt: skip
+            _check(name, getattr(self, name), lambda v: v >= 0, "a finite number >= 0")
+        for name in ("lidar_drop", "msg_loss", "noncoop"):
+            _check(name, getattr(self, name), lambda v: 0 <= v <= 1, "a probability in [0, 1]")
+        for name in ("gain", "thrust_gain", "torque_gain"):
+            _check(name, getattr(self, name), lambda v: v < 1, "< 1 (a gain error of 100 % switches a motor off)")
+        _check("gust_tau", self.gust_tau, lambda v: v > 0, "> 0")
+        for name in ("msg_delay", "act_delay"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise ValueError(f"faults: {name} must be a whole number of control steps >= 0, got {v!r}")
+        if not all(math.isfinite(w) for w in self.wind):
+            raise ValueError(f"faults: wind must be finite, got {self.wind}")
+        if self.noncoop_mode not in NONCOOP_MODES:
+            raise ValueError(f"faults: noncoop_mode must be one of {NONCOOP_MODES}, got {self.noncoop_mode!r}")
+
+    # ------------------------------------------------------------------------------------------------ queries
+    @property
+    def is_null(self) -> bool:
+        """Whether every fault is off (the fault-free world)."""
+        zero = dataclasses.replace(FaultConfig(), noncoop_mode=self.noncoop_mode, gust_tau=self.gust_tau)
+        return dataclasses.replace(self, wind=tuple(w for w in self.wind if w != 0.0)) == zero
+
+    @property
+    def edge_faults(self) -> bool:
+        """Whether a fault acts on the graph's edges (messages, LiDAR), which only graph controllers read."""
+        return self.msg_loss > 0 or self.msg_delay > 0 or self.lidar_noise > 0 or self.lidar_drop > 0
+
+    def active(self) -> dict:
+        """The fields that differ from the fault-free default (for logs and result files)."""
+        base = FaultConfig()
+        return {
+            f.name: getattr(self, f.name)
+            for f in dataclasses.fields(self)
+            if getattr(self, f.name) != getattr(base, f.name)
+        }
+
+    def spec(self) -> str:
+        """The spec string of this config (:func:`parse_faults` reads it back); ``"none"`` when fault-free."""
+        parts = []
+        for k, v in self.active().items():
+            parts.append(f"{k}={'/'.join(f'{w:g}' for w in v) if isinstance(v, tuple) else v}")
+        return ",".join(parts) or "none"
+
+    def to_dict(self) -> dict:
+        return {**dataclasses.asdict(self), "wind": list(self.wind)}
+
+
+def _check(name: str, v, ok, what: str) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not ok(v):
+        raise ValueError(f"faults: {name} must be {what}, got {v!r}")
+
+
+#: the "default field conditions" of docs/robustness.md: what a careful indoor flight with motion capture, a mesh
+#: radio and off-the-shelf motors still has (1 cm / 2 cm/s estimation noise, 10 % of messages lost, one step of
+#: latency, +-10 % thrust between motors, one agent in twenty hovering without cooperating)
+DEFAULT_FIELD = FaultConfig(pos_noise=0.01, vel_noise=0.02, msg_loss=0.1, msg_delay=1, thrust_gain=0.1, noncoop=0.05)
+
+#: short names of the spec string
+ALIASES = {
+    "pos": "pos_noise",
+    "vel": "vel_noise",
+    "lidar": "lidar_noise",
+    "loss": "msg_loss",
+    "delay": "msg_delay",
+}
+
+_INT_FIELDS = ("msg_delay", "act_delay")
+
+
+def parse_faults(spec: str | Path | FaultConfig | None) -> FaultConfig:
+    """A :class:`FaultConfig` from a spec string (module doc), a JSON file, or ``None`` / ``"none"`` (no faults).
+
+    Raises:
+        ValueError: an unknown key (naming the known ones), a malformed pair or value, or a value out of range.
+    """
+    if spec is None or isinstance(spec, FaultConfig):
+        return spec or FaultConfig()
+    text = str(spec).strip()
+    if text.endswith(".json") or (Path(text).suffix == ".json"):
+        try:
+            fields = json.loads(Path(text).read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise ValueError(f"faults: cannot read {text}: {err}") from err
+        if not isinstance(fields, dict):
+            raise ValueError(f"faults: {text} must hold a JSON object of FaultConfig fields")
+        return _build({}, fields, text)
+    if text in ("", "none"):
+        return FaultConfig()
+    base, pairs = {}, [p.strip() for p in text.split(",") if p.strip()]
+    if pairs and pairs[0] == "default":
+        base, pairs = DEFAULT_FIELD.to_dict(), pairs[1:]
+    fields = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise ValueError(f"faults: {pair!r} is not key=value (spec {text!r}; 'default' only comes first)")
+        name = ALIASES.get(key.strip(), key.strip())
+        fields[name] = value.strip()
+    return _build(base, fields, text)
+
+
+def _build(base: dict, fields: dict, source: str) -> FaultConfig:
+    known = {f.name for f in dataclasses.fields(FaultConfig)}
+    unknown = sorted(set(fields) - known)
+    if unknown:
+        names = sorted(known | set(ALIASES))
+        raise ValueError(f"faults: unknown {unknown} in {source!r}; known: {names}")
+    out = dict(base)
+    for name, value in fields.items():
+        if not isinstance(value, str):
+            out[name] = tuple(value) if name == "wind" else value
+            continue
+        try:
+            if name == "wind":
+                out[name] = tuple(float(w) for w in value.split("/")) if value else ()
+            elif name == "noncoop_mode":
+                out[name] = value
+            elif name in _INT_FIELDS:
+                out[name] = int(value)
+            else:
+                out[name] = float(value)
+        except ValueError as err:
+            raise ValueError(f"faults: {name}={value!r} in {source!r} is not a number") from err
+    if "wind" in out:
+        out["wind"] = tuple(out["wind"])
+    return FaultConfig(**out)

@@ -1,0 +1,258 @@
+"""Fault models (egcbf.faults): zero level is the fault-free simulation bit for bit, the draws follow their
+parameters, the metrics read the true states, and the closed loop under faults stays equivariant in distribution."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from egcbf.algo.learner import LearnedController
+from egcbf.env import EnvConfig, SwarmEnv
+from egcbf.evaluate import evaluate, run_episodes
+from egcbf.faults import DEFAULT_FIELD, FaultConfig, FaultProcess, draws, noncooperative_mask, parse_faults
+from egcbf.graph import KIND_AGENT, build_graph
+from egcbf.nn import ModelConfig, PolicyNet
+from egcbf.robots import make_robot
+
+F64 = torch.float64
+CFG = EnvConfig(num_agents=6, num_envs=2, area_size=2.0, num_obstacles=2, n_rays=8, lidar_max_hits=4, max_steps=6)
+ROBOT = make_robot("quadrotor")
+
+
+def _nominal(state, env_config):
+    return ROBOT.nominal_control(state.x, state.goals), {}
+
+
+def _policy(dtype=F64):
+    torch.manual_seed(0)
+    cfg = ModelConfig(group="se2xr", hidden=16, heads=2, head_hidden=16)
+    pol = PolicyNet(cfg).to(dtype)
+    with torch.no_grad():  # equivariance holds for any weights: move the zero-initialized last layers off zero
+        for p in pol.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return LearnedController(pol, cfg)
+
+
+# ------------------------------------------------------------------------------------------------------ spec
+def test_spec_strings_round_trip_and_bad_specs_name_the_problem(tmp_path):
+    assert parse_faults(None) == parse_faults("none") == parse_faults("") == FaultConfig()
+    assert parse_faults("default") == DEFAULT_FIELD
+    f = parse_faults("default,wind=1/0/0.5,noncoop_mode=straight,loss=0.3")
+    assert f.msg_loss == 0.3 and f.wind == (1.0, 0.0, 0.5) and f.noncoop_mode == "straight" and f.pos_noise == 0.01
+    assert parse_faults(f.spec()) == f and FaultConfig().spec() == "none"
+    path = tmp_path / "f.json"
+    path.write_text(json.dumps({"pos_noise": 0.02, "wind": [0, 1, 0]}))
+    assert parse_faults(str(path)) == FaultConfig(pos_noise=0.02, wind=(0, 1, 0))
+    for bad, match in (("posx=1", "unknown"), ("pos", "key=value"), ("pos=abc", "not a number"),
+                       ("loss=1.5", "probability"), ("pos=-1", ">= 0"), ("delay=0.5", "not a number"),
+                       ("gain=1", "< 1"), ("noncoop_mode=fly", "noncoop_mode")):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            parse_faults(bad)
+    assert FaultConfig(wind=(0.0, 0.0, 0.0)).is_null and not DEFAULT_FIELD.is_null
+    assert DEFAULT_FIELD.edge_faults and not FaultConfig(pos_noise=1.0).edge_faults
+
+
+# ----------------------------------------------------------------------------------------------------- draws
+def test_draws_are_pure_functions_of_their_address_with_the_right_law():
+    a = draws.uniform(3, torch.arange(4), 7)
+    assert torch.equal(a, draws.uniform(3, torch.arange(4), 7))
+    assert torch.equal(a[2], draws.uniform(3, 2, 7))  # batching does not change a draw
+    u = draws.uniform(1, torch.arange(100_000))
+    assert 0 <= float(u.min()) and float(u.max()) < 1 and abs(float(u.mean()) - 0.5) < 0.005
+    z = draws.normal(2, torch.arange(100_000))
+    assert abs(float(z.mean())) < 0.01 and abs(float(z.std()) - 1) < 0.01
+    assert abs(float((z.abs() < 1).double().mean()) - math.erf(1 / math.sqrt(2))) < 0.005
+
+
+# ------------------------------------------------------------------------------------------ zero = fault-free
+def test_zero_level_is_the_fault_free_simulation_bit_for_bit():
+    seeds = [11, 12]
+    plain, _, _ = run_episodes(_nominal, CFG, seeds, dtype=F64)
+    for zero in (FaultConfig(), FaultConfig(wind=(0.0, 0.0, 0.0), noncoop_mode="straight")):
+        faulty, _, _ = run_episodes(_nominal, CFG, seeds, dtype=F64, faults=zero)
+        assert all(torch.equal(v, faulty.per_episode()[k]) for k, v in plain.per_episode().items())
+    # the process itself at zero level: observe, actuate and push are identities
+    env = SwarmEnv(CFG, dtype=F64)
+    state = env.reset(5)
+    proc = FaultProcess(FaultConfig(), CFG, ROBOT, [1, 2], dtype=F64)
+    u = ROBOT.nominal_control(state.x, state.goals)
+    assert torch.equal(proc.observe(state).x, state.x) and proc.observe(state).sensing is None
+    assert torch.equal(proc.actuate(u, state), u) and proc.push(state) is state
+
+
+# ------------------------------------------------------------------------------------------- the laws of faults
+def test_sensing_noise_has_its_standard_deviation_and_fresh_draws_each_step():
+    cfg = dataclasses.replace(CFG, num_agents=200)
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(3)
+    proc = FaultProcess(FaultConfig(pos_noise=0.01, vel_noise=0.02), cfg, ROBOT, [1, 2], dtype=F64)
+    seen = proc.observe(state)
+    dp = ROBOT.positions(seen.x) - ROBOT.positions(state.x)
+    dv = ROBOT.velocities(seen.x) - ROBOT.velocities(state.x)
+    assert abs(float(dp.std()) / 0.01 - 1) < 0.06 and abs(float(dv.std()) / 0.02 - 1) < 0.06
+    assert torch.equal(seen.x[..., 3:12], state.x[..., 3:12])  # attitude and rates untouched
+    state.t = 1
+    assert not torch.equal(proc.observe(state).x, seen.x)  # a fresh error every step
+
+
+def test_message_loss_rate_and_delay_match_their_parameters():
+    cfg = dataclasses.replace(CFG, num_agents=60, area_size=1.5, num_obstacles=0)
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(9)
+    full = build_graph(state, cfg)
+    full_agent = int((full.edge_kind == KIND_AGENT).sum())
+    lost = []
+    for t in range(5):
+        proc = FaultProcess(FaultConfig(msg_loss=0.3), cfg, ROBOT, [1, 2], dtype=F64)
+        state.t = t
+        g = build_graph(proc.observe(state), cfg)
+        lost.append(1 - int((g.edge_kind == KIND_AGENT).sum()) / full_agent)
+        assert int((g.edge_kind != KIND_AGENT).sum()) == int((full.edge_kind != KIND_AGENT).sum())
+    assert abs(sum(lost) / len(lost) - 0.3) < 0.03
+    # delay: the senders are the estimates of two steps ago, the receivers the current ones
+    proc = FaultProcess(FaultConfig(msg_delay=2, pos_noise=0.01), cfg, ROBOT, [1, 2], dtype=F64)
+    xs = []
+    for t in range(4):
+        s = dataclasses.replace(state, x=state.x + 0.01 * t, t=t)
+        seen = proc.observe(s)
+        xs.append(seen.x)
+        g = build_graph(seen, cfg)
+    m = g.num_dst
+    sender = ROBOT.positions(xs[1].reshape(m, -1))
+    assert torch.allclose(g.pos_src[:m], sender) and torch.allclose(g.pos_dst, ROBOT.positions(xs[3].reshape(m, -1)))
+    src, dst = g.edge_index[:, g.edge_kind == KIND_AGENT]
+    assert (torch.linalg.vector_norm(g.pos_src[src] - g.pos_dst[dst], dim=-1) < cfg.comm_radius).all()
+
+
+def test_lidar_faults_move_and_drop_returns_around_the_estimate():
+    cfg = dataclasses.replace(CFG, num_agents=30, num_obstacles=6, n_rays=16, lidar_max_hits=8)
+    state = SwarmEnv(cfg, dtype=F64).reset(4)
+    clean = build_graph(state, cfg)
+    proc = FaultProcess(FaultConfig(lidar_drop=0.4), cfg, ROBOT, [1, 2], dtype=F64)
+    dropped = build_graph(proc.observe(state), cfg)
+    kept = dropped.hit_owner.numel() / clean.hit_owner.numel()
+    assert clean.hit_owner.numel() > 50 and abs(kept - 0.6) < 0.12
+    proc = FaultProcess(FaultConfig(lidar_noise=0.05), cfg, ROBOT, [1, 2], dtype=F64)
+    scan = proc.observe(state).sensing.scan(cfg)
+    truth = SwarmEnv(cfg, dtype=F64).lidar(state)
+    assert torch.equal(scan.valid, truth.valid)
+    err = (scan.distance - truth.distance)[truth.valid]
+    assert abs(float(err.std()) / 0.05 - 1) < 0.2
+
+
+def test_actuation_errors_noncooperative_agents_and_delay():
+    cfg = dataclasses.replace(CFG, num_agents=400, num_envs=2)
+    state = SwarmEnv(cfg, dtype=F64).reset(2)
+    f = FaultConfig(thrust_gain=0.1, torque_bias=1e-3, noncoop=0.05)
+    proc = FaultProcess(f, cfg, ROBOT, [7, 8], dtype=F64)
+    thrust, torque = proc.gains[..., 3], proc.gains[..., :3]
+    assert (
+        ((thrust - 1).abs() <= 0.1).all()
+        and float((thrust - 1).abs().max()) > 0.09
+        and torch.equal(torque, torch.ones_like(torque))
+    )
+    assert (proc.bias[..., :3].abs() <= 1e-3).all() and (proc.bias[..., 3] == 0).all()
+    assert proc.noncoop.sum(1).tolist() == [20, 20]
+    assert torch.equal(proc.noncoop, noncooperative_mask(f, torch.tensor([7, 8]), 400))
+    u = torch.zeros(2, 400, 4, dtype=F64)
+    proc.observe(state)
+    out = proc.actuate(u, state)
+    hover = ROBOT.nominal_control(state.x, ROBOT.positions(state.x))
+    nc = proc.noncoop
+    assert torch.allclose(out[nc], hover[nc] * proc.gains[nc] + proc.bias[nc])
+    assert torch.allclose(out[~nc], proc.bias[~nc])
+    with pytest.raises(ValueError, match="thrust"):
+        FaultProcess(FaultConfig(thrust_gain=0.1), CFG, make_robot("double_integrator"), [1], dtype=F64)
+    delayed = FaultProcess(FaultConfig(act_delay=1), CFG, ROBOT, [1, 2], dtype=F64)
+    s = SwarmEnv(CFG, dtype=F64).reset(1)
+    u1 = torch.rand(2, 6, 4, dtype=F64)
+    first = delayed.actuate(u1, s)
+    assert torch.allclose(first, ROBOT.nominal_control(s.x, ROBOT.positions(s.x)))
+    assert torch.equal(delayed.actuate(torch.zeros_like(u1), s), u1)
+
+
+def test_wind_pushes_with_its_acceleration():
+    env = SwarmEnv(CFG, dtype=F64)
+    state = env.reset(1)
+    proc = FaultProcess(FaultConfig(wind=(0.5, 0.0, 0.0)), CFG, ROBOT, [1, 2], dtype=F64)
+    pushed = proc.push(state)
+    dt = CFG.dt
+    dv = ROBOT.velocities(pushed.x) - ROBOT.velocities(state.x)
+    dp = ROBOT.positions(pushed.x) - ROBOT.positions(state.x)
+    assert torch.allclose(dv[..., 0], torch.full_like(dv[..., 0], 0.5 * dt)) and torch.allclose(
+        dv[..., 1:], torch.zeros_like(dv[..., 1:])
+    )
+    assert torch.allclose(dp[..., 0], torch.full_like(dp[..., 0], 0.25 * dt * dt))
+    with pytest.raises(ValueError, match="wind needs 3"):
+        FaultProcess(FaultConfig(wind=(1.0, 0.0)), CFG, ROBOT, [1], dtype=F64)
+
+
+# --------------------------------------------------------------------------------------- metrics see the truth
+def test_metrics_read_true_states_and_count_cooperative_agents_only():
+    """A controller that ignores what it sees flies the same trajectory under sensing noise: the metrics (true
+    states) are those of the fault-free run. Non-cooperative agents are left out of the rates."""
+    seeds = [3, 4]
+    seen_log = []
+
+    def blind(state, env_config):
+        seen_log.append(state.x)
+        return torch.zeros(*state.x.shape[:2], 4, dtype=state.x.dtype), {}
+
+    plain, _, _ = run_episodes(blind, CFG, seeds, dtype=F64)
+    n_plain = len(seen_log)
+    noisy, _, _ = run_episodes(blind, CFG, seeds, dtype=F64, faults=FaultConfig(pos_noise=0.5, vel_noise=0.5))
+    assert not torch.equal(seen_log[0], seen_log[n_plain])  # it did see noise
+    same = {k: torch.equal(v, noisy.per_episode()[k]) for k, v in plain.per_episode().items()}
+    assert same == {**same, "safe_rate": True, "reach_rate": True, "cost": True, "collision_steps": True}
+    assert not same["reward"]  # the reward compares with the nominal control at the state the agent believes in
+    nc, _, _ = run_episodes(blind, CFG, seeds, dtype=F64, faults=FaultConfig(noncoop=0.34))
+    assert nc.counted is not None and nc.counted.sum(1).tolist() == [4, 4]
+
+
+def test_message_faults_are_refused_for_controllers_that_do_not_read_them():
+    with pytest.raises(ValueError, match="does not read them"):
+        evaluate(lambda c: _nominal, [4], episodes=1, max_steps=2, show_progress=False, faults=DEFAULT_FIELD)
+    rows, _ = evaluate(lambda c: _policy(), [4], episodes=1, max_steps=2, show_progress=False, faults=DEFAULT_FIELD,
+                       dtype=F64)  # fmt: skip
+    assert rows[0]["faults"] == DEFAULT_FIELD.spec()
+
+
+# ------------------------------------------------------------------------------------------------- equivariance
+def _rollout(ctrl, env, state, proc, steps):
+    traj = []
+    for _ in range(steps):
+        u, _ = ctrl(proc.observe(state), env.config)
+        state, _ = env.step(state, proc.actuate(u, state))
+        state = proc.push(state)
+        traj.append(state.x)
+    return traj
+
+
+#: float64: a tight tolerance; float32: what four steps of a rigid body and a transformer keep (stated)
+_TOL = {F64: 1e-8, torch.float32: 2e-3}
+
+
+@settings(max_examples=4, deadline=None)
+@given(yaw=st.floats(-math.pi, math.pi), shift=st.tuples(*[st.floats(-2, 2)] * 3),
+       dtype=st.sampled_from([F64, torch.float32]))  # fmt: skip
+def test_closed_loop_under_faults_is_equivariant(yaw, shift, dtype):
+    """The rotated scene with the same draws rotated gives the rotated trajectory (every fault on)."""
+    faults = FaultConfig(pos_noise=0.01, vel_noise=0.02, msg_loss=0.2, msg_delay=1, lidar_noise=0.01,
+                         lidar_drop=0.2, thrust_gain=0.1, torque_gain=0.05, torque_bias=1e-4, act_delay=1,
+                         wind=(0.3, -0.2, 0.1), gust=0.2, noncoop=0.2)  # fmt: skip
+    env = SwarmEnv(CFG, dtype=dtype)
+    state = env.reset(21)
+    c, s = math.cos(yaw), math.sin(yaw)
+    g = torch.tensor([[c, s, *shift]] * CFG.num_envs, dtype=dtype)
+    rot = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=F64)
+    ctrl = _policy(dtype)
+    a = _rollout(ctrl, env, state, FaultProcess(faults, CFG, ROBOT, [1, 2], dtype=dtype), 4)
+    b = _rollout(ctrl, env, state.transform(g), FaultProcess(faults, CFG, ROBOT, [1, 2], dtype=dtype, rotation=rot), 4)
+    for xa, xb in zip(a, b):
+        assert torch.allclose(dataclasses.replace(state, x=xa).transform(g).x, xb, atol=_TOL[dtype])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -22,13 +23,15 @@ class Cell(NamedTuple):
     ``train_seed`` is the training seed of a learned method's checkpoint (``None`` for the hand-crafted
     controllers); a method behind a run-time filter (``egcbf+:dcbf``) uses its base method's checkpoint. ``area``
     is ``None`` for Table I's cells (the sweep's ``l``) and the side ``l`` of the arena for the cells of the
-    scalability study past Table I (``N`` at the density of ``scale_reference`` agents)."""
+    scalability study past Table I (``N`` at the density of ``scale_reference`` agents). ``faults``: the
+    :mod:`egcbf.faults` spec the cell runs under (``"none"``: the perfect world; ``egcbf robustness``)."""
 
     method: str
     obstacles: int
     num_agents: int
     train_seed: int | None = None
     area: float | None = None
+    faults: str = "none"
 
     @property
     def run(self) -> str:
@@ -53,8 +56,11 @@ class Cell(NamedTuple):
 
     def path(self, out: str | Path) -> Path:
         """Its result file: ``OUT/<run>_obs<k>/N<n>.json``, or ``OUT/scale/<run>_obs<k>/N<n>.json`` (``METHOD:FILTER``
-        written ``METHOD_FILTER``: ``OUT/egcbf+_dcbf-s2_obs0/N512.json``)."""
+        written ``METHOD_FILTER``: ``OUT/egcbf+_dcbf-s2_obs0/N512.json``); under faults ``OUT/faults/<spec>/...``
+        (the spec with every run of characters other than letters, digits, ``.`` and ``-`` written ``_``)."""
         base = Path(out) / "scale" if self.scale else Path(out)
+        if self.faults != "none":
+            base = Path(out) / "faults" / re.sub(r"[^A-Za-z0-9.-]+", "_", self.faults) / base.relative_to(out)
         return base / f"{path_name(self.run)}_obs{self.obstacles}" / f"N{self.num_agents}.json"
 
 
@@ -113,6 +119,9 @@ class SweepConfig:
     ``scale_reference`` agents at ``l = area``), for ``ceil(scale_agent_episodes / N)`` episodes (as many
     agent-episodes as ``scale_agent_episodes``: 50 episodes at N = 512 are 25 600).
 
+    **Faults.** ``faults`` (an :mod:`egcbf.faults` spec, stored canonical: ``FaultConfig.spec()``): every cell runs
+    under them (``egcbf robustness`` makes one sweep per fault level); ``"none"``: the perfect world.
+
     ``seed`` is the evaluation seed (episode ``e`` at size ``N`` resets from
     ``egcbf.evaluate.episode_seed(seed, N, e)``), ``max_steps`` the episode length (``None``: the environment's 256
     steps of 25 ms). ``checkpoints`` holds the learned methods' checkpoints, ``out`` the cell files, ``baselines``
@@ -142,9 +151,15 @@ class SweepConfig:
     workers: int = 2
     threads: int = 1
     backend: str = "process"
+    faults: str = "none"
 
     def __post_init__(self) -> None:
         _check_types(self)
+        from ..faults import parse_faults
+
+        if not isinstance(self.faults, str):
+            raise TypeError(f"SweepConfig.faults must be a fault spec string, got {self.faults!r}")
+        object.__setattr__(self, "faults", parse_faults(self.faults).spec())  # canonical: one spelling, one cell
         for name in ("methods", "obstacle_methods", "scale_methods"):
             bad = [m for m in getattr(self, name) if m not in METHODS]
             if bad:
@@ -196,14 +211,18 @@ class SweepConfig:
         if self.obstacles > 0:
             settings.append((self.obstacles, [m for m in METHODS if m in self.methods and m in self.obstacle_methods]))
         return [
-            Cell(m, k, int(n), s) for k, ms in settings for m in ms for s in self.seeds_for(m) for n in self.num_agents
+            Cell(m, k, int(n), s, None, self.faults)
+            for k, ms in settings
+            for m in ms
+            for s in self.seeds_for(m)
+            for n in self.num_agents
         ]
 
     def scale_cells(self) -> list[Cell]:
         """The scalability study's cells (no obstacles, fixed density)."""
         ms = [m for m in METHODS if m in self.methods and m in self.scale_methods]
         return [
-            Cell(m, 0, int(n), s, self.scale_area(int(n)))
+            Cell(m, 0, int(n), s, self.scale_area(int(n)), self.faults)
             for m in ms
             for s in self.seeds_for(m)
             for n in self.scale_sizes
@@ -260,4 +279,6 @@ def cell_key(cfg: SweepConfig, cell: Cell, checkpoint_sha256: str | None) -> dic
         "max_steps": cfg.max_steps,
         "checkpoint_sha256": checkpoint_sha256,
     }
+    if cell.faults != "none":  # the keys of the perfect world's cells are those of the sweep before faults existed
+        key["faults"] = cell.faults
     return key | (filter_settings(cell.method) or {})

@@ -123,6 +123,7 @@ def make_record(cfg: SweepConfig, cell: Cell, key: dict, ckpt: CheckpointInfo | 
         "checkpoint_step": None if ckpt is None else ckpt.step,
         "train_seed": cell.train_seed,
         **(filter_settings(cell.method) or {}),
+        **({"faults": cell.faults} if cell.faults != "none" else {}),
         "device": cfg.device,
         "finished": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }

@@ -50,6 +50,7 @@ def _evaluate_cell(task: CellTask) -> dict:
     from ..algo.filtered import FilterConfig, FilteredController, load_filtered_controller
     from ..control.controllers import make_controller
     from ..evaluate import evaluate
+    from ..faults import parse_faults
 
     kind = task.cell.filter  # a run-time filter with `egcbf eval --filter KIND`'s defaults (or "none")
     config = None if kind == "none" else FilterConfig.for_kind(kind)
@@ -79,6 +80,7 @@ def _evaluate_cell(task: CellTask) -> dict:
         dtype=torch.float32,
         show_progress=task.progress,
         env_overrides=env_overrides,
+        faults=parse_faults(task.cell.faults),
     )
     return rows[0]
 

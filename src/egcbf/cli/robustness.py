@@ -1,0 +1,69 @@
+"""``egcbf robustness``: every controller under every fault axis, resumably (:mod:`egcbf.robustness`,
+docs/robustness.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .checks import parse_device, parse_sizes, require
+from .choices import Backend
+from .root import app
+
+
+@app.command("robustness")
+def robustness_cmd(
+    axes: Annotated[str, typer.Option(help="comma list of fault axes (default: all; --plan lists them)")] = "all",
+    controllers: Annotated[
+        str, typer.Option(help="comma list of egcbf reproduce methods")
+    ] = "nominal,ccbf,dcbf,gcbf+,egcbf+,egcbf+:dcbf",
+    num_agents: Annotated[str, typer.Option("--num-agents", help="comma-separated swarm sizes")] = "128,512",
+    area: Annotated[float, typer.Option(help="side l of the arena (m)")] = 4.0,
+    obstacles: Annotated[int, typer.Option(help="obstacles of the obstacle setting (both settings run)")] = 8,
+    episodes: Annotated[int, typer.Option(help="episodes per cell")] = 20,
+    seed: Annotated[int, typer.Option(help="evaluation seed")] = 0,
+    max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's)")] = None,
+    checkpoints: Annotated[Path, typer.Option(help="learned checkpoints (training seed 0)")] = Path("checkpoints"),
+    out: Annotated[Path, typer.Option(help="cells folder")] = Path("docs/results/robustness"),
+    report: Annotated[Path, typer.Option(help="the report to write")] = Path("docs/robustness.md"),
+    figures: Annotated[Path, typer.Option(help="folder of the report's figures")] = Path("docs/figures"),
+    workers: Annotated[int, typer.Option(help="cells evaluated at a time")] = 2,
+    backend: Annotated[Backend, typer.Option(help="process or ray (as egcbf reproduce)")] = Backend.process,
+    device: Annotated[str, typer.Option(help="cpu | cuda | cuda:K")] = "cpu",
+    progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    plan: Annotated[bool, typer.Option("--plan", help="print the axes, levels and sweeps; run nothing")] = False,
+    report_only: Annotated[bool, typer.Option("--report-only", help="only rewrite the report")] = False,
+) -> None:
+    """Evaluate every controller under every fault axis (five levels each, and the default field conditions), as
+    egcbf reproduce sweeps (resumable: rerun the same command), and write docs/robustness.md."""
+    from ..reproduce import METHODS, sweep
+    from ..robustness import AXES, RobustnessConfig, write_report
+
+    names = [a.name for a in AXES] if axes == "all" else [a.strip() for a in axes.split(",") if a.strip()]
+    bad = [a for a in names if a not in {x.name for x in AXES}]
+    require(not bad, f"--axes: unknown {bad}; choose from {[a.name for a in AXES]}")
+    methods = tuple(m.strip() for m in controllers.split(",") if m.strip())
+    bad = [m for m in methods if m not in METHODS]
+    require(methods and not bad, f"--controllers: unknown {bad}; choose from {list(METHODS)}")
+    require(episodes >= 1 and workers >= 1 and obstacles >= 0, "--episodes and --workers must be >= 1, "
+            "--obstacles >= 0")  # fmt: skip
+    cfg = RobustnessConfig(
+        controllers=methods, axes=tuple(names), num_agents=tuple(parse_sizes(num_agents)), area=area,
+        obstacles=obstacles, episodes=episodes, seed=seed, max_steps=max_steps, checkpoints=checkpoints, out=out,
+        workers=workers, backend=backend.value, device=str(parse_device(device)),
+    )  # fmt: skip
+    sweeps = cfg.sweeps()
+    if plan:
+        for a in (x for x in AXES if x.name in names):
+            typer.echo(f"{a.name}: {a.title} ({a.unit}): levels {', '.join(f'{v:g}' for v in a.levels)}")
+        for _, spec, sw in sweeps:
+            typer.echo(f"  sweep {spec}: {', '.join(sw.methods)} ({len(sw.cells())} cells)")
+        typer.echo(f"{sum(len(s.cells()) for _, _, s in sweeps)} cells in {len(sweeps)} sweeps")
+        return
+    if not report_only:
+        for k, (name, spec, sw) in enumerate(sweeps, 1):
+            typer.echo(f"[{k}/{len(sweeps)}] faults {spec}: {', '.join(sw.methods)}")
+            sweep(sw, progress=progress, log=typer.echo, command=f"egcbf robustness --axes {name}")
+    typer.echo(f"wrote {write_report(cfg, report, figures)}")

@@ -1,0 +1,68 @@
+"""egcbf robustness: fault levels as egcbf reproduce sweeps (cells, keys, paths), the plan's controller groups, the
+report from computed cells, and the command end to end."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from egcbf.cli import app
+from egcbf.faults import DEFAULT_FIELD
+from egcbf.reproduce import SweepConfig
+from egcbf.reproduce.plan import cell_key
+from egcbf.robustness import AXES, RobustnessConfig, axis, reads_sensing, state_level
+
+
+def test_a_sweep_under_faults_keeps_its_cells_apart_and_the_perfect_world_unchanged(tmp_path):
+    common = dict(methods=("nominal",), num_agents=(8,), obstacles=0, out=tmp_path, baselines=None, scale_sizes=())
+    plain, faulty = SweepConfig(**common), SweepConfig(**common, faults="vel=0.02,pos=0.01")
+    assert faulty.faults == "pos_noise=0.01,vel_noise=0.02"  # canonical: one spelling, one cell
+    (c0,), (c1,) = plain.cells(), faulty.cells()
+    assert c0.faults == "none" and c1.faults == faulty.faults
+    assert c0.path(tmp_path) == tmp_path / "nominal_obs0" / "N8.json"
+    assert c1.path(tmp_path) == tmp_path / "faults" / "pos_noise_0.01_vel_noise_0.02" / "nominal_obs0" / "N8.json"
+    assert "faults" not in cell_key(plain, c0, None) and cell_key(faulty, c1, None)["faults"] == faulty.faults
+    with pytest.raises(ValueError, match="unknown"):
+        SweepConfig(faults="posx=1")
+
+
+def test_the_plan_runs_the_perfect_world_first_and_message_faults_only_where_they_are_read():
+    assert axis("field").specs() == ["none", DEFAULT_FIELD.spec()]
+    assert all(a.levels[0] == 0 and a.specs()[0] == "none" for a in AXES)
+    assert all(len(a.levels) >= 5 for a in AXES if a.name != "field")
+    assert reads_sensing("egcbf+") and not reads_sensing("ccbf") and not reads_sensing("nominal")
+    assert state_level("default") == "pos_noise=0.01,vel_noise=0.02,thrust_gain=0.1,noncoop=0.05"
+    cfg = RobustnessConfig(axes=("field", "loss"))
+    sweeps = cfg.sweeps()
+    assert sweeps[0][1] == "none" and set(sweeps[0][2].methods) == set(cfg.controllers)
+    for _, spec, sw in sweeps[1:]:
+        if "msg_loss" in spec:
+            assert "ccbf" not in sw.methods and "nominal" not in sw.methods
+    assert any(spec == state_level("default") and "ccbf" in sw.methods for _, spec, sw in sweeps)
+    assert cfg.cell_spec("ccbf", "msg_loss=0.3") is None and cfg.cell_spec("egcbf+", "msg_loss=0.3") == "msg_loss=0.3"
+
+
+def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
+    out, report = tmp_path / "cells", tmp_path / "robustness.md"
+    args = ["robustness", "--axes", "field,thrust", "--controllers", "nominal", "--num-agents", "4",
+            "--obstacles", "1", "--episodes", "2", "--max-steps", "4", "--out", str(out),
+            "--report", str(report), "--figures", str(tmp_path / "fig"),
+            "--workers", "1", "--no-progress"]  # fmt: skip
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    text = report.read_text()
+    assert "## Default field conditions" in text and "| nominal (no CBF) | 4 | 0 |" in text
+    assert "(12 of 12 cells computed" in text
+    assert "state-level only" in text  # the nominal controller reads no messages
+    cells = sorted(p.relative_to(out).as_posix() for p in out.rglob("N4.json"))
+    assert "nominal_obs0/N4.json" in cells and any("thrust_gain_0.3" in c for c in cells)
+    rec = json.loads((out / "nominal_obs1" / "N4.json").read_text())
+    assert rec["row"]["num_episodes"] == 2
+    assert (tmp_path / "fig" / "robustness_thrust.png").exists() and "(fig/robustness_thrust.png)" in text
+    before = (out / "nominal_obs1" / "N4.json").read_text()
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 0 and (out / "nominal_obs1" / "N4.json").read_text() == before  # reused, not rerun
+    bad = CliRunner().invoke(app, ["robustness", "--axes", "nope", "--plan"])
+    assert bad.exit_code == 2 and "unknown" in bad.output

@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 from .env import EnvConfig, SwarmEnv, SwarmState
 from .env.obstacles import Obstacles
 from .faults import FaultConfig, FaultProcess
+from .faults.sensing import unread_faults
 from .metrics import EpisodeStats, summarize
 
 __all__ = [
@@ -36,6 +37,7 @@ __all__ = [
     "episode_batch",
     "episode_seed",
     "evaluate",
+    "fault_support_error",
     "run_episodes",
 ]
 
@@ -83,16 +85,33 @@ def _new_timing() -> dict:
     return {"step_ms": [], "qp_ms": [], "num_slack": 0, "num_failed": 0, "num_active": 0, "num_filtered": 0}
 
 
+def fault_support_error(controller, faults: FaultConfig, name: str | None = None) -> str | None:
+    """Why ``controller`` cannot be evaluated under ``faults`` (``None``: it can), for the error of
+    :func:`run_episodes` and of ``egcbf eval --faults``; ``name``: how to call the controller (default: its
+    ``name`` attribute).
+
+    Message and LiDAR faults reach a controller only through what it perceives (``state.sensing``,
+    :class:`egcbf.faults.Sensing`); one that reads its neighbours or obstacles from the state would silently ignore
+    them, so it must declare the channels it reads (``reads_sensing``, :func:`egcbf.faults.sensing.unread_faults`).
+    """
+    unread = unread_faults(controller, faults)
+    if not unread:
+        return None
+    name = name or getattr(controller, "name", type(controller).__name__)
+    listed = ", ".join(f"{k}={getattr(faults, k):g}" for k in unread)
+    return (
+        f"{listed} reach a controller only through what its agents perceive (egcbf.faults.Sensing); {name!r} does "
+        "not read them (it reads its neighbours or obstacles from the state). The learned policies read messages and "
+        "LiDAR, alone and behind the cbf or prior filter; the dcbf controller and the dcbf filter read the messages "
+        f"only (their obstacle rows read the obstacle map). Evaluate {name!r} without {', '.join(unread)}."
+    )
+
+
 def _require_fault_support(controller, faults: FaultConfig) -> None:
-    """Faults on messages and LiDAR reach a controller only through the graph it builds from the state
-    (:class:`egcbf.faults.Sensing`); a controller that reads the state otherwise would silently ignore them."""
-    if faults.edge_faults and not getattr(controller, "reads_sensing", False):
-        name = getattr(controller, "name", type(controller).__name__)
-        raise ValueError(
-            f"faults {faults.spec()!r}: message and LiDAR faults (msg_loss, msg_delay, lidar_noise, lidar_drop) reach "
-            f"only controllers that build their graph from the observed state (the learned policies); {name!r} "
-            "does not read them. Evaluate it with the state-level faults only (noise, actuation, wind, noncoop)."
-        )
+    """Raise ``ValueError`` if ``controller`` would ignore some of ``faults`` (:func:`fault_support_error`)."""
+    why = fault_support_error(controller, faults)
+    if why is not None:
+        raise ValueError(f"faults {faults.spec()!r}: {why}")
 
 
 def run_episodes(

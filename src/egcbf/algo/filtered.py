@@ -33,6 +33,11 @@ brakes. Three filters (``FILTERS``):
 ``FilteredController(None, None, config)`` filters the nominal controller's command instead (``dcbf``, ``prior``):
 the ablation that shows what the policy adds. docs/safety_filters.md has the measurements behind every default.
 
+Under faults (:mod:`egcbf.faults`) the policy and the ``cbf`` / ``prior`` rows read the agent's graph, which carries
+the messages and the LiDAR scan as the agent receives them; the ``dcbf`` rows read the same messages
+(:class:`~egcbf.control.cbf_qp.DecentralizedCBFQP`) but the obstacle map, not the scan. ``reads_sensing`` says so:
+every channel for ``cbf`` and ``prior``, the messages for ``dcbf`` (``READS_SENSING``).
+
 Every piece is an invariant or an equivariant of the agent's frame (edge vectors rotate with the scene, the box
 turns with the agent, the policy is equivariant for EGCBF+), so the filtered controller of EGCBF+ stays SE2xR
 equivariant (tested), and every input of agent ``i``'s QP lies within its sensing radius (tested).
@@ -60,7 +65,15 @@ from .edge_qp import BRAKE_GAIN, SLACK_TOL, EdgeRows, edge_qp_commands, edge_row
 from .interface import AccelInterface, make_interface
 from .learner import policy_command
 
-__all__ = ["FILTERS", "EdgeRows", "FilterConfig", "FilteredController", "edge_rows", "load_filtered_controller"]
+__all__ = [
+    "FILTERS",
+    "READS_SENSING",
+    "EdgeRows",
+    "FilterConfig",
+    "FilteredController",
+    "edge_rows",
+    "load_filtered_controller",
+]
 
 
 #: the ``dcbf`` filter's barrier: Wang et al.'s braking-distance barrier with a smaller clearance, a larger gain and
@@ -70,6 +83,9 @@ __all__ = ["FILTERS", "EdgeRows", "FilterConfig", "FilteredController", "edge_ro
 DCBF_FILTER_BARRIER = BarrierConfig(margin=0.02, gamma=50.0, brake_accel=3.0)
 #: the ``dcbf`` filter's look-ahead (s) under the realized acceleration: the attitude loop's lag (docs)
 DCBF_FILTER_LOOKAHEAD = 0.05
+#: per filter kind, the channels of ``state.sensing`` (:data:`egcbf.faults.sensing.CHANNELS`) that both the policy's
+#: graph and the filter's rows perceive: ``FilteredController.reads_sensing`` (module doc)
+READS_SENSING = {"cbf": True, "prior": True, "dcbf": DecentralizedCBFQP.reads_sensing}
 
 
 @dataclass(frozen=True)
@@ -173,6 +189,8 @@ class FilteredController:
         self.policy, self.model_config, self.config, self.cbf = policy, model_config, config, cbf
         self._dcbf = None
         self._last: tuple[int, np.ndarray] | None = None  # (step, velocities) of the previous call: lookahead only
+        self._last_sent: tuple[int, np.ndarray] | None = None  # the same of the broadcast estimates (delayed messages)
+        self.reads_sensing = READS_SENSING[config.kind]
         if config.kind == "dcbf":
             self._dcbf = DecentralizedCBFQP(
                 barrier=config.barrier, penalty=config.penalty, brake_gain=config.brake_gain
@@ -197,8 +215,10 @@ class FilteredController:
         u_nom = robot.nominal_control(s.x, s.goals)
         t1 = time.perf_counter()
         if self._dcbf is not None:
-            accel = self._realized_acceleration(s, env_config)
-            u, qinfo = self._dcbf.filter(state, env_config, a_pi.cpu().numpy(), self.config.lookahead, accel)
+            accel, accel_sent = self._realized_acceleration(s, env_config), self._sent_acceleration(s, env_config)
+            u, qinfo = self._dcbf.filter(
+                state, env_config, a_pi.cpu().numpy(), self.config.lookahead, accel, accel_sent
+            )
             a = torch.as_tensor(qinfo["a_safe"], dtype=torch.float64, device=a_pi.device)
             info = {k: qinfo[k] for k in ("num_slack", "num_failed", "max_slack")}
         else:
@@ -226,6 +246,21 @@ class FilteredController:
         prev, self._last = self._last, (s.t, v)
         if prev is None or prev[0] != s.t - 1 or prev[1].shape != v.shape:
             return None
+        return (v - prev[1]) / env_config.dt
+
+    def _sent_acceleration(self, s: SwarmState, env_config: EnvConfig) -> np.ndarray | None:
+        """Under delayed messages (:mod:`egcbf.faults`): every agent's acceleration as two consecutive messages of
+        it imply, ``(v_sent_t - v_sent_{t-1}) / dt`` ``(B, N, 3)`` (zero at an episode's first step or when the
+        previous call was another swarm); ``None`` without delayed messages (a message then carries the current
+        estimate: :meth:`_realized_acceleration` holds it) or without ``lookahead``."""
+        sensing = s.sensing
+        if not self.config.lookahead or sensing is None or sensing.faults.msg_delay == 0:
+            self._last_sent = None
+            return None
+        v = sensing.robot.velocities(sensing.x_sent).detach().to(torch.float64).cpu().numpy()
+        prev, self._last_sent = self._last_sent, (s.t, v)
+        if prev is None or prev[0] != s.t - 1 or prev[1].shape != v.shape:
+            return np.zeros_like(v)
         return (v - prev[1]) / env_config.dt
 
     def _filter(self, graph: SwarmGraph, s: SwarmState, itf: AccelInterface, a_pi: Tensor) -> tuple[Tensor, dict]:

@@ -159,7 +159,7 @@ def run_eval(
     """
     from ..algo.filtered import FILTERS, FilterConfig, FilteredController
     from ..control.controllers import CONTROLLERS, POINT_MASSES, make_controller
-    from ..evaluate import evaluate
+    from ..evaluate import evaluate, fault_support_error
     from ..filter_names import join_method
     from ..robots import ROBOTS
 
@@ -185,14 +185,6 @@ def run_eval(
         fault_config = parse_faults(faults)
     except ValueError as err:
         usage_error(f"--faults: {err}", err)
-    require(
-        not fault_config.edge_faults or (checkpoint is not None and filter == "none"),
-        f"--faults {fault_config.spec()}: message and LiDAR faults (msg_loss, msg_delay, lidar_noise, lidar_drop) "
-        "reach only a learned policy alone (--checkpoint without --filter), which builds its graph from what the "
-        "agents perceive; the hand-crafted controllers and the filters read neighbours from the state. Give this "
-        "controller the state-level faults only (pos, vel, gain, thrust_gain, torque_gain, torque_bias, act_delay, "
-        "wind, gust, noncoop)",
-    )
     sizes = parse_sizes(num_agents)
     dev = parse_device(device)
     env_overrides, ckpt = None, None
@@ -224,6 +216,18 @@ def run_eval(
             f"--controller {controller}: the hand-crafted CBF-QPs and the run-time filters are written for the "
             f"quadrotor (and the dCBF-QP for the point masses {', '.join(POINT_MASSES)}), not a {robot}"
         )
+    if fault_config.edge_faults:  # message and LiDAR faults: ask the controller which ones it perceives
+        if checkpoint is not None:
+            probe = learned
+        elif filter_config is not None:
+            probe = filtered_nominal
+        else:
+            try:
+                probe = make_controller(controller, robot=robot)
+            except ValueError as err:
+                usage_error(f"--controller {controller}: {err}", err)
+        why = fault_support_error(probe, fault_config, name=controller)
+        require(why is None, f"--faults {fault_config.spec()}: {why}")
     require(math.isfinite(scene_yaw), f"--scene-yaw must be a finite number of degrees, got {scene_yaw}")
     if scene != "uniform" or scene_yaw != 0:  # else the environment's defaults, as every earlier run recorded them
         env_overrides = {**(env_overrides or {}), "scene": scene, "scene_yaw": float(scene_yaw)}

@@ -45,6 +45,7 @@ __all__ = [
     "build_constraints",
     "obstacle_constraints",
     "pair_constraints",
+    "perceived_constraints",
     "prune_redundant",
     "split_for_agents",
     "support_bound",
@@ -368,24 +369,72 @@ def build_constraints(
     With ``bounds``, rows that cannot be violated by any bounded acceleration are dropped (:func:`prune_redundant`).
     """
     parts = [pair_constraints(pos, vel, agent_pairs(pos, cfg, batch), cfg)]
-    if centers is not None:
-        if batch is None:
-            parts.append(obstacle_constraints(pos, vel, centers, radii, cfg))
-        else:
-            for b, (c, r) in enumerate(zip(centers, radii)):
-                idx = np.nonzero(batch == b)[0]
-                if idx.size == 0 or c is None or len(c) == 0:
-                    continue
-                oc = obstacle_constraints(pos[idx], vel[idx], c, r, cfg)
-                oc.i = idx[oc.i]
-                parts.append(oc)
+    parts += _obstacle_parts(pos, vel, cfg, centers, radii, batch)
     cons = Constraints.cat(parts)
     return cons if bounds is None else prune_redundant(cons, bounds)
 
 
-def split_for_agents(cons: Constraints) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _obstacle_parts(pos, vel, cfg: BarrierConfig, centers, radii, batch) -> list[Constraints]:
+    """The obstacle rows of :func:`build_constraints` (same arguments), one part per environment."""
+    if centers is None:
+        return []
+    if batch is None:
+        return [obstacle_constraints(pos, vel, centers, radii, cfg)]
+    parts = []
+    for b, (c, r) in enumerate(zip(centers, radii)):
+        idx = np.nonzero(batch == b)[0]
+        if idx.size == 0 or c is None or len(c) == 0:
+            continue
+        oc = obstacle_constraints(pos[idx], vel[idx], c, r, cfg)
+        oc.i = idx[oc.i]
+        parts.append(oc)
+    return parts
+
+
+def perceived_constraints(
+    pos: np.ndarray,
+    vel: np.ndarray,
+    links: np.ndarray,
+    sent_pos: np.ndarray,
+    sent_vel: np.ndarray,
+    cfg: BarrierConfig,
+    centers: np.ndarray | None = None,
+    radii: np.ndarray | None = None,
+    batch: np.ndarray | None = None,
+    bounds: AccelBounds | None = None,
+) -> Constraints:
+    """The rows of agents that know their neighbours only from the messages they received (:mod:`egcbf.faults`).
+
+    ``pos, vel`` ``(M, 3)``: each agent's own estimate (world frame); ``sent_pos, sent_vel`` ``(M, 3)``: what each
+    agent's message carries; ``links`` ``(2, L)``: the directed links ``(receiver r, sender s)`` whose messages
+    arrived. Link ``(r, s)`` gives the pair row between agent ``r`` and a phantom agent ``M + s`` at
+    ``sent_pos[s], sent_vel[s]`` (the sender as ``r`` perceives it), ``n . (a_r - a_{M+s}) >= b`` with
+    ``n = (p_r - p_sent_s) / d``, so that ``split_for_agents(cons, num_agents=M)`` keeps exactly ``r``'s half
+    ``n . a_r >= b / 2``: ``r``'s view of the pair need not be ``s``'s view of it. Obstacle rows, the pruning by
+    ``bounds`` and the rest of the arguments as :func:`build_constraints`.
+    """
+    m = pos.shape[0]
+    recv, send = np.asarray(links, dtype=np.int64).reshape(2, -1)
+    both_pos = np.concatenate((pos, sent_pos))
+    both_vel = np.concatenate((vel, sent_vel))
+    pairs = pair_constraints(both_pos, both_vel, np.stack((recv, m + send)), cfg)
+    if len(pairs):
+        # coincident and at rest relative to each other (module doc): the phantom is always the row's j, which
+        # would push every receiver up; +z for the lower agent index, -z for the higher, as build_constraints' halves
+        dv = vel[recv] - sent_vel[send]
+        still = (pairs.dist <= 1e-9) & (np.sqrt((dv * dv).sum(-1)) <= 1e-9) & (recv > send)
+        pairs.normal[still] *= -1.0
+    parts = [pairs, *_obstacle_parts(pos, vel, cfg, centers, radii, batch)]
+    cons = Constraints.cat(parts)
+    return cons if bounds is None else prune_redundant(cons, bounds)
+
+
+def split_for_agents(cons: Constraints, num_agents: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Decentralized split: agent ``i`` enforces ``n . a_i >= b / 2`` and agent ``j`` ``-n . a_j >= b / 2`` for
     a pair (the two halves add up to the pair constraint); obstacle rows stay whole on their agent.
+
+    ``num_agents = M``: the halves owned by rows ``>= M`` (the phantom senders of :func:`perceived_constraints`)
+    belong to no agent and are left out.
 
     Returns ``owner (R,), normal (R, 3), rhs (R,)``.
     """
@@ -394,6 +443,9 @@ def split_for_agents(cons: Constraints) -> tuple[np.ndarray, np.ndarray, np.ndar
     normal = np.concatenate([cons.normal, -cons.normal[pair]])
     rhs_i = np.where(pair, 0.5 * cons.rhs, cons.rhs)
     rhs = np.concatenate([rhs_i, 0.5 * cons.rhs[pair]])
+    if num_agents is not None:
+        real = owner < num_agents
+        owner, normal, rhs = owner[real], normal[real], rhs[real]
     return owner, normal, rhs
 
 

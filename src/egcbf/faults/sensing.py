@@ -11,7 +11,14 @@ passes the graph it built through :meth:`Sensing.messages`. So every controller 
 * **Messages**: an agent-to-agent edge carries the sender's broadcast estimate; with ``msg_delay = k`` it is the
   estimate of ``k`` steps ago (sender features and position), and the edge vector is that position minus the
   receiver's current estimate; an edge whose delayed neighbour lies outside the communication radius is dropped, and
-  each edge is lost with probability ``msg_loss`` in each step.
+  each edge is lost with probability ``msg_loss`` in each step. :meth:`Sensing.received` decides which directed
+  links (receiver, sender) carry a message and what it carries; the graph (:meth:`Sensing.messages`) and the
+  decentralized CBF-QP (:class:`egcbf.control.cbf_qp.DecentralizedCBFQP`) both read it, so they lose the same messages.
+
+A controller declares the channels it perceives in its ``reads_sensing`` attribute (:data:`CHANNELS`,
+:func:`unread_faults`): ``True`` for every channel (it builds its whole graph from the observed state), or a
+collection of channel names; :func:`egcbf.evaluate.run_episodes` refuses a fault on a channel the controller would
+ignore.
 """
 
 from __future__ import annotations
@@ -30,11 +37,37 @@ from ..robots import Robot
 from . import draws
 from .spec import FaultConfig
 
-__all__ = ["STREAMS", "Sensing"]
+__all__ = ["CHANNELS", "STREAMS", "Sensing", "unread_faults"]
 
 #: the random streams of the faults (the second number of every draw's address; :mod:`egcbf.faults.draws`)
 STREAMS = {"pos": 1, "vel": 2, "loss": 3, "lidar": 4, "lidar_drop": 5, "gain": 6, "bias": 7, "noncoop": 8,
            "gust": 9}  # fmt: skip
+
+#: the perception channels a :class:`Sensing` simulates, with the fault fields that act on each
+CHANNELS = {"messages": ("msg_loss", "msg_delay"), "lidar": ("lidar_noise", "lidar_drop")}
+
+
+def unread_faults(controller, faults: FaultConfig) -> tuple[str, ...]:
+    """The active fault fields (of :data:`CHANNELS`) that ``controller`` would ignore, in :data:`CHANNELS` order.
+
+    ``controller.reads_sensing`` says which channels of ``state.sensing`` it honours: ``True`` every one, a
+    collection of :data:`CHANNELS` names those, absent or ``False`` none.
+    """
+    declared = getattr(controller, "reads_sensing", False)
+    if declared is True:
+        return ()
+    read = set(declared or ())
+    unknown = sorted(read - set(CHANNELS))
+    if unknown:
+        who = type(controller).__name__
+        raise ValueError(f"{who}.reads_sensing: unknown channels {unknown}; known: {list(CHANNELS)}")
+    return tuple(
+        name
+        for channel, names in CHANNELS.items()
+        if channel not in read
+        for name in names
+        if getattr(faults, name) > 0
+    )
 
 
 @dataclass
@@ -89,27 +122,61 @@ class Sensing:
         return LidarScan(points.to(dtype), valid, distance.to(dtype))
 
     # ----------------------------------------------------------------------------------------------- messages
+    @property
+    def message_faults(self) -> bool:
+        """Whether messages are lost or late (else every agent hears its neighbours' current estimates)."""
+        return self.faults.msg_loss > 0 or self.faults.msg_delay > 0
+
+    def received(
+        self, receivers: Tensor, senders: Tensor, comm_radius: float, like: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Which candidate directed links carry a message in this step, and what every message carries.
+
+        Args:
+            receivers, senders: ``(E,)`` long, the agents of each candidate link ``receiver <- sender`` as flat rows
+                ``b * N + i`` of the same environment ``b`` (the graph's receiver rows). Candidates are the pairs
+                within ``comm_radius`` of each other's *current* estimates (the neighbour search of the graph and of
+                the QP).
+            comm_radius: the communication radius (m).
+            like: the dtype and device of the states returned (default: ``x_sent``'s).
+
+        Returns:
+            ``keep`` ``(E,)`` bool on the device of ``receivers``: the message arrived, i.e. it is not lost in this
+            step (draw ``(seed, "loss", t, i, j) < msg_loss`` with ``i, j`` the local indices of receiver and sender)
+            and, with ``msg_delay > 0``, the sender's delayed estimate lies within ``comm_radius`` of the receiver's
+            current one; ``sent`` ``(B N, S)``: every agent's broadcast as it arrives (``x_sent``, its estimate of
+            ``msg_delay`` steps ago), world frame.
+        """
+        f, robot = self.faults, self.robot
+        b, n = self.x_seen.shape[:2]
+        like = self.x_sent if like is None else like
+        sent = self.x_sent.reshape(b * n, -1).to(device=like.device, dtype=like.dtype)
+        keep = torch.ones(receivers.shape, dtype=torch.bool, device=receivers.device)
+        if f.msg_delay > 0:
+            seen = self.x_seen.reshape(b * n, -1).to(device=like.device, dtype=like.dtype)
+            src, dst = senders.to(like.device), receivers.to(like.device)
+            gap = torch.linalg.vector_norm(robot.positions(sent)[src] - robot.positions(seen)[dst], dim=-1)
+            keep &= (gap < comm_radius).to(receivers.device)
+        if f.msg_loss > 0:
+            seeds = self.seeds.to(receivers.device)[receivers // n]
+            keep &= draws.uniform(STREAMS["loss"], seeds, self.t, receivers % n, senders % n) >= f.msg_loss
+        return keep, sent
+
     def messages(self, graph: SwarmGraph) -> SwarmGraph:
-        """``graph`` (built from the estimates) with its agent-to-agent edges as the messages arrive: delayed
-        senders, out-of-range and lost messages dropped."""
-        f = self.faults
-        if f.msg_delay == 0 and f.msg_loss == 0:
+        """``graph`` (built from the estimates) with its agent-to-agent edges as the messages arrive
+        (:meth:`received`): delayed senders, out-of-range and lost messages dropped."""
+        if not self.message_faults:
             return graph
-        m, n = graph.num_dst, graph.num_agents
+        m = graph.num_dst
         src, dst = graph.edge_index
         agent_edge = graph.edge_kind == KIND_AGENT
-        keep = torch.ones_like(agent_edge)
+        arrived, sent = self.received(dst[agent_edge], src[agent_edge], graph.comm_radius, like=graph.x_src)
+        keep = ~agent_edge
+        keep[agent_edge] = arrived
         x_src, pos_src = graph.x_src, graph.pos_src
-        if f.msg_delay > 0:
-            sent = self.x_sent.reshape(m, -1).to(x_src.dtype)
+        if self.faults.msg_delay > 0:
             x_src = torch.cat((agent_features(self.robot, sent), x_src[m:]))
             pos_src = torch.cat((self.robot.positions(sent), pos_src[m:]))
-            gap = torch.linalg.vector_norm(pos_src[src] - graph.pos_dst[dst], dim=-1)
-            keep &= ~agent_edge | (gap < graph.comm_radius)
-        if f.msg_loss > 0:
-            env = dst // n
-            lost = draws.uniform(STREAMS["loss"], self.seeds.to(dst.device)[env], self.t, dst % n, src % n) < f.msg_loss
-            keep &= ~(agent_edge & lost)
         edge_index = graph.edge_index[:, keep]
         edge_kind = graph.edge_kind[keep]
         edge_attr = edge_vectors(pos_src, graph.pos_dst, edge_index, edge_kind, graph.comm_radius)

@@ -108,7 +108,8 @@ class FaultConfig:
 
     @property
     def edge_faults(self) -> bool:
-        """Whether a fault acts on the graph's edges (messages, LiDAR), which only graph controllers read."""
+        """Whether a fault acts on what the agents perceive of each other and the obstacles (messages, LiDAR): it
+        reaches only a controller that reads that channel (:func:`egcbf.faults.sensing.unread_faults`)."""
         return self.msg_loss > 0 or self.msg_delay > 0 or self.lidar_noise > 0 or self.lidar_drop > 0
 
     def active(self) -> dict:

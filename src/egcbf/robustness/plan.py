@@ -7,9 +7,10 @@ holds the perfect world and the default field conditions (:data:`egcbf.faults.DE
 perfect world, shared by every axis): the same cells, keys, resumption and backends (processes, Ray) as
 ``egcbf reproduce``.
 
-A controller that does not read the agents' messages (:func:`reads_sensing`: the centralized QP, the nominal
-controller) is evaluated on a level's state-level faults only (:func:`state_level`), and not at all on an axis made
-of message and LiDAR faults alone; the report says so.
+A controller perceives the message and LiDAR faults only on the channels it reads (its ``reads_sensing``,
+:func:`egcbf.faults.sensing.unread_faults`: the learned policies both, the dCBF-QP the messages, the centralized
+QP and the nominal controller neither); each level runs the faults it perceives (:meth:`RobustnessConfig.cell_spec`),
+and a level left with none of them (a LiDAR level for the dCBF-QP) is not run for it; the report says so.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from ..faults import DEFAULT_FIELD, parse_faults
 from ..reproduce import SweepConfig
 from ..reproduce.paper import base_method, method_filter
 
-__all__ = ["AXES", "Axis", "RobustnessConfig", "axis", "reads_sensing", "state_level"]
+__all__ = ["AXES", "Axis", "RobustnessConfig", "axis", "perceived", "reads_sensing", "state_level"]
 
 
 @dataclass(frozen=True)
@@ -70,24 +71,38 @@ def axis(name: str) -> Axis:
     raise ValueError(f"unknown fault axis {name!r}; choose from {[a.name for a in AXES]}")
 
 
-def reads_sensing(method: str) -> bool:
-    """Whether ``method``'s controller perceives message and LiDAR faults (``reads_sensing`` on the controller: the
-    learned policies alone, which build their graph from what the agents perceive, and the QPs and filters that read
-    their neighbours from the messages)."""
+def reads_sensing(method: str):
+    """``method``'s controller's ``reads_sensing`` declaration (:func:`egcbf.faults.sensing.unread_faults`): ``True``
+    (a learned policy alone: its whole graph from what the agents perceive), a set of channel names (the dCBF-QP and
+    the filters: :data:`egcbf.algo.filtered.READS_SENSING`), or ``False``."""
     from ..control.controllers import CONTROLLERS
 
-    if method_filter(method) != "none":
-        from ..algo.filtered import FilteredController
+    kind = method_filter(method)
+    if kind != "none":
+        from ..algo.filtered import READS_SENSING
 
-        return bool(getattr(FilteredController, "reads_sensing", False))
+        return READS_SENSING.get(kind, False)
     base = base_method(method)
     if base in CONTROLLERS:
-        return bool(getattr(CONTROLLERS[base], "reads_sensing", False))
+        return getattr(CONTROLLERS[base], "reads_sensing", False)
     return True  # a learned policy alone (egcbf.algo.learner.LearnedController)
 
 
+def perceived(method: str, spec: str) -> str:
+    """``spec`` without the faults ``method``'s controller does not perceive (canonical spec)."""
+    from ..faults.sensing import unread_faults
+
+    f = parse_faults(spec)
+
+    class _Declared:  # the declaration alone: no controller is built to plan a sweep
+        reads_sensing = reads_sensing(method)
+
+    unread = unread_faults(_Declared, f)
+    return dataclasses.replace(f, **{name: type(getattr(f, name))(0) for name in unread}).spec()
+
+
 def state_level(spec: str) -> str:
-    """``spec`` without its message and LiDAR faults (what a controller that does not read messages perceives)."""
+    """``spec`` without its message and LiDAR faults (what a controller that reads no sensing perceives)."""
     f = parse_faults(spec)
     return dataclasses.replace(f, msg_loss=0.0, msg_delay=0, lidar_noise=0.0, lidar_drop=0.0).spec()
 
@@ -120,8 +135,8 @@ class RobustnessConfig:
             raise ValueError("controllers is empty")
 
     def sweeps(self) -> list[tuple[str, str, SweepConfig]]:
-        """``(axis, spec, sweep)`` for every level of every axis, the perfect world once, first; a controller that
-        does not read messages runs a level's state-level part, or nothing where that is the perfect world."""
+        """``(axis, spec, sweep)`` for every level of every axis, the perfect world once, first; each controller runs
+        the part of a level it perceives (:meth:`cell_spec`), or nothing where that is the perfect world."""
         out, seen = [], set()
         for a in (axis(n) for n in self.axes):
             for spec in a.specs():
@@ -134,15 +149,13 @@ class RobustnessConfig:
         return out
 
     def _groups(self, spec: str) -> list[tuple[str, tuple[str, ...]]]:
-        readers = tuple(m for m in self.controllers if reads_sensing(m))
-        others = tuple(m for m in self.controllers if not reads_sensing(m))
-        reduced = state_level(spec)
-        if spec == "none" or reduced == spec:
-            return [(spec, self.controllers)]
-        groups = [(spec, readers)]
-        if reduced != "none":
-            groups.append((reduced, others))
-        return groups
+        """The controllers of level ``spec`` grouped by the spec each runs (:meth:`cell_spec`), in order."""
+        groups: dict[str, list[str]] = {}
+        for m in self.controllers:
+            run = self.cell_spec(m, spec)
+            if run is not None:
+                groups.setdefault(run, []).append(m)
+        return [(s, tuple(ms)) for s, ms in groups.items()]
 
     def sweep(self, spec: str, methods: tuple[str, ...]) -> SweepConfig:
         """The ``egcbf reproduce`` sweep of ``methods`` under ``spec``."""
@@ -169,8 +182,9 @@ class RobustnessConfig:
         )
 
     def cell_spec(self, method: str, spec: str) -> str | None:
-        """The spec ``method`` actually runs at a level ``spec`` (``None``: not evaluated there)."""
-        if spec == "none" or reads_sensing(method):
+        """The spec ``method`` runs at level ``spec``: the faults it perceives (``None``: none of them, while the
+        level has some; the level is then not run for it)."""
+        if spec == "none":
             return spec
-        reduced = state_level(spec)
-        return None if reduced == "none" else reduced
+        run = perceived(method, spec)
+        return None if run == "none" else run

@@ -176,8 +176,10 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         "(`egcbf eval --faults`); the controller sees corrupted perception and sends corrupted commands, the "
         "metrics read the true states and count the cooperative agents only.",
         "",
-        "Controllers that do not read their neighbours from messages (the nominal controller, the centralized "
-        "CBF-QP) run each level's state-level faults only, and nothing on the message and LiDAR axes (n/a).",
+        "A controller runs the faults of a level it perceives: the learned policies all of them, the dCBF-QP (alone "
+        "or as a filter) the messages but not the LiDAR (its obstacle rows come from the map), the centralized "
+        "CBF-QP and the nominal controller neither (state-level faults only); a level it perceives nothing of is "
+        "n/a for it (`egcbf.faults.sensing.unread_faults`).",
         "",
         "## Default field conditions",
         "",

@@ -66,12 +66,31 @@ def _status(root: Path) -> str:
 
             done, total = len(arm_cells(a, root)), len(sweep_config(a, root).cells())
         rows.append([a.name, a.claim, f"`{a.preset}` {a.overrides or ''}", f"{a.minutes:g}",
-                     f"{len(trained)} of {len(runs)}", f"{done} of {total}"])  # fmt: skip
+                     f"{len(trained)} of {len(runs)}", _machines(trained, root), f"{done} of {total}"])  # fmt: skip
+    head = ["arm", "tests", "recipe", "CPU minutes per run", "runs trained", "trained on", "cells evaluated"]
     return (
-        md_table(["arm", "tests", "recipe", "minutes per run", "runs trained", "cells evaluated"], rows)
-        + "\n\nRuns: `egcbf study --arms ARM` (two at a time, one thread each, resumable); evaluation seed 0, "
-        "20 episodes per N at l = 4, the scalability cells at the density of N = 512 with 10 240 agent-episodes each."
+        md_table(head, rows)
+        + "\n\nRuns: `egcbf study --arms ARM` (resumable; `--jobs K` runs at a time, one torch thread each). The budget"
+        " is the training process's CPU time (`TrainConfig.max_cpu_minutes`), so that runs beside other jobs get "
+        "the same compute; each checkpoint's `machine.json` names the machine, and its `metrics.csv` the updates "
+        "reached (about 3 s an update on either machine for the paper regime). Evaluation seed 0, 20 episodes per"
+        " N at l = 4, the scalability cells at the density of N = 512 with 10 240 agent-episodes each."
     )
+
+
+def _machines(runs, root: Path) -> str:
+    """The CPUs the runs were trained on (their checkpoints' ``machine.json``), e.g. ``"16-core Xeon (8)"``."""
+    import json
+
+    count: dict[str, int] = {}
+    for r in runs:
+        f = r.checkpoint_dir(root) / "machine.json"
+        name = "?"
+        if f.exists():
+            m = json.loads(f.read_text())
+            name = f"{m.get('cores', '?')}-core {str(m.get('cpu', '?')).split(' (')[0]}"
+        count[name] = count.get(name, 0) + 1
+    return ", ".join(f"{k} ({v})" for k, v in count.items()) or "-"
 
 
 def _pair_effects(a: Arm, cells: dict, n: int, scale: bool) -> list[tuple[str, Interval | None]]:

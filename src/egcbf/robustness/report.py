@@ -19,6 +19,25 @@ COLORS = {"nominal": "tab:gray", "ccbf": "tab:brown", "dcbf": "tab:purple", "gcb
           "egcbf+": "tab:blue", "egcbf+:dcbf": "tab:green"}  # fmt: skip
 THRESHOLDS = (0.99, 0.95)
 
+#: the fault reference of the report: (field, spec alias, unit, where it acts)
+_FAULTS_TABLE = (
+    ("pos_noise", "pos", "m (std per axis)", "each agent's position estimate, fresh every step (also broadcast)"),
+    ("vel_noise", "vel", "m/s (std per axis)", "each agent's velocity estimate, likewise"),
+    ("lidar_noise", "lidar", "m (std)", "each LiDAR range (rays cast from the true pose, placed around the estimate)"),
+    ("lidar_drop", "", "probability", "each LiDAR return lost, each step"),
+    ("msg_loss", "loss", "probability", "each directed message (receiver <- sender) lost, each step"),
+    ("msg_delay", "delay", "control steps", "every message carries the sender's estimate of that many steps ago"),
+    ("gain", "", "+- fraction", "per agent and channel, drawn once per episode: every control channel"),
+    ("thrust_gain", "", "+- fraction", "the same on the collective thrust (quadrotor)"),
+    ("torque_gain", "", "+- fraction", "the same on the body torques (quadrotor)"),
+    ("torque_bias", "", "N m", "a constant body-torque bias per agent and axis, uniform in +-value"),
+    ("act_delay", "", "control steps", "every command acts that many steps late (hover commands before)"),
+    ("wind", "", "m/s^2 (a vector)", "a constant world acceleration on every agent (wind force over mass)"),
+    ("gust", "", "m/s^2 (std per axis)", "an Ornstein-Uhlenbeck gust per environment (time constant gust_tau, s)"),
+    ("noncoop", "", "fraction", "agents that ignore their controller (noncoop_mode: hover in place or fly straight "
+     "to their goal); the metrics count the others"),
+)  # fmt: skip
+
 
 def _cell(method: str, spec: str, n: int, obstacles: int) -> Cell:
     return Cell(method, obstacles, n, None if base_method(method) in BASELINES else 0, None, spec)
@@ -180,6 +199,18 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         "or as a filter) the messages but not the LiDAR (its obstacle rows come from the map), the centralized "
         "CBF-QP and the nominal controller neither (state-level faults only); a level it perceives nothing of is "
         "n/a for it (`egcbf.faults.sensing.unread_faults`).",
+        "",
+        "## The faults",
+        "",
+        "`egcbf eval --faults SPEC` (and `egcbf robustness`) takes `none`, `default`, comma-separated `key=value` "
+        "pairs (after `default` they override it: `default,loss=0.3`; vectors `/`-separated: `wind=1/0/0`) or a "
+        "JSON file of these fields (`egcbf.faults.FaultConfig`). Every draw is a pure function of the episode seed, "
+        "the step and the agents it concerns, so a result does not depend on batching; a zero level is the perfect "
+        "world bit for bit (tests/egcbf/test_faults.py).",
+        "",
+        "| field | short | unit | acts on |",
+        "|---|---|---|---|",
+        *(f"| `{f}` | {('`' + a + '`') if a else ''} | {u} | {w} |" for f, a, u, w in _FAULTS_TABLE),
         "",
         "## Default field conditions",
         "",

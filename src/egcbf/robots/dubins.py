@@ -31,15 +31,13 @@ from torch import Tensor
 
 from groupcanon import FieldType
 from groupcanon.features import Point, Scalar, Vector
-from groupcanon.frames import planar_frame
 from groupcanon.groups import SE2
 
-from .base import Robot, require_positive
+from .base import require_positive
 from .integrators import PLANAR_DEFAULTS
+from .planar import H, HeadingSpeedRobot, P, V, perp
 
 __all__ = ["DubinsCar", "DubinsParams"]
-
-P, H, V = slice(0, 2), slice(2, 4), slice(4, 5)
 
 
 @dataclass(frozen=True)
@@ -63,16 +61,10 @@ class DubinsParams:
         )
 
 
-def _perp(h: Tensor) -> Tensor:
-    return torch.stack((-h[..., 1], h[..., 0]), -1)
-
-
-class DubinsCar(Robot):
+class DubinsCar(HeadingSpeedRobot):
     """GCBF+'s Dubins car (module doc)."""
 
     name = "dubins_car"
-    dim = 2
-    state_dim = 5
     control_dim = 2
     group_name = "se2"
     interfaces = ("control",)
@@ -97,7 +89,7 @@ class DubinsCar(Robot):
 
     def f1(self, x: Tensor) -> Tensor:
         out = x.new_zeros(*x.shape[:-1], 5, 2)
-        out[..., H, 0] = self.params.turn_gain * _perp(x[..., H])
+        out[..., H, 0] = self.params.turn_gain * perp(x[..., H])
         out[..., 4, 1] = 1.0
         return out
 
@@ -111,7 +103,7 @@ class DubinsCar(Robot):
             p, head, v = x[..., P], x[..., H], x[..., V]
             turn = self.params.turn_gain * u[..., 0:1] * h
             c, s = torch.cos(turn), torch.sin(turn)
-            new_head = c * head + s * _perp(head)  # the angle's Euler step, exactly on the unit circle
+            new_head = c * head + s * perp(head)  # the angle's Euler step, exactly on the unit circle
             speed = (v + h * u[..., 1:2]).clamp(-self.params.max_speed, self.params.max_speed)
             x = torch.cat((p + h * v * head, new_head, speed), -1)
         return x
@@ -119,45 +111,6 @@ class DubinsCar(Robot):
     def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
         hi = torch.full((2,), self.params.max_control, dtype=like.dtype, device=like.device)
         return -hi, hi
-
-    def check_state(self, x: Tensor, atol: float = 1e-3) -> None:
-        super().check_state(x, atol)
-        err = (torch.linalg.vector_norm(x[..., H], dim=-1) - 1).abs()
-        if bool((err > atol).any()):
-            raise ValueError(f"Dubins car heading must be a unit vector (|h| - 1 up to {float(err.max()):.3g})")
-
-    # ------------------------------------------------------------------------------------------- geometry
-    def positions(self, x: Tensor) -> Tensor:
-        return x[..., P]
-
-    def velocities(self, x: Tensor) -> Tensor:
-        return x[..., V] * x[..., H]
-
-    def perturbed(self, x: Tensor, dp: Tensor, dv: Tensor | None = None) -> Tensor:
-        """Position moved by ``dp``; the speed changed by the component of ``dv`` along the heading (the state
-        holds no lateral velocity)."""
-        out = x.clone()
-        out[..., P] += dp.to(x.dtype)
-        if dv is not None:
-            out[..., V] += (dv.to(x.dtype) * x[..., H]).sum(-1, keepdim=True)
-        return out
-
-    def heading(self, x: Tensor) -> Tensor:
-        return planar_frame(x[..., H])
-
-    def frames(self, x: Tensor) -> Tensor:
-        return torch.cat((planar_frame(x[..., H]), x[..., P]), -1)
-
-    def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
-        h = torch.stack((torch.cos(yaw), torch.sin(yaw)), -1).to(positions.dtype)
-        return torch.cat((positions, h, torch.zeros_like(positions[..., :1])), -1)
-
-    @property
-    def node_fields(self) -> dict:
-        return {"v": Vector(2), "h": Vector(2)}
-
-    def agent_features(self, x: Tensor) -> Tensor:
-        return torch.cat((self.velocities(x), x[..., H]), -1)
 
     # ------------------------------------------------------------------------------------------- control
     def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:

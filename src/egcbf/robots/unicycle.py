@@ -32,14 +32,12 @@ from torch import Tensor
 
 from groupcanon import FieldType
 from groupcanon.features import Point, Scalar, Vector
-from groupcanon.frames import planar_frame
 from groupcanon.groups import SE2
 
-from .base import Robot, require_positive, rk4_step
+from .base import require_positive, rk4_step
+from .planar import H, HeadingSpeedRobot, P, V
 
 __all__ = ["Unicycle", "UnicycleParams"]
-
-P, H, V = slice(0, 2), slice(2, 4), slice(4, 5)
 
 
 @dataclass(frozen=True)
@@ -83,17 +81,15 @@ class UnicycleParams:
         )
 
 
-def _perp(h: Tensor) -> Tensor:
+def perp(h: Tensor) -> Tensor:
     """``J h``: ``h`` rotated by +90 degrees."""
     return torch.stack((-h[..., 1], h[..., 0]), -1)
 
 
-class Unicycle(Robot):
+class Unicycle(HeadingSpeedRobot):
     """The planar unicycle swarm robot (module doc)."""
 
     name = "unicycle"
-    dim = 2
-    state_dim = 5
     control_dim = 2
     group_name = "se2"
     interfaces = ("control",)
@@ -138,13 +134,13 @@ class Unicycle(Robot):
     def f1(self, x: Tensor) -> Tensor:
         batch = x.shape[:-1]
         out = x.new_zeros(*batch, 5, 2)
-        out[..., H, 0] = _perp(x[..., H])
+        out[..., H, 0] = perp(x[..., H])
         out[..., 4, 1] = 1.0
         return out
 
     def xdot(self, x: Tensor, u: Tensor) -> Tensor:
         h = x[..., H]
-        return torch.cat((x[..., V] * h, u[..., 0:1] * _perp(h), u[..., 1:2]), -1)
+        return torch.cat((x[..., V] * h, u[..., 0:1] * perp(h), u[..., 1:2]), -1)
 
     @staticmethod
     def _project(x: Tensor) -> Tensor:
@@ -164,48 +160,6 @@ class Unicycle(Robot):
     def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
         hi = torch.tensor((self.params.max_turn_rate, self.params.max_accel), dtype=like.dtype, device=like.device)
         return -hi, hi
-
-    def check_state(self, x: Tensor, atol: float = 1e-3) -> None:
-        super().check_state(x, atol)
-        err = (torch.linalg.vector_norm(x[..., H], dim=-1) - 1).abs()
-        if bool((err > atol).any()):
-            bad = (err > atol).nonzero()[0].tolist()
-            raise ValueError(f"unicycle heading must be a unit vector (first bad at {tuple(bad)}: |h| - 1 = "
-                             f"{err[tuple(bad)].item():.3g})")  # fmt: skip
-
-    # ------------------------------------------------------------------------------------------- geometry
-    def positions(self, x: Tensor) -> Tensor:
-        return x[..., P]
-
-    def velocities(self, x: Tensor) -> Tensor:
-        return x[..., V] * x[..., H]
-
-    def perturbed(self, x: Tensor, dp: Tensor, dv: Tensor | None = None) -> Tensor:
-        """Position moved by ``dp``; the speed changed by the component of ``dv`` along the heading (the state
-        holds no lateral velocity)."""
-        out = x.clone()
-        out[..., P] += dp.to(x.dtype)
-        if dv is not None:
-            out[..., V] += (dv.to(x.dtype) * x[..., H]).sum(-1, keepdim=True)
-        return out
-
-    def heading(self, x: Tensor) -> Tensor:
-        return planar_frame(x[..., H])
-
-    def frames(self, x: Tensor) -> Tensor:
-        return torch.cat((planar_frame(x[..., H]), x[..., P]), -1)
-
-    def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
-        h = torch.stack((torch.cos(yaw), torch.sin(yaw)), -1).to(positions.dtype)
-        return torch.cat((positions, h, torch.zeros_like(positions[..., :1])), -1)
-
-    # ------------------------------------------------------------------------------------------- features
-    @property
-    def node_fields(self) -> dict:
-        return {"v": Vector(2), "h": Vector(2)}
-
-    def agent_features(self, x: Tensor) -> Tensor:
-        return torch.cat((self.velocities(x), x[..., H]), -1)
 
     # ------------------------------------------------------------------------------------------- control
     def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:

@@ -46,7 +46,16 @@ def method_group(algo: str, robot: str = "quadrotor") -> str:
     return make_robot(robot).group_name if group == "equivariant" else group
 
 
-PRESETS = ("cpu", "paper-cpu", "paper-cpu-mlp", "cpu-torque", "paper", "tiny")
+PRESETS = ("cpu", "paper-cpu", "paper-cpu-mlp", "cpu-torque", "paper", "tiny", "gcbfplus")
+
+#: GCBF+'s training setting per benchmark robot (its pretrained models, ../shared/reference/gcbfplus-facts.md):
+#: obstacles and arena side of its 8-agent training scenes
+GCBFPLUS_TRAINING = {
+    "single_integrator": (8, 4.0),
+    "double_integrator": (8, 4.0),
+    "dubins_car": (4, 4.0),
+    "linear_drone": (8, 2.0),
+}
 
 
 @dataclass
@@ -332,8 +341,8 @@ class TrainConfig:
           ``alpha = 1``; for a GPU;
         * ``"tiny"``: a seconds-long smoke configuration (tests).
 
-        ``robot`` (:mod:`egcbf.robots`): ``"quadrotor"`` (the recipes above) or ``"unicycle"`` (the planar recipe,
-        :meth:`_planar_preset`: ``"cpu"`` and ``"tiny"``).
+        ``robot`` (:mod:`egcbf.robots`): ``"quadrotor"`` (the recipes above) or another robot (the planar recipe,
+        :meth:`_planar_preset`: ``"cpu"``, ``"tiny"`` and, for GCBF+'s benchmark robots, ``"gcbfplus"``).
         ``changes`` override fields (``model`` may be a dict of :class:`ModelConfig` overrides).
         """
         if algo not in LEARNED_METHODS:
@@ -344,6 +353,8 @@ class TrainConfig:
         make_robot(robot)  # a clear error for an unknown robot
         if robot != "quadrotor":
             return cls._planar_preset(algo, name, robot, **changes)
+        if name == "gcbfplus":
+            raise ValueError(f"preset 'gcbfplus' is GCBF+'s setting for its benchmark robots {list(GCBFPLUS_TRAINING)}")
         model = {"group": method_group(algo, robot)}
         base: dict[str, Any] = {"num_threads": 1}  # small matrices: one thread is as fast, and never oversubscribes
         if name in ("cpu", "paper-cpu", "paper-cpu-mlp"):
@@ -429,9 +440,15 @@ class TrainConfig:
         the normalized raw control, the CBF has the closest-approach prior (``edge_min``) and reads relative
         positions and velocities, the policy's residual is a soft-min weighted sum over its closest edges
         (``edge_sum``, invariant coefficients): an MLP head imitated the learned-CBF QP too weakly (docs/robots.md,
-        "Training the planar swarm"); 32 agents and 8 obstacles at 1-3.6 agents per m^2."""
-        if name not in ("cpu", "tiny"):
-            raise ValueError(f"the {robot} has the presets 'cpu' and 'tiny', not {name!r}")
+        "Training the planar swarm"); 32 agents and 8 obstacles at 1-3.6 agents per m^2.
+
+        ``"gcbfplus"`` (GCBF+'s benchmark robots, issue 26): the same networks in GCBF+'s training setting (8 agents,
+        its obstacles and arena, :data:`GCBFPLUS_TRAINING`), with the arena also 0.7x as wide every other update
+        (twice the density: the reference table's densest 2-D cells), validated on 16 agents without obstacles in
+        the training arena (a cell of the reference table), 30 CPU-minutes."""
+        names = ("cpu", "tiny", "gcbfplus") if robot in GCBFPLUS_TRAINING else ("cpu", "tiny")
+        if name not in names:
+            raise ValueError(f"the {robot} has the presets {', '.join(repr(n) for n in names)}, not {name!r}")
         _, reference = LEARNED_METHODS[algo]
         model: dict[str, Any] = dict(
             group=method_group(algo, robot), robot=robot, interface="control", cbf_goal_edges=False,
@@ -448,6 +465,13 @@ class TrainConfig:
         )  # fmt: skip
         if reference == "nominal":
             base.update(eta_c=0.1)
+        if name == "gcbfplus":
+            obstacles, side = GCBFPLUS_TRAINING[robot]
+            base.update(
+                num_agents=8, area_size=side, area_sizes=[round(0.7 * side, 3), side], num_obstacles=obstacles,
+                eval_num_agents=16, eval_area_size=side, eval_num_obstacles=0, max_wall_minutes=None,
+                max_cpu_minutes=30.0,
+            )  # fmt: skip
         if name == "tiny":
             model.update(hidden=16, heads=2, head_hidden=16)
             base.update(

@@ -290,3 +290,25 @@ def test_demo_refuses_a_planar_checkpoint(tmp_path):
     res = CliRunner().invoke(app, ["demo", "--checkpoints", str(planar), "--compare", "nominal", "--out",
                                    str(tmp_path / "demo")])  # fmt: skip
     assert res.exit_code == 2 and "drives a unicycle" in res.output
+
+
+@pytest.mark.parametrize("robot", ["single_integrator", "double_integrator", "dubins_car", "linear_drone"])
+def test_gcbfplus_preset_trains_each_benchmark_robot(robot, tmp_path):
+    """GCBF+'s training setting (8 agents, its obstacles and arena, 0.7x the arena every other update) builds and
+    runs an update for each of its benchmark robots; the other robots refuse it by name."""
+    from egcbf.config import GCBFPLUS_TRAINING, TrainConfig
+    from egcbf.train import train
+
+    cfg = TrainConfig.preset("egcbf+", "gcbfplus", robot=robot)
+    obstacles, side = GCBFPLUS_TRAINING[robot]
+    got = (cfg.num_agents, cfg.num_obstacles, cfg.area_size, cfg.area_sizes)
+    assert got == (8, obstacles, side, [0.7 * side, side])
+    assert cfg.max_cpu_minutes == 30.0 and cfg.max_wall_minutes is None and cfg.eval_num_obstacles == 0
+    small = cfg.replace(steps=1, rollout_envs=1, rollout_steps=8, horizon=4, train_graphs=None, unsafe_samples=4,
+                        batch_size=4, epochs=1, eval_episodes=1, eval_max_steps=4)  # fmt: skip
+    learner = train(small, tmp_path, progress=False, log=lambda s: None)
+    assert learner.step == 1 and (tmp_path / "best" / "model.safetensors").exists()
+    with pytest.raises(ValueError, match="gcbfplus"):
+        TrainConfig.preset("egcbf+", "gcbfplus", robot="unicycle")
+    with pytest.raises(ValueError, match="benchmark robots"):
+        TrainConfig.preset("egcbf+", "gcbfplus")

@@ -82,6 +82,7 @@ class Preset(str, Enum):
     cpu_torque = "cpu-torque"
     paper = "paper"
     tiny = "tiny"
+    gcbfplus = "gcbfplus"
 
 
 class RobotName(str, Enum):

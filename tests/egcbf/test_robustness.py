@@ -72,3 +72,23 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     assert again.exit_code == 0 and (out / "nominal_obs1" / "N4.json").read_text() == before  # reused, not rerun
     bad = CliRunner().invoke(app, ["robustness", "--axes", "nope", "--plan"])
     assert bad.exit_code == 2 and "unknown" in bad.output
+
+
+def test_a_level_with_failed_cells_does_not_stop_the_others(tmp_path, monkeypatch):
+    import egcbf.reproduce as reproduce
+    from egcbf.reproduce.runner import CellsFailed
+
+    seen = []
+
+    def fake_sweep(cfg, **kw):
+        seen.append(cfg.faults)
+        if cfg.faults != "none":
+            raise CellsFailed({cfg.cells()[0]: "Traceback\nImportError: no solver"})
+        return {}
+
+    monkeypatch.setattr(reproduce, "sweep", fake_sweep)
+    args = ["robustness", "--axes", "thrust", "--controllers", "nominal", "--num-agents", "4", "--out",
+            str(tmp_path / "c"), "--report", str(tmp_path / "r.md"), "--figures", str(tmp_path / "f")]  # fmt: skip
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 1 and len(seen) == 5 and "4 level(s) had failed cells" in r.output
+    assert (tmp_path / "r.md").exists()

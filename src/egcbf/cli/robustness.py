@@ -39,6 +39,7 @@ def robustness_cmd(
     """Evaluate every controller under every fault axis (five levels each, and the default field conditions), as
     egcbf reproduce sweeps (resumable: rerun the same command), and write docs/robustness.md."""
     from ..reproduce import METHODS, sweep
+    from ..reproduce.runner import CellsFailed
     from ..robustness import AXES, RobustnessConfig, write_report
 
     names = [a.name for a in AXES] if axes == "all" else [a.strip() for a in axes.split(",") if a.strip()]
@@ -62,8 +63,18 @@ def robustness_cmd(
             typer.echo(f"  sweep {spec}: {', '.join(sw.methods)} ({len(sw.cells())} cells)")
         typer.echo(f"{sum(len(s.cells()) for _, _, s in sweeps)} cells in {len(sweeps)} sweeps")
         return
+    failed = []
     if not report_only:
         for k, (name, spec, sw) in enumerate(sweeps, 1):
             typer.echo(f"[{k}/{len(sweeps)}] faults {spec}: {', '.join(sw.methods)}")
-            sweep(sw, progress=progress, log=typer.echo, command=f"egcbf robustness --axes {name}")
+            try:
+                sweep(sw, progress=progress, log=typer.echo, command=f"egcbf robustness --axes {name}")
+            except CellsFailed as err:  # the other levels still run; the failures are named at the end
+                failed.append(f"faults {spec}: {err}")
+                typer.echo(f"FAILED {failed[-1]}", err=True)
     typer.echo(f"wrote {write_report(cfg, report, figures)}")
+    if failed:
+        typer.echo(f"Error: {len(failed)} level(s) had failed cells (every other cell was computed):", err=True)
+        for line in failed:
+            typer.echo(f"  {line}", err=True)
+        raise typer.Exit(1)

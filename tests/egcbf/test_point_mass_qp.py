@@ -47,5 +47,57 @@ def test_agents_far_from_everything_keep_their_nominal_control():
 def test_where_it_does_not_apply():
     with pytest.raises(ValueError, match="centralized"):
         make_controller("ccbf", robot="double_integrator")
-    with pytest.raises(ValueError, match="dubins_car"):
-        make_controller("dcbf", robot="dubins_car")
+    from egcbf.control.point_mass_qp import PointMassDCBF
+
+    quad = EnvConfig(num_agents=2, num_envs=1)
+    with pytest.raises(ValueError, match="not a quadrotor"):  # the quadrotor has its own dCBF-QP
+        PointMassDCBF()(SwarmEnv(quad, dtype=F64).reset(0), quad)
+    with pytest.raises(ValueError, match="centralized"):
+        make_controller("ccbf", robot="dubins_car")
+
+
+@pytest.mark.parametrize("robot", ["double_integrator", "linear_drone", "dubins_car", "unicycle"])
+def test_the_acceleration_model_matches_the_dynamics(robot):
+    """``dv/dt = A + B u`` (egcbf.control.point_mass_qp.acceleration_affine) against a central difference of the
+    world velocity along the control-affine flow, at random states and controls (float64)."""
+    from egcbf.control.point_mass_qp import acceleration_affine
+
+    cfg = EnvConfig.for_robot(robot, num_agents=6, num_obstacles=0, num_envs=2, area_size=2.0)
+    rob = cfg.make_robot()
+    state = SwarmEnv(cfg, dtype=F64).reset(3)
+    x = state.x.reshape(12, -1).clone()
+    gen = torch.Generator().manual_seed(0)
+    v = rob.velocities(x)
+    if rob.name in ("dubins_car", "unicycle"):
+        x[:, 4] = 0.5 * torch.rand(12, generator=gen, dtype=F64)  # moving cars: steering acts through the speed
+    else:
+        x = rob.perturbed(x, torch.zeros_like(v), 0.2 * torch.randn(v.shape, generator=gen, dtype=F64))
+    lo, hi = rob.control_bounds(x)
+    u = lo + (hi - lo) * torch.rand(12, rob.control_dim, generator=gen, dtype=F64)
+    a, b = acceleration_affine(rob, x)
+    eps = 1e-6
+    xdot = rob.f0(x) + (rob.f1(x) @ u[..., None])[..., 0]
+    fd = (rob.velocities(x + eps * xdot) - rob.velocities(x - eps * xdot)) / (2 * eps)
+    assert torch.allclose(a + (b @ u[..., None])[..., 0], fd, atol=1e-7)
+
+
+@pytest.mark.parametrize("robot", ["dubins_car", "unicycle"])
+@given(seed=st.integers(0, 2**16), yaw=st.floats(-3.1, 3.1), t=st.lists(st.floats(-3, 3), min_size=2, max_size=2))
+@settings(max_examples=5, deadline=None)
+def test_the_cars_dcbf_qp_is_se2_invariant(robot, seed, yaw, t):
+    """A car's controls (turn rate, acceleration) are invariant: the dCBF-QP gives the same controls in a scene
+    rotated and moved by any element of SE(2) (float64, 1e-9), inside the box."""
+    import math
+
+    cfg = EnvConfig.for_robot(robot, num_agents=10, num_obstacles=3, num_envs=1, area_size=1.2)
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(seed)
+    ctrl = make_controller("dcbf", robot=robot)
+    for _ in range(3):
+        state, _ = env.step(state, ctrl(state, cfg)[0])
+    g = torch.tensor([[math.cos(yaw), math.sin(yaw), *t]], dtype=F64)
+    u, _ = ctrl(state, cfg)
+    u_moved, _ = ctrl(state.transform(g), cfg)
+    assert (u - u_moved).abs().max() <= 1e-9
+    lo, hi = cfg.make_robot().control_bounds(u)
+    assert bool(((u >= lo - 1e-12) & (u <= hi + 1e-12)).all())

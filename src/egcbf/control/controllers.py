@@ -50,13 +50,14 @@ class NominalController:
 
 
 CONTROLLERS = {"nominal": NominalController, "ccbf": CentralizedCBFQP, "dcbf": DecentralizedCBFQP}
-#: robots whose "dcbf" is the point-mass dCBF-QP (:mod:`egcbf.control.point_mass_qp`)
-POINT_MASSES = ("single_integrator", "double_integrator", "linear_drone")
+#: robots whose "dcbf" is the control-affine dCBF-QP (:mod:`egcbf.control.point_mass_qp`): GCBF+'s point masses and
+#: its cars
+POINT_MASSES = ("single_integrator", "double_integrator", "linear_drone", "dubins_car", "unicycle")
 
 
 def make_controller(name: str, robot: str = "quadrotor", **kwargs):
     """Controller by name: ``"nominal"``, ``"ccbf"`` (centralized CBF-QP), ``"dcbf"`` (decentralized CBF-QP), for
-    ``robot`` (the quadrotor's QPs; for GCBF+'s point masses ``"dcbf"`` is
+    ``robot`` (the quadrotor's QPs; for GCBF+'s point masses and cars ``"dcbf"`` is
     :class:`egcbf.control.point_mass_qp.PointMassDCBF`, and ``"ccbf"`` is not available yet).
 
     Keyword arguments go to the constructor: for the CBF-QPs a ``config=CBFQPConfig(...)`` and/or overrides of its
@@ -70,7 +71,8 @@ def make_controller(name: str, robot: str = "quadrotor", **kwargs):
 
         return PointMassDCBF(**kwargs)
     if name in ("ccbf", "dcbf") and robot != "quadrotor":
-        raise ValueError(f"the hand-crafted CBF-QPs are written for the quadrotor and the point masses, not a {robot}")
+        names = ", ".join(POINT_MASSES)
+        raise ValueError(f"the hand-crafted CBF-QPs are written for the quadrotor and {names}; not a {robot}")
     try:
         cls = CONTROLLERS[name]
     except KeyError:

@@ -1,5 +1,5 @@
-"""The hand-crafted decentralized CBF-QP (dCBF-QP) for GCBF+'s point masses: the single and double integrators and
-the linear drone (issue 26, part 4).
+"""The hand-crafted decentralized CBF-QP (dCBF-QP) for GCBF+'s point masses (the single and double integrators and
+the linear drone) and its cars (the Dubins car, our unicycle) (issue 26, part 4).
 
 Each agent solves one small QP over its own control ``u_i`` (world frame, the robot's box), from what it senses:
 
@@ -11,16 +11,18 @@ on the barrier ``h = ||dp||^2 - D^2`` of each pair (``dp = p_i - p_j``, ``D = 2 
 from the obstacle's nearest surface point, ``D = r + margin``):
 
 * single integrator (relative degree 1): ``h' + alpha h >= 0`` with ``h' = 2 dp . (u_i - u_j)``;
-* double integrator and linear drone (relative degree 2): ``h'' + (k1 + k2) h' + k1 k2 h >= 0`` with
-  ``h' = 2 dp . dv`` and ``h'' = 2 ||dv||^2 + 2 dp . (a_i - a_j)``, where the acceleration is affine in the control,
-  ``a = A(x) + B u`` (``u / m``; the drone's ``-D v + 10 u``).
+* every other robot (relative degree 2): ``h'' + (k1 + k2) h' + k1 k2 h >= 0`` with ``h' = 2 dp . dv`` and
+  ``h'' = 2 ||dv||^2 + 2 dp . (a_i - a_j)``, where the world acceleration is affine in the control,
+  ``a = A(x) + B(x) u`` with ``A = (dv/dx) f0``, ``B = (dv/dx) f1`` from the robot's control-affine model
+  (:func:`acceleration_affine`; the double integrator's ``u / m``, the drone's ``-D v + 10 u``, a car's
+  ``a h + v omega perp(h)``: a car at rest cannot steer away, only brake or speed up along its heading).
 
 A pair's condition is split in halves (each agent enforces its own, assuming the neighbour keeps the other: the
-dCBF-QP of the quadrotor and of GCBF+'s reference do the same); an obstacle's is the agent's alone. The rows read only
-relative positions and velocities and the box is per axis, so the controller commutes with the quarter turns and
-translations of these robots. All agents' QPs are one batch of the dense interior-point solver
-(:func:`egcbf.control.dense_ipm.solve_dense_ipm`); an agent whose QP fails gets its box-clipped nominal control and
-is counted (``num_failed``).
+dCBF-QP of the quadrotor and of GCBF+'s reference do the same); an obstacle's is the agent's alone. The rows read
+only relative positions and velocities and the box is per axis, so the controller commutes with the quarter turns
+and translations of the point masses (and with every rotation for the cars, whose controls are invariant). All
+agents' QPs are one batch of the dense interior-point solver (:func:`egcbf.control.dense_ipm.solve_dense_ipm`); an
+agent whose QP fails gets its box-clipped nominal control and is counted (``num_failed``).
 """
 
 from __future__ import annotations
@@ -34,7 +36,23 @@ from torch import Tensor
 from ..neighbors import radius_neighbors
 from .dense_ipm import solve_dense_ipm
 
-__all__ = ["PointMassCBFConfig", "PointMassDCBF"]
+__all__ = ["AFFINE_ROBOTS", "PointMassCBFConfig", "PointMassDCBF", "acceleration_affine"]
+
+#: the robots this dCBF-QP drives
+AFFINE_ROBOTS = ("single_integrator", "double_integrator", "linear_drone", "dubins_car", "unicycle")
+
+
+def acceleration_affine(robot, x: Tensor) -> tuple[Tensor, Tensor]:
+    """``A (M, d), B (M, d, nu)`` with the world acceleration ``dv/dt = A + B u`` of states ``x`` ``(M, S)``: the
+    Jacobian of ``robot.velocities`` times the drift ``f0`` and the input matrix ``f1`` (exact for a velocity that
+    is linear in the state, as for the point masses; for a car ``v h``, the product rule)."""
+    with torch.enable_grad():
+        xg = x.detach().requires_grad_(True)
+        v = robot.velocities(xg)
+        rows = [torch.autograd.grad(v[:, k].sum(), xg, retain_graph=k + 1 < v.shape[1])[0] for k in range(v.shape[1])]
+    jac = torch.stack(rows, 1)  # (M, d, S)
+    f0, f1 = robot.f0(x), robot.f1(x)
+    return (jac @ f0[..., None])[..., 0], jac @ f1
 
 
 @dataclass(frozen=True)
@@ -50,30 +68,39 @@ class PointMassCBFConfig:
     w1: float = 1e3
     w2: float = 1e3
 
+    @classmethod
+    def for_robot(cls, name: str) -> PointMassCBFConfig:
+        """The defaults of robot ``name``: the point masses' above; the cars' ``k1 = k2 = 20`` and a 5 cm margin
+        (chosen on validation episodes, seed 777, N = 64, l = 4, 8 rectangles, 10 episodes: the Dubins car 99.5 %
+        safe with 56 % success, against 81 % safe with the point masses' gains; the unicycle 100 % against 89 %)."""
+        if name in ("dubins_car", "unicycle"):
+            return cls(k1=20.0, k2=20.0, margin=0.05)
+        return cls()
+
 
 class PointMassDCBF:
-    """The point masses' dCBF-QP (module doc): ``u, info = ctrl(state, env_config)``."""
+    """The point masses' and cars' dCBF-QP (module doc): ``u, info = ctrl(state, env_config)``; ``config``
+    ``None``: the robot's defaults (:meth:`PointMassCBFConfig.for_robot`)."""
 
     name = "dcbf"
 
     def __init__(self, config: PointMassCBFConfig | None = None):
-        self.config = config or PointMassCBFConfig()
+        self.config = config  # None: the robot's defaults (PointMassCBFConfig.for_robot), chosen at the first call
 
     def _affine(self, robot, x: Tensor) -> tuple[Tensor | None, Tensor]:
-        """``(A(x) (M, d), B (d,))`` with ``a = A + B u`` per axis; ``None`` for the single integrator."""
+        """``(A (M, d), B (M, d, nu))`` of the world acceleration (:func:`acceleration_affine`); ``A = None`` for
+        the single integrator (relative degree 1: ``p' = u``, ``B = I``)."""
         if robot.name == "single_integrator":
-            return None, torch.ones(robot.dim, dtype=x.dtype)
-        f0, f1 = robot.f0(x), robot.f1(x)  # velocity rows of the drift and input matrix
-        d = robot.dim
-        return f0[:, d : 2 * d], torch.diagonal(f1[:, d : 2 * d, :], dim1=-2, dim2=-1)[0]
+            return None, torch.eye(robot.dim, dtype=x.dtype).expand(x.shape[0], -1, -1)
+        return acceleration_affine(robot, x)
 
     @torch.no_grad()
     def __call__(self, state, env_config) -> tuple[Tensor, dict]:
         t0 = time.perf_counter()
         robot = env_config.make_robot()
-        if robot.name not in ("single_integrator", "double_integrator", "linear_drone"):
-            raise ValueError(f"the point-mass dCBF-QP drives GCBF+'s point masses, not a {robot.name}")
-        cfg = self.config
+        if robot.name not in AFFINE_ROBOTS:
+            raise ValueError(f"this dCBF-QP drives {', '.join(AFFINE_ROBOTS)}, not a {robot.name}")
+        cfg = self.config or PointMassCBFConfig.for_robot(robot.name)
         b, n, _ = state.x.shape
         x = state.x.reshape(b * n, -1).to(torch.float64)
         goals = state.goals.reshape(b * n, -1).to(torch.float64)
@@ -89,14 +116,13 @@ class PointMassDCBF:
             dist = dp.norm(dim=-1, keepdim=True).clamp_min(1e-9)
             nrm = dp / dist
             h = dp.square().sum(-1) - clearance**2
+            coef = (nrm[:, None, :] @ gain[i])[:, 0]  # n^T B_i (nu,)
             if drift is None:  # 2 dp . u_i >= -alpha h (its share)
                 bound = -share * cfg.alpha * h / (2 * dist[:, 0])
-                coef = nrm
-            else:  # 2 dp . (A_i + B u_i) >= -(2 |dv|^2 + (k1 + k2) 2 dp . dv + k1 k2 h) (its share)
+            else:  # 2 dp . (A_i + B_i u_i) >= -(2 |dv|^2 + (k1 + k2) 2 dp . dv + k1 k2 h) (its share)
                 hdot = 2 * (dp * dv).sum(-1)
                 total = 2 * dv.square().sum(-1) + (cfg.k1 + cfg.k2) * hdot + cfg.k1 * cfg.k2 * h
                 bound = (-share * total / 2 - (dp * drift[i]).sum(-1)) / dist[:, 0]
-                coef = nrm * gain
             rows_i.append(i)
             normals.append(coef)
             rhs.append(bound)
@@ -110,13 +136,13 @@ class PointMassDCBF:
             pts = p[i]
             near = _nearest_surface_point(obs, pts, bi, ki)
             add(i, pts - near, v[i], r + cfg.margin, 1.0)
-        u, failed = self._solve(b * n, robot, u_nom, rows_i, normals, rhs)
+        u, failed = self._solve(b * n, robot, u_nom, rows_i, normals, rhs, cfg)
         info = {"qp_ms": 1e3 * (time.perf_counter() - t0), "num_slack": 0, "num_failed": int(failed.sum()),
                 "u_ref": u_nom.view(b, n, -1).to(state.x.dtype)}  # fmt: skip
         return u.view(b, n, -1).to(state.x.dtype), info
 
-    def _solve(self, m: int, robot, u_nom: Tensor, rows_i, normals, rhs) -> tuple[Tensor, Tensor]:
-        cfg, d = self.config, robot.dim
+    def _solve(self, m: int, robot, u_nom: Tensor, rows_i, normals, rhs, cfg) -> tuple[Tensor, Tensor]:
+        d = robot.control_dim
         lo, hi = robot.control_bounds(u_nom)
         if not rows_i:
             return u_nom.clamp(lo, hi), torch.zeros(m, dtype=torch.bool)

@@ -42,6 +42,8 @@ def test_the_plan_runs_the_perfect_world_first_and_message_faults_only_where_the
             assert "ccbf" not in sw.methods and "nominal" not in sw.methods
     assert any(spec == state_level("default") and "ccbf" in sw.methods for _, spec, sw in sweeps)
     assert cfg.cell_spec("ccbf", "msg_loss=0.3") is None and cfg.cell_spec("egcbf+", "msg_loss=0.3") == "msg_loss=0.3"
+    ray = RobustnessConfig(axes=("field",), backend="ray", workers=3, device="cuda")
+    assert {(s.backend, s.workers, s.device, s.episodes) for _, _, s in ray.sweeps()} == {("ray", 3, "cuda", 20)}
     # per channel: the dCBF-QP reads messages but not the LiDAR (its obstacle rows come from the map)
     lidar = axis("lidar").specs()[2]
     assert cfg.cell_spec("dcbf", lidar) is None and cfg.cell_spec("egcbf+", lidar) == lidar

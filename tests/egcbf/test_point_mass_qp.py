@@ -45,15 +45,11 @@ def test_agents_far_from_everything_keep_their_nominal_control():
 
 
 def test_where_it_does_not_apply():
-    with pytest.raises(ValueError, match="centralized"):
-        make_controller("ccbf", robot="double_integrator")
     from egcbf.control.point_mass_qp import PointMassDCBF
 
     quad = EnvConfig(num_agents=2, num_envs=1)
-    with pytest.raises(ValueError, match="not a quadrotor"):  # the quadrotor has its own dCBF-QP
+    with pytest.raises(ValueError, match="not a quadrotor"):  # the quadrotor has its own CBF-QPs
         PointMassDCBF()(SwarmEnv(quad, dtype=F64).reset(0), quad)
-    with pytest.raises(ValueError, match="centralized"):
-        make_controller("ccbf", robot="dubins_car")
 
 
 @pytest.mark.parametrize("robot", ["double_integrator", "linear_drone", "dubins_car", "unicycle"])
@@ -101,3 +97,55 @@ def test_the_cars_dcbf_qp_is_se2_invariant(robot, seed, yaw, t):
     assert (u - u_moved).abs().max() <= 1e-9
     lo, hi = cfg.make_robot().control_bounds(u)
     assert bool(((u >= lo - 1e-12) & (u <= hi + 1e-12)).all())
+
+
+@pytest.mark.parametrize("robot", ["single_integrator", "double_integrator", "dubins_car"])
+def test_the_centralized_qp_keeps_whole_pair_rows_and_agrees_with_them(robot):
+    """The cCBF-QP's command satisfies every whole barrier row it was given (up to its slack, none here), keeps the
+    box, and equals the nominal control where nothing binds; its rows are the dCBF-QP's halves added up."""
+    from egcbf.control.point_mass_qp import barrier_rows
+
+    cfg = EnvConfig.for_robot(robot, num_agents=10, num_obstacles=2, num_envs=2, area_size=1.0)
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(5)
+    ccbf = make_controller("ccbf", robot=robot)
+    for _ in range(3):
+        state, _ = env.step(state, ccbf(state, cfg)[0])
+    u, info = ccbf(state, cfg)
+    assert info["num_failed"] == 0
+    rows = barrier_rows(state, cfg, None, pairs="whole")
+    flat = u.reshape(20, -1).to(F64)
+    lhs = (rows.coef_i * flat[rows.i]).sum(-1) + torch.where(
+        rows.j[:, None] >= 0, rows.coef_j * flat[rows.j.clamp_min(0)], torch.zeros_like(rows.coef_j)
+    ).sum(-1)
+    if info["num_slack"] == 0:
+        assert bool((lhs >= rows.bound - 1e-6).all())
+    lo, hi = cfg.make_robot().control_bounds(u)
+    assert bool(((u >= lo - 1e-9) & (u <= hi + 1e-9)).all())
+    halves = barrier_rows(state, cfg, None, pairs="halves")
+    pair = rows.j >= 0
+    assert int(pair.sum()) * 2 == int((halves.i >= 0).sum()) - int((~pair).sum())  # each pair: two halves
+
+
+def test_the_centralized_qp_is_c4_equivariant_and_keeps_the_nominal_control_when_free():
+    robot = "double_integrator"
+    cfg = EnvConfig.for_robot(robot, num_agents=8, num_obstacles=2, num_envs=1, area_size=1.0)
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(11)
+    ctrl = make_controller("ccbf", robot=robot)
+    for _ in range(2):
+        state, _ = env.step(state, ctrl(state, cfg)[0])
+    group = cfg.make_robot().group
+    quarter = group.rotation_element(torch.tensor([1]), dtype=F64)[:, :2]
+    g = torch.cat((quarter, torch.tensor([[0.3, -0.2]], dtype=F64)), -1)
+    u, _ = ctrl(state, cfg)
+    u_moved, _ = ctrl(state.transform(g), cfg)
+    rotate = FieldType(group, [Vector(2)])
+    assert (rotate.act(g.expand(8, g.shape[-1]), u[0]) - u_moved[0]).abs().max() <= 1e-6
+    far = EnvConfig.for_robot(robot, num_agents=2, num_obstacles=0, num_envs=1, area_size=4.0)
+    s = SwarmEnv(far, dtype=F64).reset(0)
+    s.x[0, 0, :2] = torch.tensor([0.5, 0.5], dtype=F64)
+    s.x[0, 1, :2] = torch.tensor([3.5, 3.5], dtype=F64)
+    u, info = ctrl(s, far)
+    lo, hi = far.make_robot().control_bounds(u)
+    assert torch.allclose(u, info["u_ref"].clamp(lo, hi), atol=1e-12)

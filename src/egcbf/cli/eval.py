@@ -210,11 +210,11 @@ def run_eval(
             controller = join_method("nominal", filter)
     robot = robot or "quadrotor"
     require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
-    point_mass_dcbf = controller == "dcbf" and robot in POINT_MASSES and filter_config is None
-    if (controller in ("ccbf", "dcbf") or filter_config is not None) and robot != "quadrotor" and not point_mass_dcbf:
+    affine_qp = controller in ("ccbf", "dcbf") and robot in POINT_MASSES and filter_config is None
+    if (controller in ("ccbf", "dcbf") or filter_config is not None) and robot != "quadrotor" and not affine_qp:
         usage_error(
-            f"--controller {controller}: the hand-crafted CBF-QPs and the run-time filters are written for the "
-            f"quadrotor (and the dCBF-QP for the point masses {', '.join(POINT_MASSES)}), not a {robot}"
+            f"--controller {controller}: the run-time filters are written for the quadrotor, and the hand-crafted "
+            f"CBF-QPs for the quadrotor and {', '.join(POINT_MASSES)}; not a {robot}"
         )
     if fault_config.edge_faults:  # message and LiDAR faults: ask the controller which ones it perceives
         if checkpoint is not None:

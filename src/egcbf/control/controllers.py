@@ -58,18 +58,17 @@ POINT_MASSES = ("single_integrator", "double_integrator", "linear_drone", "dubin
 def make_controller(name: str, robot: str = "quadrotor", **kwargs):
     """Controller by name: ``"nominal"``, ``"ccbf"`` (centralized CBF-QP), ``"dcbf"`` (decentralized CBF-QP), for
     ``robot`` (the quadrotor's QPs; for GCBF+'s point masses and cars ``"dcbf"`` is
-    :class:`egcbf.control.point_mass_qp.PointMassDCBF`, and ``"ccbf"`` is not available yet).
+    :class:`egcbf.control.point_mass_qp.PointMassDCBF` and ``"ccbf"`` its centralized
+    :class:`~egcbf.control.point_mass_qp.PointMassCCBF`).
 
     Keyword arguments go to the constructor: for the CBF-QPs a ``config=CBFQPConfig(...)`` and/or overrides of its
     fields or of :class:`egcbf.control.barriers.BarrierConfig`'s (e.g. ``make_controller("ccbf", kind="hocbf",
     solver="proxsuite")``); for the nominal controller ``gains`` and ``max_position_error``.
     """
     if name in ("ccbf", "dcbf") and robot in POINT_MASSES:
-        if name == "ccbf":
-            raise ValueError(f"the centralized CBF-QP is written for the quadrotor; the {robot} has 'dcbf' only")
-        from .point_mass_qp import PointMassDCBF
+        from .point_mass_qp import PointMassCCBF, PointMassDCBF
 
-        return PointMassDCBF(**kwargs)
+        return (PointMassCCBF if name == "ccbf" else PointMassDCBF)(**kwargs)
     if name in ("ccbf", "dcbf") and robot != "quadrotor":
         names = ", ".join(POINT_MASSES)
         raise ValueError(f"the hand-crafted CBF-QPs are written for the quadrotor and {names}; not a {robot}")

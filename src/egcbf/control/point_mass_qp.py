@@ -36,7 +36,8 @@ from torch import Tensor
 from ..neighbors import radius_neighbors
 from .dense_ipm import solve_dense_ipm
 
-__all__ = ["AFFINE_ROBOTS", "PointMassCBFConfig", "PointMassDCBF", "acceleration_affine"]
+__all__ = ["AFFINE_ROBOTS", "BarrierRows", "PointMassCBFConfig", "PointMassCCBF", "PointMassDCBF",
+           "acceleration_affine", "barrier_rows"]  # fmt: skip
 
 #: the robots this dCBF-QP drives
 AFFINE_ROBOTS = ("single_integrator", "double_integrator", "linear_drone", "dubins_car", "unicycle")
@@ -87,66 +88,21 @@ class PointMassDCBF:
     def __init__(self, config: PointMassCBFConfig | None = None):
         self.config = config  # None: the robot's defaults (PointMassCBFConfig.for_robot), chosen at the first call
 
-    def _affine(self, robot, x: Tensor) -> tuple[Tensor | None, Tensor]:
-        """``(A (M, d), B (M, d, nu))`` of the world acceleration (:func:`acceleration_affine`); ``A = None`` for
-        the single integrator (relative degree 1: ``p' = u``, ``B = I``)."""
-        if robot.name == "single_integrator":
-            return None, torch.eye(robot.dim, dtype=x.dtype).expand(x.shape[0], -1, -1)
-        return acceleration_affine(robot, x)
-
     @torch.no_grad()
     def __call__(self, state, env_config) -> tuple[Tensor, dict]:
         t0 = time.perf_counter()
-        robot = env_config.make_robot()
-        if robot.name not in AFFINE_ROBOTS:
-            raise ValueError(f"this dCBF-QP drives {', '.join(AFFINE_ROBOTS)}, not a {robot.name}")
-        cfg = self.config or PointMassCBFConfig.for_robot(robot.name)
-        b, n, _ = state.x.shape
-        x = state.x.reshape(b * n, -1).to(torch.float64)
-        goals = state.goals.reshape(b * n, -1).to(torch.float64)
-        u_nom = robot.nominal_control(x, goals)
-        p, v = robot.positions(x), robot.velocities(x)
-        drift, gain = self._affine(robot, x)
-        r = float(env_config.agent_radius)
-        batch = torch.arange(b).repeat_interleave(n)
-        src, dst = radius_neighbors(p, float(env_config.comm_radius), batch, sort=True)  # dst: the agent i
-        rows_i, normals, rhs = [], [], []
-
-        def add(i: Tensor, dp: Tensor, dv: Tensor, clearance: float, share: float) -> None:
-            dist = dp.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-            nrm = dp / dist
-            h = dp.square().sum(-1) - clearance**2
-            coef = (nrm[:, None, :] @ gain[i])[:, 0]  # n^T B_i (nu,)
-            if drift is None:  # 2 dp . u_i >= -alpha h (its share)
-                bound = -share * cfg.alpha * h / (2 * dist[:, 0])
-            else:  # 2 dp . (A_i + B_i u_i) >= -(2 |dv|^2 + (k1 + k2) 2 dp . dv + k1 k2 h) (its share)
-                hdot = 2 * (dp * dv).sum(-1)
-                total = 2 * dv.square().sum(-1) + (cfg.k1 + cfg.k2) * hdot + cfg.k1 * cfg.k2 * h
-                bound = (-share * total / 2 - (dp * drift[i]).sum(-1)) / dist[:, 0]
-            rows_i.append(i)
-            normals.append(coef)
-            rhs.append(bound)
-
-        if src.numel():
-            add(dst, p[dst] - p[src], v[dst] - v[src], 2 * r + cfg.margin, 0.5)
-        obs = state.obstacles
-        if obs.num_obstacles:
-            bi, ni, ki = obs.near_pairs(state.positions.detach().to(torch.float64), float(env_config.comm_radius))
-            i = bi * n + ni
-            pts = p[i]
-            near = _nearest_surface_point(obs, pts, bi, ki)
-            add(i, pts - near, v[i], r + cfg.margin, 1.0)
-        u, failed = self._solve(b * n, robot, u_nom, rows_i, normals, rhs, cfg)
+        scene = barrier_rows(state, env_config, self.config, pairs="halves")
+        b, n = state.x.shape[:2]
+        u, failed = self._solve(b * n, scene.robot, scene.u_nom, scene.i, scene.coef_i, scene.bound, scene.cfg)
         info = {"qp_ms": 1e3 * (time.perf_counter() - t0), "num_slack": 0, "num_failed": int(failed.sum()),
-                "u_ref": u_nom.view(b, n, -1).to(state.x.dtype)}  # fmt: skip
+                "u_ref": scene.u_nom.view(b, n, -1).to(state.x.dtype)}  # fmt: skip
         return u.view(b, n, -1).to(state.x.dtype), info
 
-    def _solve(self, m: int, robot, u_nom: Tensor, rows_i, normals, rhs, cfg) -> tuple[Tensor, Tensor]:
+    def _solve(self, m: int, robot, u_nom: Tensor, i: Tensor, nrm: Tensor, bound: Tensor, cfg) -> tuple[Tensor, Tensor]:
         d = robot.control_dim
         lo, hi = robot.control_bounds(u_nom)
-        if not rows_i:
+        if not i.numel():
             return u_nom.clamp(lo, hi), torch.zeros(m, dtype=torch.bool)
-        i, nrm, bound = torch.cat(rows_i), torch.cat(normals), torch.cat(rhs)
         order = torch.argsort(i, stable=True)
         i, nrm, bound = i[order], nrm[order], bound[order]
         counts = torch.bincount(i, minlength=m)
@@ -171,6 +127,146 @@ class PointMassDCBF:
         z, ok, _ = solve_dense_ipm(P, q, G, h, x0=x0)
         u = torch.where(ok[:, None], z[:, :d], u_nom).clamp(lo, hi)
         return u, ~ok
+
+
+class PointMassCCBF:
+    """The centralized CBF-QP of the point masses and cars: one QP per environment over every agent's control,
+    one whole row per pair (no split) and per obstacle, a slack per row (``w1 s + w2 s^2 / 2``), the box as bounds;
+    solved through qpsolvers (``solver``, :mod:`egcbf.control.sparse_solvers`). An environment whose QP fails keeps
+    its agents' box-clipped nominal controls (counted in ``num_failed``); ``num_slack`` counts rows with slack."""
+
+    name = "ccbf"
+
+    def __init__(self, config: PointMassCBFConfig | None = None, solver: str = "piqp"):
+        self.config, self.solver = config, solver
+
+    @torch.no_grad()
+    def __call__(self, state, env_config) -> tuple[Tensor, dict]:
+        import numpy as np
+        import scipy.sparse as sp
+
+        from .ipm import INF
+        from .qp import SparseQP
+        from .sparse_solvers import solve_with_qpsolvers
+
+        t0 = time.perf_counter()
+        rows = barrier_rows(state, env_config, self.config, pairs="whole")
+        robot, cfg = rows.robot, rows.cfg
+        b, n = state.x.shape[:2]
+        nu = robot.control_dim
+        lo, hi = (t.numpy() for t in robot.control_bounds(rows.u_nom))
+        u_nom = rows.u_nom.numpy()
+        u = np.clip(u_nom, lo, hi)
+        failed = slack = 0
+        env = (rows.i // n).numpy()
+        for e in range(b):
+            k = np.nonzero(env == e)[0]
+            if k.size == 0:
+                continue
+            r = k.size
+            li = rows.i.numpy()[k] - e * n
+            lj = rows.j.numpy()[k] - e * n
+            ci, cj = rows.coef_i.numpy()[k], rows.coef_j.numpy()[k]
+            pair = rows.j.numpy()[k] >= 0
+            cols = [(li[:, None] * nu + np.arange(nu)).ravel(), (lj[pair][:, None] * nu + np.arange(nu)).ravel(),
+                    n * nu + np.arange(r)]  # fmt: skip
+            vals = [ci.ravel(), cj[pair].ravel(), np.ones(r)]
+            rws = [np.repeat(np.arange(r), nu), np.repeat(np.arange(r)[pair], nu), np.arange(r)]
+            entries = (np.concatenate(vals), (np.concatenate(rws), np.concatenate(cols)))
+            C = sp.csc_matrix(entries, shape=(r, n * nu + r))
+            qp = SparseQP(
+                H=sp.diags(np.r_[np.ones(n * nu), np.full(r, cfg.w2)]).tocsc(),
+                g=np.r_[-u_nom[e * n : (e + 1) * n].ravel(), np.full(r, cfg.w1)],
+                C=C, l=rows.bound.numpy()[k], u=np.full(r, INF),
+                x_l=np.r_[np.tile(lo, n), np.zeros(r)], x_u=np.r_[np.tile(hi, n), np.full(r, INF)],
+                num_agents=n, num_slack=r,
+            )  # fmt: skip
+            res = solve_with_qpsolvers(qp, self.solver, eps_abs=1e-9, max_iter=500)
+            if res.ok and np.isfinite(res.x).all():
+                u[e * n : (e + 1) * n] = np.clip(res.x[: n * nu].reshape(n, nu), lo, hi)
+                slack += int((res.x[n * nu :] > 1e-6).sum())
+            else:
+                failed += n
+        out = torch.as_tensor(u, dtype=state.x.dtype).view(b, n, nu)
+        info = {"qp_ms": 1e3 * (time.perf_counter() - t0), "num_slack": slack, "num_failed": failed,
+                "u_ref": rows.u_nom.view(b, n, -1).to(state.x.dtype)}  # fmt: skip
+        return out, info
+
+
+@dataclass
+class BarrierRows:
+    """The barrier rows of a scene (float64, flat agent rows ``b N + i``): row ``k`` reads
+    ``coef_i[k] . u_{i[k]} + coef_j[k] . u_{j[k]} >= bound[k]`` (``j = -1``: an obstacle row, the agent's alone);
+    with ``pairs="halves"`` every pair gives each agent its own half-row (``j = -1``, the dCBF-QP), with
+    ``pairs="whole"`` one row per unordered pair (the cCBF-QP). ``u_nom`` ``(M, nu)``; ``cfg`` the gains used."""
+
+    robot: object
+    cfg: PointMassCBFConfig
+    u_nom: Tensor
+    i: Tensor
+    j: Tensor
+    coef_i: Tensor
+    coef_j: Tensor
+    bound: Tensor
+
+
+def barrier_rows(state, env_config, config: PointMassCBFConfig | None, pairs: str) -> BarrierRows:
+    """The rows of the module doc for ``state`` (:class:`BarrierRows`); ``config`` ``None``: the robot's defaults."""
+    robot = env_config.make_robot()
+    if robot.name not in AFFINE_ROBOTS:
+        raise ValueError(f"these CBF-QPs drive {', '.join(AFFINE_ROBOTS)}, not a {robot.name}")
+    cfg = config or PointMassCBFConfig.for_robot(robot.name)
+    b, n, _ = state.x.shape
+    x = state.x.reshape(b * n, -1).to(torch.float64)
+    goals = state.goals.reshape(b * n, -1).to(torch.float64)
+    u_nom = robot.nominal_control(x, goals)
+    p, v = robot.positions(x), robot.velocities(x)
+    if robot.name == "single_integrator":  # relative degree 1: p' = u
+        drift, gain = None, torch.eye(robot.dim, dtype=x.dtype).expand(x.shape[0], -1, -1)
+    else:
+        drift, gain = acceleration_affine(robot, x)
+    r = float(env_config.agent_radius)
+    batch = torch.arange(b).repeat_interleave(n)
+    src, dst = radius_neighbors(p, float(env_config.comm_radius), batch, sort=True)  # dst: the agent i
+    if pairs == "whole":
+        once = dst < src
+        src, dst = src[once], dst[once]
+    elif pairs != "halves":
+        raise ValueError(f"pairs must be 'halves' or 'whole', got {pairs!r}")
+    parts = []
+
+    def add(i: Tensor, j: Tensor | None, dp: Tensor, dv: Tensor, clearance: float, share: float) -> None:
+        dist = dp.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        nrm = dp / dist
+        h = dp.square().sum(-1) - clearance**2
+        coef = (nrm[:, None, :] @ gain[i])[:, 0]  # n^T B_i (nu,)
+        coef_j = torch.zeros_like(coef) if j is None else -(nrm[:, None, :] @ gain[j])[:, 0]
+        if drift is None:  # 2 dp . (u_i - u_j) >= -alpha h (a share of it)
+            bound = -share * cfg.alpha * h / (2 * dist[:, 0])
+        else:  # 2 dp . (a_i - a_j) >= -(2 |dv|^2 + (k1 + k2) 2 dp . dv + k1 k2 h) (a share of it)
+            hdot = 2 * (dp * dv).sum(-1)
+            total = 2 * dv.square().sum(-1) + (cfg.k1 + cfg.k2) * hdot + cfg.k1 * cfg.k2 * h
+            own = drift[i] if j is None else drift[i] - drift[j]
+            bound = (-share * total / 2 - (dp * own).sum(-1)) / dist[:, 0]
+        parts.append((i, torch.full_like(i, -1) if j is None else j, coef, coef_j, bound))
+
+    if src.numel():
+        if pairs == "halves":
+            add(dst, None, p[dst] - p[src], v[dst] - v[src], 2 * r + cfg.margin, 0.5)
+        else:
+            add(dst, src, p[dst] - p[src], v[dst] - v[src], 2 * r + cfg.margin, 1.0)
+    obs = state.obstacles
+    if obs.num_obstacles:
+        bi, ni, ki = obs.near_pairs(state.positions.detach().to(torch.float64), float(env_config.comm_radius))
+        i = bi * n + ni
+        pts = p[i]
+        near = _nearest_surface_point(obs, pts, bi, ki)
+        add(i, None, pts - near, v[i], r + cfg.margin, 1.0)
+    nu = robot.control_dim
+    if not parts:
+        empty = torch.zeros(0, dtype=torch.long)
+        return BarrierRows(robot, cfg, u_nom, empty, empty, x.new_zeros(0, nu), x.new_zeros(0, nu), x.new_zeros(0))
+    return BarrierRows(robot, cfg, u_nom, *(torch.cat(t) for t in zip(*parts)))
 
 
 def _nearest_surface_point(obs, points: Tensor, env: Tensor, k: Tensor) -> Tensor:

@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parent
 RESULTS = ROOT / "results" / "gcbfplus"
 #: the reference's environments -> our robots (CrazyFlie: our quadrotor, another plant)
 ROBOTS = json.loads((RESULTS / "reference.json").read_text())["robots"]
-METHODS = ("nominal", "dcbf", "gcbf+", "egcbf+")
+METHODS = ("nominal", "ccbf", "dcbf", "gcbf+", "egcbf+")
 
 
 def cell_path(method: str, row: dict) -> Path:
@@ -44,7 +44,7 @@ def run_cell(method: str, row: dict) -> dict | None:
     from egcbf.evaluate import evaluate
 
     robot = ROBOTS[row["env"]]
-    if method in ("nominal", "dcbf"):
+    if method in ("nominal", "ccbf", "dcbf"):
         make = lambda _cfg: make_controller(method, robot=robot)  # noqa: E731
         overrides = {}
     else:
@@ -96,8 +96,8 @@ def report() -> str:
         "",
         "Ours: evaluation seed 0, the reference's N, l, obstacles, steps and episode counts; safe = never in collision "
         "(within 2 r of another agent or r of an obstacle), reach = within 2 r of the goal at some step, success = "
-        "both, the reference's definitions (docs/metrics.md). dcbf: the hand-crafted decentralized CBF-QP "
-        "(`egcbf.control.point_mass_qp` for the point masses and the Dubins car; the quadrotor's own for the "
+        "both, the reference's definitions (docs/metrics.md). ccbf / dcbf: the hand-crafted centralized / "
+        "decentralized CBF-QP (`egcbf.control.point_mass_qp` for the point masses and the Dubins car; the quadrotor's own for the "
         "CrazyFlie row). `pending`: not computed yet (the learned columns wait for "
         "`checkpoints/<robot>/{gcbf+,egcbf+}`). CrazyFlie's row is our quadrotor: another plant and command.",
         "",

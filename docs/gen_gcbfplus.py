@@ -97,8 +97,8 @@ def report() -> str:
         "Ours: evaluation seed 0, the reference's N, l, obstacles, steps and episode counts; safe = never in collision "
         "(within 2 r of another agent or r of an obstacle), reach = within 2 r of the goal at some step, success = "
         "both, the reference's definitions (docs/metrics.md). ccbf / dcbf: the hand-crafted centralized / "
-        "decentralized CBF-QP (`egcbf.control.point_mass_qp` for the point masses and the Dubins car; the quadrotor's own for the "
-        "CrazyFlie row). `pending`: not computed yet (the learned columns wait for "
+        "decentralized CBF-QP (`egcbf.control.point_mass_qp` for the point masses and the Dubins car; the "
+        "quadrotor's own for the CrazyFlie row). `pending`: not computed yet (the learned columns wait for "
         "`checkpoints/<robot>/{gcbf+,egcbf+}`). CrazyFlie's row is our quadrotor: another plant and command.",
         "",
         table(ref["rows"]),

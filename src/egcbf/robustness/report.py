@@ -165,7 +165,10 @@ def _recommendation(cfg: RobustnessConfig, cells: dict, n: int) -> list[str]:
     for k in (0, cfg.obstacles):
         done = [(cells[(m, spec, n, k)]["safe_rate"], cells[(m, spec, n, k)]["success_rate"], m)
                 for m in cfg.controllers if (m, spec, n, k) in cells]  # fmt: skip
-        if not done:
+        missing = [LABELS.get(m, m) for m in cfg.controllers if (m, spec, n, k) not in cells]
+        if missing:  # a choice among some controllers would be no choice: say what is missing
+            lines.append(f"- default field conditions, N = {n}, {k} obstacles: pending (not computed yet: "
+                         f"{', '.join(missing)}).")  # fmt: skip
             continue
         safe = [d for d in done if d[0] >= 0.99]
         pick = max(safe, key=lambda d: (d[1], d[0])) if safe else max(done)

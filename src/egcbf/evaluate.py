@@ -164,7 +164,7 @@ def run_episodes(
         if process is not None:
             u = process.actuate(u, state)
         state, step_info = env.step(state, u)
-        if process is not None and (faults.wind or faults.gust > 0):
+        if process is not None and process.pushes:
             state = process.push(state)
             step_info = env.info(state, u=step_info.u)
         timing["step_ms"].append(1e3 * (time.perf_counter() - t0))

@@ -160,11 +160,16 @@ class FaultProcess:
             u = u * self.gains.to(u.dtype) + self.bias.to(u.dtype)
         return u
 
+    @property
+    def pushes(self) -> bool:
+        """Whether wind or gusts push the agents (:meth:`push` then changes the state)."""
+        return bool(self.faults.wind) or self.faults.gust > 0
+
     def push(self, state: SwarmState) -> SwarmState:
         """``state`` after the wind and gust acceleration of the step just taken (operator splitting: the
         velocity changes by ``a dt`` and the position by ``a dt^2 / 2``)."""
         f = self.faults
-        if not f.wind and f.gust == 0:
+        if not self.pushes:
             return state
         dt = self.config.dt
         a = self._wind.view(1, 1, -1) + self._gust.view(self._gust.shape[0], 1, -1)

@@ -35,16 +35,13 @@ from ..env.swarm import cast_lidar
 from ..graph import KIND_AGENT, SwarmGraph, agent_features, edge_vectors
 from ..robots import Robot
 from . import draws
-from .spec import FaultConfig
+from .spec import CHANNELS, FaultConfig
 
-__all__ = ["CHANNELS", "STREAMS", "Sensing", "unread_faults"]
+__all__ = ["CHANNELS", "STREAMS", "Sensing", "unread_faults", "unread_fields"]
 
 #: the random streams of the faults (the second number of every draw's address; :mod:`egcbf.faults.draws`)
 STREAMS = {"pos": 1, "vel": 2, "loss": 3, "lidar": 4, "lidar_drop": 5, "gain": 6, "bias": 7, "noncoop": 8,
            "gust": 9}  # fmt: skip
-
-#: the perception channels a :class:`Sensing` simulates, with the fault fields that act on each
-CHANNELS = {"messages": ("msg_loss", "msg_delay"), "lidar": ("lidar_noise", "lidar_drop")}
 
 
 def unread_faults(controller, faults: FaultConfig) -> tuple[str, ...]:
@@ -53,13 +50,16 @@ def unread_faults(controller, faults: FaultConfig) -> tuple[str, ...]:
     ``controller.reads_sensing`` says which channels of ``state.sensing`` it honours: ``True`` every one, a
     collection of :data:`CHANNELS` names those, absent or ``False`` none.
     """
-    declared = getattr(controller, "reads_sensing", False)
+    return unread_fields(getattr(controller, "reads_sensing", False), faults, type(controller).__name__)
+
+
+def unread_fields(declared, faults: FaultConfig, who: str = "controller") -> tuple[str, ...]:
+    """:func:`unread_faults` from a ``reads_sensing`` declaration itself (no controller built: planning a sweep)."""
     if declared is True:
         return ()
     read = set(declared or ())
     unknown = sorted(read - set(CHANNELS))
     if unknown:
-        who = type(controller).__name__
         raise ValueError(f"{who}.reads_sensing: unknown channels {unknown}; known: {list(CHANNELS)}")
     return tuple(
         name
@@ -125,7 +125,7 @@ class Sensing:
     @property
     def message_faults(self) -> bool:
         """Whether messages are lost or late (else every agent hears its neighbours' current estimates)."""
-        return self.faults.msg_loss > 0 or self.faults.msg_delay > 0
+        return any(getattr(self.faults, name) > 0 for name in CHANNELS["messages"])
 
     def received(
         self, receivers: Tensor, senders: Tensor, comm_radius: float, like: Tensor | None = None

@@ -20,7 +20,11 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["ALIASES", "DEFAULT_FIELD", "NONCOOP_MODES", "FaultConfig", "parse_faults"]
+__all__ = ["ALIASES", "CHANNELS", "DEFAULT_FIELD", "NONCOOP_MODES", "FaultConfig", "parse_faults"]
+
+#: the perception channels (:class:`egcbf.faults.Sensing`) with the fault fields that act on each; the other faults
+#: act on the state, the commands or the world, and reach every controller
+CHANNELS = {"messages": ("msg_loss", "msg_delay"), "lidar": ("lidar_noise", "lidar_drop")}
 
 #: how a non-cooperative agent flies: ``"hover"`` holds its start position, ``"straight"`` flies the nominal
 #: controller to its goal as if alone (a straight line at the nominal cruise speed)
@@ -110,7 +114,11 @@ class FaultConfig:
     def edge_faults(self) -> bool:
         """Whether a fault acts on what the agents perceive of each other and the obstacles (messages, LiDAR): it
         reaches only a controller that reads that channel (:func:`egcbf.faults.sensing.unread_faults`)."""
-        return self.msg_loss > 0 or self.msg_delay > 0 or self.lidar_noise > 0 or self.lidar_drop > 0
+        return any(getattr(self, name) > 0 for names in CHANNELS.values() for name in names)
+
+    def without(self, names) -> FaultConfig:
+        """This config with the fault fields ``names`` switched off."""
+        return dataclasses.replace(self, **{name: getattr(FaultConfig(), name) for name in names})
 
     def active(self) -> dict:
         """The fields that differ from the fault-free default (for logs and result files)."""

@@ -15,12 +15,12 @@ and a level left with none of them (a LiDAR level for the dCBF-QP) is not run fo
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from ..faults import DEFAULT_FIELD, parse_faults
+from ..faults.sensing import unread_fields
 from ..reproduce import SweepConfig
 from ..reproduce.paper import base_method, method_filter
 
@@ -90,21 +90,14 @@ def reads_sensing(method: str):
 
 def perceived(method: str, spec: str) -> str:
     """``spec`` without the faults ``method``'s controller does not perceive (canonical spec)."""
-    from ..faults.sensing import unread_faults
-
     f = parse_faults(spec)
-
-    class _Declared:  # the declaration alone: no controller is built to plan a sweep
-        reads_sensing = reads_sensing(method)
-
-    unread = unread_faults(_Declared, f)
-    return dataclasses.replace(f, **{name: type(getattr(f, name))(0) for name in unread}).spec()
+    return f.without(unread_fields(reads_sensing(method), f, method)).spec()
 
 
 def state_level(spec: str) -> str:
     """``spec`` without its message and LiDAR faults (what a controller that reads no sensing perceives)."""
     f = parse_faults(spec)
-    return dataclasses.replace(f, msg_loss=0.0, msg_delay=0, lidar_noise=0.0, lidar_drop=0.0).spec()
+    return f.without(unread_fields(False, f)).spec()
 
 
 @dataclass(frozen=True)

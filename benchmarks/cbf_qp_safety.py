@@ -64,8 +64,8 @@ def run(variant: str, n: int, area: float, obstacles: int, steps: int, episodes:
 
 def head_on(name: str, kw: dict, distance: float, offset: float = 0.01) -> float:
     """Smallest distance of two agents that start ``distance`` apart and swap places (goal line offset)."""
-    from egcbf.dynamics import quadrotor as dyn
     from egcbf.env import Obstacles, SwarmState
+    from egcbf.robots.quadrotor import dynamics as dyn
 
     f64 = torch.float64
     p0 = torch.tensor([[0.2, 2.0, 2.0], [0.2 + distance, 2.0 + offset, 2.0]], dtype=f64)

@@ -26,10 +26,10 @@ from pathlib import Path
 
 import torch
 
-from egcbf.dynamics import quadrotor as dyn
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.graph import build_graph
 from egcbf.report import replace_section
+from egcbf.robots.quadrotor import dynamics as dyn
 
 BEGIN, END = "<!-- env-scaling:begin -->", "<!-- env-scaling:end -->"
 SIZES = (64, 128, 256, 512, 1024, 2048, 4096)

@@ -72,9 +72,9 @@ def measure(repeats: int) -> dict[str, float]:
 
     from egcbf.algo.learner import LearnedController
     from egcbf.config import TrainConfig
-    from egcbf.control.nominal import nominal_control
     from egcbf.env import EnvConfig, SwarmEnv
     from egcbf.nn import PolicyNet
+    from egcbf.robots.quadrotor.nominal import nominal_control
 
     torch.manual_seed(2)  # the cpu preset's policy, untrained: the same cost as a trained one, on any commit
     model = TrainConfig.preset("egcbf+", "cpu").model

@@ -33,13 +33,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from egcbf.control.barriers import build_constraints, split_for_agents
-from egcbf.control.cbf_qp import CentralizedCBFQP, DecentralizedCBFQP
 from egcbf.control.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
 from egcbf.control.qp import SOLVERS, assemble_centralized, solve_sparse
 from egcbf.control.sparse_solvers import available_solvers
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.report import replace_section
+from egcbf.robots.quadrotor.barriers import build_constraints, split_for_agents
+from egcbf.robots.quadrotor.cbf_qp import CentralizedCBFQP, DecentralizedCBFQP
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from qp_direct import DIRECT, solve_direct  # the pre-qpsolvers adapters, for --direct
@@ -142,7 +142,7 @@ def _adapter_solve(qp, solver, eps_abs=1e-6, max_iter=1000, x0=None):
 
 def rollout_with_adapters(n: int, args) -> dict:
     """The cCBF-QP rollout of :func:`rollout` with its solves through the pre-qpsolvers adapters."""
-    import egcbf.control.cbf_qp as ccbf_module
+    import egcbf.robots.quadrotor.cbf_qp as ccbf_module
 
     saved = ccbf_module.solve_sparse
     ccbf_module.solve_sparse = _adapter_solve

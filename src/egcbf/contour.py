@@ -32,12 +32,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .dynamics import quadrotor as dyn
 from .env.config import EnvConfig
 from .env.lidar import LidarScan
 from .env.swarm import SwarmEnv, SwarmState, cast_lidar
 from .graph import build_graph
 from .nn import CBFNet
+from .robots.quadrotor import dynamics as dyn
 
 __all__ = ["cbf_contour_figure", "cbf_slice", "load_cbf", "pick_agent", "transform_element"]
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from egcbf.dynamics import DEFAULT_PARAMS, state_from_parts
-from egcbf.dynamics.so3 import so3_exp
+from egcbf.robots.quadrotor.dynamics import DEFAULT_PARAMS, state_from_parts
+from egcbf.robots.quadrotor.so3 import so3_exp
 
 F64, F32 = torch.float64, torch.float32
 

@@ -22,9 +22,9 @@ from pathlib import Path
 import torch
 
 from egcbf.checkpoint import load_learner
-from egcbf.control.nominal import nominal_control
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.graph import build_graph
+from egcbf.robots.quadrotor.nominal import nominal_control
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = Path(__file__).resolve().parent / "data" / "shipped_reference.json"

@@ -20,11 +20,11 @@ from egcbf.algo import (
     solve_cbf_qp,
 )
 from egcbf.config import LEARNED_METHODS, TrainConfig
-from egcbf.dynamics import quadrotor as dyn
-from egcbf.dynamics.so3 import so3_exp
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
 from egcbf.graph import build_graph, refresh_graph
 from egcbf.nn import CBFNet, ModelConfig
+from egcbf.robots.quadrotor import dynamics as dyn
+from egcbf.robots.quadrotor.so3 import so3_exp
 
 F64 = torch.float64
 

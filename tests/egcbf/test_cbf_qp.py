@@ -8,26 +8,9 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
-from egcbf.control.barriers import (
-    AccelBounds,
-    BarrierConfig,
-    Constraints,
-    agent_pairs,
-    bound_rows,
-    build_constraints,
-    prune_redundant,
-    split_for_agents,
-)
-from egcbf.control.cbf_qp import (
-    CentralizedCBFQP,
-    DecentralizedCBFQP,
-    default_bounds,
-    nominal_acceleration,
-    track_acceleration,
-)
+from egcbf.control.constraints import Constraints
 from egcbf.control.controllers import NominalController, make_controller
 from egcbf.control.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
-from egcbf.control.nominal import nominal_control
 from egcbf.control.qp import (
     INF,
     SOLVERS,
@@ -37,9 +20,26 @@ from egcbf.control.qp import (
     polish_sparse,
     solve_sparse,
 )
-from egcbf.dynamics import quadrotor as dyn
-from egcbf.dynamics.so3 import so3_exp, yaw_rotation
 from egcbf.env import EnvConfig, Obstacles, SwarmEnv, SwarmState
+from egcbf.robots.quadrotor import dynamics as dyn
+from egcbf.robots.quadrotor.barriers import (
+    AccelBounds,
+    BarrierConfig,
+    agent_pairs,
+    bound_rows,
+    build_constraints,
+    prune_redundant,
+    split_for_agents,
+)
+from egcbf.robots.quadrotor.cbf_qp import (
+    CentralizedCBFQP,
+    DecentralizedCBFQP,
+    default_bounds,
+    nominal_acceleration,
+    track_acceleration,
+)
+from egcbf.robots.quadrotor.nominal import nominal_control
+from egcbf.robots.quadrotor.so3 import so3_exp, yaw_rotation
 
 F64 = torch.float64
 BOUNDS = default_bounds()
@@ -293,8 +293,8 @@ def test_solutions_are_those_of_the_adapters_before_qpsolvers(solver):
 def test_a_missing_solver_is_named_with_its_install_command(monkeypatch):
     import qpsolvers
 
-    from egcbf.control.cbf_qp import CBFQPConfig
     from egcbf.control.qp import require_solver
+    from egcbf.robots.quadrotor.cbf_qp import CBFQPConfig
 
     monkeypatch.setattr(qpsolvers, "available_solvers", [s for s in qpsolvers.available_solvers if s != "osqp"])
     with pytest.raises(ImportError, match=r"pip install osqp \(or pip install -e '\.\[solvers\]'\)"):
@@ -366,7 +366,7 @@ def test_attitude_loop_reproduces_nominal_controller():
 def test_default_bounds_are_realizable():
     """Every vertex of the bound set needs thrust <= max_thrust, >= min_lift m g, and tilt <= max_tilt, so the
     attitude loop tracks it without its own limits changing the command."""
-    from egcbf.control.nominal import DEFAULT_GAINS
+    from egcbf.robots.quadrotor.nominal import DEFAULT_GAINS
 
     p = dyn.DEFAULT_PARAMS
     b = BOUNDS
@@ -424,7 +424,7 @@ def test_overlapping_agents_give_slack_not_exceptions(cls):
 
 
 def test_failed_solves_are_counted_and_braked(monkeypatch):
-    import egcbf.control.cbf_qp as mod
+    import egcbf.robots.quadrotor.cbf_qp as mod
 
     state, cfg = random_scene(9, n=12)
 

@@ -17,8 +17,8 @@ from dyn_helpers import F32, F64, random_controls, random_states, rel_err
 from hypothesis import given
 from hypothesis import strategies as st
 
-from egcbf import dynamics as dyn
-from egcbf.dynamics import (
+from egcbf.robots.quadrotor import dynamics as dyn
+from egcbf.robots.quadrotor.dynamics import (
     CONTROL_TYPE,
     DEFAULT_PARAMS,
     GROUP,
@@ -35,7 +35,7 @@ from egcbf.dynamics import (
     unpack,
     xdot,
 )
-from egcbf.dynamics.so3 import exp_apply, hat, orthonormality_error, rmul_exp, so3_exp, vee
+from egcbf.robots.quadrotor.so3 import exp_apply, hat, orthonormality_error, rmul_exp, so3_exp, vee
 from groupcanon.testing import check_action_laws
 from groupcanon.testing import strategies as gst
 

@@ -15,8 +15,8 @@ from egcbf.algo import GraphCBFLearner
 from egcbf.algo.edge_qp import edge_rows
 from egcbf.algo.filtered import FilterConfig, FilteredController
 from egcbf.config import TrainConfig
-from egcbf.control.barriers import AccelBounds, bound_rows
 from egcbf.graph import GROUP
+from egcbf.robots.quadrotor.barriers import AccelBounds, bound_rows
 from egcbf.train import train
 from groupcanon import FieldType
 from groupcanon.features import Vector

@@ -8,9 +8,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from egcbf.dynamics import quadrotor as dyn
 from egcbf.env import EnvConfig, NonFiniteStateError, Obstacles, SwarmEnv, SwarmState, safety_masks
 from egcbf.env.sampling import sample_separated_points
+from egcbf.robots.quadrotor import dynamics as dyn
 
 F64 = torch.float64
 R = 0.05

@@ -1,5 +1,5 @@
-"""Message faults in the decentralized CBF-QP (egcbf.faults + egcbf.control.cbf_qp): each agent's pair rows read its
-own estimate against the messages it received, directed, delayed and lost exactly as the graph's."""
+"""Message faults in the decentralized CBF-QP (egcbf.faults + egcbf.robots.quadrotor.cbf_qp): each agent's pair rows
+read its own estimate against the messages it received, directed, delayed and lost exactly as the graph's."""
 
 from __future__ import annotations
 
@@ -14,17 +14,17 @@ from typer.testing import CliRunner
 
 from egcbf.algo.filtered import FilterConfig, FilteredController
 from egcbf.cli import app
-from egcbf.control.barriers import BarrierConfig, build_constraints, perceived_constraints, split_for_agents
-from egcbf.control.cbf_qp import CentralizedCBFQP, DecentralizedCBFQP
 from egcbf.control.controllers import NominalController
-from egcbf.dynamics import quadrotor as dyn
-from egcbf.dynamics.so3 import yaw_rotation
 from egcbf.env import EnvConfig, Obstacles, SwarmEnv, SwarmState
 from egcbf.evaluate import evaluate, fault_support_error
 from egcbf.faults import DEFAULT_FIELD, FaultConfig, FaultProcess, Sensing, draws
 from egcbf.faults.sensing import STREAMS, unread_faults
 from egcbf.graph import KIND_AGENT, build_graph
 from egcbf.robots import make_robot
+from egcbf.robots.quadrotor import dynamics as dyn
+from egcbf.robots.quadrotor.barriers import BarrierConfig, build_constraints, perceived_constraints, split_for_agents
+from egcbf.robots.quadrotor.cbf_qp import CentralizedCBFQP, DecentralizedCBFQP
+from egcbf.robots.quadrotor.so3 import yaw_rotation
 
 F64 = torch.float64
 ROBOT = make_robot("quadrotor")

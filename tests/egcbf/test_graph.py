@@ -8,7 +8,6 @@ from dyn_helpers import moving_scene
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from egcbf.dynamics import quadrotor as dyn
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
 from egcbf.graph import (
     EDGE_TYPE,
@@ -21,6 +20,7 @@ from egcbf.graph import (
     refresh_graph,
 )
 from egcbf.neighbors import brute_force_neighbors
+from egcbf.robots.quadrotor import dynamics as dyn
 from groupcanon import FieldType
 from groupcanon.features import Scalar
 from groupcanon.testing import strategies as gst

@@ -8,11 +8,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from egcbf.algo.interface import AccelInterface, TorqueInterface, make_interface
-from egcbf.control.nominal import nominal_acceleration, nominal_control
-from egcbf.dynamics import quadrotor as dyn
 from egcbf.env import EnvConfig
 from egcbf.graph import GROUP, build_graph, refresh_graph
 from egcbf.nn import CBFNet, ModelConfig
+from egcbf.robots.quadrotor import dynamics as dyn
+from egcbf.robots.quadrotor.nominal import nominal_acceleration, nominal_control
 from groupcanon import FieldType
 from groupcanon.features import Vector
 from groupcanon.testing import strategies as gst

@@ -3,9 +3,9 @@
 import pytest
 import torch
 
-from egcbf.dynamics import quadrotor as dyn
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.metrics import EpisodeStats, summarize
+from egcbf.robots.quadrotor import dynamics as dyn
 
 
 def _info(coll, reach):

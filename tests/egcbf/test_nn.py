@@ -14,10 +14,10 @@ from egcbf.algo.actions import control_bounds, control_scale
 from egcbf.algo.interface import make_interface
 from egcbf.algo.learner import LearnedController, policy_command
 from egcbf.config import TrainConfig
-from egcbf.dynamics import quadrotor as dyn
 from egcbf.env import EnvConfig, SwarmState
 from egcbf.graph import GROUP, KIND_GOAL, build_graph
 from egcbf.nn import CBFNet, GraphTransformerLayer, ModelConfig, PolicyNet
+from egcbf.robots.quadrotor import dynamics as dyn
 from groupcanon import FieldType
 from groupcanon.features import Vector
 from groupcanon.testing import strategies as gst

@@ -14,9 +14,8 @@ from dyn_helpers import F32, F64, random_states
 from hypothesis import given
 from hypothesis import strategies as st
 
-from egcbf.control import nominal as nominal_mod
-from egcbf.control.nominal import GOAL_TYPE, NominalGains, desired_heading, nominal_control
-from egcbf.dynamics import (
+from egcbf.robots.quadrotor import nominal as nominal_mod
+from egcbf.robots.quadrotor.dynamics import (
     DEFAULT_DT,
     DEFAULT_MAX_STEPS,
     DEFAULT_PARAMS,
@@ -29,7 +28,8 @@ from egcbf.dynamics import (
     step,
     unpack,
 )
-from egcbf.dynamics.so3 import so3_exp, yaw_rotation
+from egcbf.robots.quadrotor.nominal import GOAL_TYPE, NominalGains, desired_heading, nominal_control
+from egcbf.robots.quadrotor.so3 import so3_exp, yaw_rotation
 from groupcanon.testing import strategies as gst
 
 B = 32

@@ -132,8 +132,14 @@ def test_report_reads_effects_and_verdicts_from_result_files(tmp_path):
             path = cell.path(run, root)
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps({"key": {}, "row": _row(values)}))
+    # the heads ablation: the full recipe has no gap, switching the soft-min CBF head off opens one
+    for name in ("cpu-20", "no-closest", "mlp-cbf", "mlp-policy"):
+        gap = {"egcbf+": 0.95, "gcbf+": 0.80 if name == "mlp-cbf" else 0.95}
+        _write_cells(arm(name), root, dict(gap), rng)
     path, verdicts = write_report(report, root)
     assert verdicts == {"generalization": "supported", "convergence": "not supported", "transfer": "supported"}
+    assert "**Reading: supported for mlp-cbf: switching it off opens a gap in EGCBF+'s favour**" in path.read_text()
+    assert "GCBF+ loses up to 3" in path.read_text()  # 95 % -> 60 %: 35 points, beyond the interval
     text = path.read_text()
     assert "- **generalization**: supported" in text and "paper-cpu, N = 512: EGCBF+ - GCBF+ = +9." in text
     for fig in ("zero_shot", "curves", "rotated"):

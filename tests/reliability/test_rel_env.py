@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from egcbf import dynamics as dyn
-from egcbf.control.barriers import BarrierConfig, obstacle_constraints, pair_constraints
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
 from egcbf.env.obstacles import Obstacles
 from egcbf.env.swarm import NonFiniteInputError
+from egcbf.robots.quadrotor import dynamics as dyn
+from egcbf.robots.quadrotor.barriers import BarrierConfig, obstacle_constraints, pair_constraints
 
 F64 = torch.float64
 

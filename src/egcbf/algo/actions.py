@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..dynamics.quadrotor import DEFAULT_PARAMS, QuadrotorParams
+from ..robots.quadrotor.dynamics import DEFAULT_PARAMS, QuadrotorParams
 
 __all__ = ["control_bounds", "control_scale", "normalize", "unnormalize"]
 

@@ -25,13 +25,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..control.barriers import AccelBounds, bound_rows
-from ..control.cbf_qp import brake_acceleration
 from ..control.dense_qp import assemble_decentralized, solve_dense_batch_ipm, verified
 from ..control.qp import SlackPenalty
 from ..graph import KIND_AGENT, KIND_GOAL, SwarmGraph
 from ..nn.edge_min import EdgeMinHead, closest_approach
 from ..nn.models import CBFNet, frames_for
+from ..robots.quadrotor.barriers import AccelBounds, bound_rows
+from ..robots.quadrotor.cbf_qp import brake_acceleration
 from .interface import AccelInterface
 
 __all__ = ["BRAKE_GAIN", "SLACK_TOL", "EdgeRows", "edge_qp_commands", "edge_rows"]

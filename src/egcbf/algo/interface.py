@@ -5,7 +5,7 @@ learning works with, how the symmetry acts on it, and how a command becomes the 
 
 * :class:`AccelInterface` (``"accel"``, the default of the ``cpu`` preset): a desired world acceleration
   ``a = A c`` (``c`` normalized, ``A = accel_unit`` m/s^2; hover is ``a = 0``), tracked by the attitude loop of the
-  equivariant geometric controller (:func:`egcbf.control.nominal.track_acceleration`). The command is a world-frame
+  equivariant geometric controller (:func:`~.quadrotor.nominal.track_acceleration`). The command is a world-frame
   vector (``Vector(3)``: ``c -> Rz c``); its bounds are a box in the agent's own yaw frame, so clipping commutes
   with the symmetry. This is where the hand-crafted CBF-QPs act, and what the GCBF+ reference's CrazyFlie does with
   velocity targets (its learned CBF never acts on raw torques).
@@ -43,7 +43,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from ..control.nominal import (
+from ..env import EnvConfig
+from ..graph import SwarmGraph, refresh_graph
+from ..robots import Quadrotor, Robot
+from ..robots.quadrotor import dynamics as dyn
+from ..robots.quadrotor.nominal import (
     DEFAULT_GAINS,
     NominalGains,
     desired_heading,
@@ -51,10 +55,6 @@ from ..control.nominal import (
     nominal_control,
     track_acceleration,
 )
-from ..dynamics import quadrotor as dyn
-from ..env import EnvConfig
-from ..graph import SwarmGraph, refresh_graph
-from ..robots import Quadrotor, Robot
 from .actions import control_bounds, control_scale, normalize, unnormalize
 from .qp import CBFQPResult, cbf_jacobian, solve_cbf_qp
 

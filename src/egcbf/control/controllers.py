@@ -15,8 +15,8 @@ import time
 
 from torch import Tensor
 
-from .cbf_qp import CBFQPConfig, CentralizedCBFQP, DecentralizedCBFQP
-from .nominal import DEFAULT_GAINS, DEFAULT_MAX_POSITION_ERROR, NominalGains, nominal_control
+from ..robots.quadrotor.cbf_qp import CBFQPConfig, CentralizedCBFQP, DecentralizedCBFQP
+from ..robots.quadrotor.nominal import DEFAULT_GAINS, DEFAULT_MAX_POSITION_ERROR, NominalGains, nominal_control
 
 __all__ = [
     "CONTROLLERS",
@@ -30,7 +30,7 @@ __all__ = [
 
 class NominalController:
     """The equivariant nominal controller, no safety: the quadrotor's geometric controller
-    (:func:`egcbf.control.nominal.nominal_control`, with ``gains`` and ``max_position_error``), or another robot's
+    (:func:`~.quadrotor.nominal.nominal_control`, with ``gains`` and ``max_position_error``), or another robot's
     own ``Robot.nominal_control``."""
 
     name = "nominal"
@@ -62,7 +62,7 @@ def make_controller(name: str, robot: str = "quadrotor", **kwargs):
     :class:`~egcbf.control.point_mass_qp.PointMassCCBF`).
 
     Keyword arguments go to the constructor: for the CBF-QPs a ``config=CBFQPConfig(...)`` and/or overrides of its
-    fields or of :class:`egcbf.control.barriers.BarrierConfig`'s (e.g. ``make_controller("ccbf", kind="hocbf",
+    fields or of :class:`egcbf.robots.quadrotor.barriers.BarrierConfig`'s (e.g. ``make_controller("ccbf", kind="hocbf",
     solver="proxsuite")``); for the nominal controller ``gains`` and ``max_position_error``.
     """
     if name in ("ccbf", "dcbf") and robot in POINT_MASSES:

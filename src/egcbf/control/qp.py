@@ -23,7 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .barriers import Constraints
+from .constraints import Constraints
 from .ipm import INF
 from .sparse_solvers import SolveResult, require_solver, solve_with_qpsolvers
 

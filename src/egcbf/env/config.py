@@ -7,8 +7,8 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
-from ..dynamics import quadrotor as dyn
 from ..robots import Robot, make_robot
+from ..robots.quadrotor import dynamics as dyn
 from .scenes import SCENES
 
 __all__ = ["EnvConfig"]

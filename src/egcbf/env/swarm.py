@@ -31,9 +31,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..dynamics import quadrotor as dyn
 from ..neighbors import radius_neighbors
 from ..robots import Robot, make_robot
+from ..robots.quadrotor import dynamics as dyn
 from .config import EnvConfig, _is_int
 from .lidar import LidarScan, lidar_scan
 from .obstacles import Obstacles, sample_obstacles, sample_rectangle_obstacles
@@ -66,7 +66,7 @@ class SwarmState:
 
     Attributes:
         x: ``(B, N, S)`` agent states of ``robot`` (quadrotor: ``S = 18``, ``[p, R (row-major), v, w]``, see
-            ``egcbf.dynamics.quadrotor``; unicycle: ``S = 5``, ``[p, h, v]``).
+            ``egcbf.robots.quadrotor.dynamics``; unicycle: ``S = 5``, ``[p, h, v]``).
         goals: ``(B, N, d)`` goal positions (``d = robot.dim``).
         obstacles: spheres (discs in 2-D), ``centers`` ``(B, K, d)``, ``radii`` ``(B, K)``.
         t: steps taken since reset (all environments step together).

@@ -13,7 +13,7 @@ passes the graph it built through :meth:`Sensing.messages`. So every controller 
   receiver's current estimate; an edge whose delayed neighbour lies outside the communication radius is dropped, and
   each edge is lost with probability ``msg_loss`` in each step. :meth:`Sensing.received` decides which directed
   links (receiver, sender) carry a message and what it carries; the graph (:meth:`Sensing.messages`) and the
-  decentralized CBF-QP (:class:`egcbf.control.cbf_qp.DecentralizedCBFQP`) both read it, so they lose the same messages.
+  decentralized CBF-QP (:class:`~.cbf_qp.DecentralizedCBFQP`) both read it, so they lose the same messages.
 
 A controller declares the channels it perceives in its ``reads_sensing`` attribute (:data:`CHANNELS`,
 :func:`unread_faults`): ``True`` for every channel (it builds its whole graph from the observed state), or a

@@ -18,7 +18,7 @@ depends on the control interface (``ModelConfig.interface``, :mod:`egcbf.algo.in
   the agent's frame, ``psi_{g_i}`` acting on a ``Vector(3)``: the command rotates with the scene. The attitude loop
   then turns it into body torque and thrust, which are invariant.
 * ``"torque"``: a body torque and thrust residual; the body-frame control is invariant (``psi_g(u) = u``,
-  :data:`egcbf.dynamics.quadrotor.CONTROL_TYPE`).
+  :data:`egcbf.robots.quadrotor.dynamics.CONTROL_TYPE`).
 
 Either way the whole controller ``state -> (tau, F3)`` is SE(2) x R equivariant (tested).
 

@@ -18,8 +18,8 @@ import shlex
 from collections import Counter
 from pathlib import Path
 
-from ..dynamics.quadrotor import DEFAULT_DT, DEFAULT_MAX_STEPS
 from ..report import md_table
+from ..robots.quadrotor.dynamics import DEFAULT_DT, DEFAULT_MAX_STEPS
 from .paper import LABELS, METHODS, base_method
 from .plan import Cell, SweepConfig
 from .stats import episodes_text, scale_text

@@ -82,25 +82,34 @@ def curves_figure(
     return _save(fig, Path(out_png))
 
 
-def rotated_figure(points: Mapping[str, list[tuple[float, float, float, float]]], out_png: str | Path) -> Path:
-    """Success rate (%) against the rotation of the training scenes, one line per run (``points``: run label ->
-    ``(yaw, estimate, low, high)`` of its 95 % interval)."""
+def rotated_figure(
+    panels: Mapping[tuple[str, int], Mapping[str, list[tuple[float, float, float, float]]]], out_png: str | Path
+) -> Path:
+    """Safety and success (%) against the rotation of the training scenes: one panel per ``(metric, N)`` key of
+    ``panels`` (metric ``"safe_rate"`` or ``"success_rate"``; rows by metric, columns by N), one line per run (run
+    label -> ``(yaw, estimate, low, high)`` of its 95 % interval)."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(5, 3.2))
-    ax = fig.subplots()
-    for label, pts in points.items():
-        algo = label.split("-s")[0]
-        pts = sorted(pts)
-        ax.errorbar(
-            [p[0] for p in pts], [100 * p[1] for p in pts],
-            yerr=[[100 * (p[1] - p[2]) for p in pts], [100 * (p[3] - p[1]) for p in pts]],
-            marker="o", capsize=3, color=COLORS.get(algo), label=label,
-            linestyle="-" if label.endswith("s0") else "--",
-        )  # fmt: skip
-    ax.set_xticks([0, 90, 180])
-    ax.set_xlabel("rotation of the training scenes (degrees)")
-    ax.set_ylabel("success % (95 % CI)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    metrics = sorted({m for m, _ in panels}, key=lambda m: m != "safe_rate")
+    sizes = sorted({n for _, n in panels})
+    fig = Figure(figsize=(4.2 * len(sizes), 2.8 * len(metrics)))
+    axes = fig.subplots(len(metrics), len(sizes), squeeze=False)
+    for (metric, n), points in panels.items():
+        ax = axes[metrics.index(metric)][sizes.index(n)]
+        for label, pts in points.items():
+            algo = label.split("-s")[0]
+            pts = sorted(pts)
+            ax.errorbar(
+                [p[0] for p in pts], [100 * p[1] for p in pts],
+                yerr=[[100 * (p[1] - p[2]) for p in pts], [100 * (p[3] - p[1]) for p in pts]],
+                marker="o", capsize=3, color=COLORS.get(algo), label=label,
+                linestyle="-" if label.endswith("s0") else "--",
+            )  # fmt: skip
+        ax.set_xticks([0, 90, 180])
+        ax.set_title(f"N = {n}", fontsize=9)
+        ax.set_xlabel("rotation of the training scenes (degrees)")
+        ax.set_ylabel(("safe" if metric == "safe_rate" else "success") + " % (95 % CI)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
     return _save(fig, Path(out_png))

@@ -1,8 +1,8 @@
 """Measurements behind DEFAULT_DT, DEFAULT_SUBSTEPS, DEFAULT_METHOD and DEFAULT_MAX_STEPS (docs/dynamics.md).
 
-Run ``python -m egcbf.dynamics.calibrate [SECTION ...] [--episodes N] [--horizon S] [--dts DT ...] [--device D]``
-(all sections by default; the invocations behind docs/dynamics.md are in its "Reproduce" section). It prints
-markdown tables:
+Run ``python -m egcbf.robots.quadrotor.calibrate [SECTION ...] [--episodes N] [--horizon S] [--dts DT ...]
+[--device D]`` (all sections by default; the invocations behind docs/dynamics.md are in its "Reproduce" section).
+It prints markdown tables:
 
 1. ``accuracy``: the nominal closed loop under a zero-order hold of period ``dt``, integrated with each
    (method, substeps), against the same loop integrated with RK4 and 64 substeps (the "exact" ZOH solution);
@@ -20,8 +20,8 @@ import time
 
 import torch
 
-from ..control.nominal import nominal_control
-from .quadrotor import DEFAULT_PARAMS, QuadrotorParams, hover_state, step, unpack
+from .dynamics import DEFAULT_PARAMS, QuadrotorParams, hover_state, step, unpack
+from .nominal import nominal_control
 
 
 def sample_episodes(n: int, seed: int = 0, area: float = 4.0, dtype=torch.float64):
@@ -123,8 +123,8 @@ def timing_table(settings, n=512, reps=300, device="cpu", dtype=torch.float32):
 @torch.no_grad()
 def openloop_table(n, dts, settings, max_rate=20.0, ref_substeps=64, seed=1):
     """One ZOH step from random states (any attitude, |w| <= max_rate) under random controls in the actuator box."""
-    from .quadrotor import DEFAULT_PARAMS as prm
-    from .quadrotor import state_from_parts
+    from .dynamics import DEFAULT_PARAMS as prm
+    from .dynamics import state_from_parts
     from .so3 import so3_exp
 
     gen = torch.Generator().manual_seed(seed)
@@ -184,7 +184,7 @@ def rate_table(x0, goal, dts, horizon, substeps=4, fine_dt=0.001):
 
 
 def episode_table(n, dt, substeps, max_steps, seed=0, dtype=torch.float64):
-    from .quadrotor import DEFAULT_PARAMS as prm
+    from .dynamics import DEFAULT_PARAMS as prm
 
     x0, goal = sample_episodes(n, seed=seed, dtype=dtype)
     xs, _ = rollout(x0, goal, dt, max_steps, substeps)
@@ -229,7 +229,7 @@ def main(argv=None):
         for n in (512, 8192) if args.device != "cpu" else (512,):
             timing_table(settings, n=n, device=args.device)
     if "episode" in args.section:
-        from .quadrotor import DEFAULT_DT, DEFAULT_MAX_STEPS, DEFAULT_SUBSTEPS
+        from .dynamics import DEFAULT_DT, DEFAULT_MAX_STEPS, DEFAULT_SUBSTEPS
 
         episode_table(200, DEFAULT_DT, DEFAULT_SUBSTEPS, DEFAULT_MAX_STEPS)
 

@@ -36,7 +36,7 @@ from torch import Tensor
 
 from groupcanon.features import FieldType, Point
 
-from ..dynamics.quadrotor import (
+from .dynamics import (
     DEFAULT_PARAMS,
     GROUP,
     QuadrotorParams,
@@ -46,7 +46,7 @@ from ..dynamics.quadrotor import (
     consts,
     unpack,
 )
-from ..dynamics.so3 import vee
+from .so3 import vee
 
 __all__ = [
     "DEFAULT_GAINS",

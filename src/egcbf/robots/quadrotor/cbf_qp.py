@@ -4,15 +4,15 @@ Hierarchical "thrust-vector" design (derivation and guarantees in ``docs/baselin
 
 1. **Position loop -> nominal acceleration.** ``a_nom = -k_x clip(p - goal) - k_v v`` (world frame, gravity
    included in ``a = p''``): the position loop of the geometric nominal controller
-   (:mod:`egcbf.control.nominal`), with its gains and position-error clip.
+   (:mod:`egcbf.robots.quadrotor.nominal`), with its gains and position-error clip.
 2. **Safety filter on the acceleration.** Each agent is a double integrator ``p'' = a``; barriers on agent pairs
-   and sphere obstacles (:mod:`egcbf.control.barriers`) give constraints linear in the accelerations;
+   and sphere obstacles (:mod:`egcbf.robots.quadrotor.barriers`) give constraints linear in the accelerations;
    acceleration bounds turn with the agent's heading. The centralized QP (:class:`CentralizedCBFQP`) solves one
    sparse QP over all agents of an environment; the decentralized one (:class:`DecentralizedCBFQP`) one small QP
    per agent, each agent enforcing half of every pair constraint.
 3. **Attitude loop.** The safe acceleration is tracked by the geometric controller's attitude loop: desired force
    ``m (a_safe - g)``, thrust ``F3 = m (a_safe - g) . R e3``, torque from the attitude error
-   (:func:`track_acceleration`, identical to :func:`egcbf.control.nominal.nominal_control` for ``a = a_nom``).
+   (:func:`track_acceleration`, identical to :func:`egcbf.robots.quadrotor.nominal.nominal_control` for ``a = a_nom``).
 
 Under message faults (``state.sensing`` of :mod:`egcbf.faults` with ``msg_loss`` or ``msg_delay``) the dCBF-QP's
 agents know their neighbours only from the messages they received (:meth:`egcbf.faults.Sensing.received`, the
@@ -38,18 +38,19 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..dynamics.quadrotor import DEFAULT_PARAMS, QuadrotorParams
+from ...control.constraints import Constraints
+from ...control.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm, verified
+from ...control.qp import SlackPenalty, assemble_centralized, polish_sparse, require_solver, solve_sparse
 from .barriers import (
     AccelBounds,
     BarrierConfig,
-    Constraints,
     agent_pairs,
     bound_rows,
     build_constraints,
     perceived_constraints,
     split_for_agents,
 )
-from .dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm, verified
+from .dynamics import DEFAULT_PARAMS, QuadrotorParams
 from .nominal import (
     DEFAULT_GAINS,
     DEFAULT_MAX_POSITION_ERROR,
@@ -57,7 +58,6 @@ from .nominal import (
     nominal_acceleration,
     track_acceleration,
 )
-from .qp import SlackPenalty, assemble_centralized, polish_sparse, require_solver, solve_sparse
 
 __all__ = [
     "CBFQPConfig",

@@ -31,15 +31,16 @@ Everything here is plain numpy (float64) on one batch of agents; the controllers
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ...control.constraints import Constraints
+
 __all__ = [
     "AccelBounds",
     "BarrierConfig",
-    "Constraints",
     "agent_pairs",
     "bound_rows",
     "build_constraints",
@@ -160,70 +161,6 @@ class AccelBounds:
                 " m/s^2 sideways; lower 'horizontal'"
             )
         return cls(horizontal, (min_thrust_frac - 1.0) * GRAVITY, math.sqrt(room) - GRAVITY, polygon)
-
-
-@dataclass
-class Constraints:
-    """Linear CBF constraints ``normal[c] . (a[i[c]] - a[j[c]]) >= rhs[c]`` (``j[c] = -1``: obstacle row).
-
-    ``h`` is the barrier value of the row (``h0 = d^2 - D^2`` for ``hocbf``; ``h`` of Wang et al. for ``wang``);
-    ``dist`` the centre distance (m), ``D`` its safety distance.
-    """
-
-    i: np.ndarray
-    j: np.ndarray
-    normal: np.ndarray
-    rhs: np.ndarray
-    h: np.ndarray
-    dist: np.ndarray
-    D: np.ndarray
-    num_pairs: int = field(default=0)
-
-    @staticmethod
-    def empty() -> Constraints:
-        z = np.zeros(0)
-        zi = np.zeros(0, dtype=np.int64)
-        return Constraints(zi, zi.copy(), np.zeros((0, 3)), z, z.copy(), z.copy(), z.copy(), 0)
-
-    def __len__(self) -> int:
-        return int(self.i.shape[0])
-
-    @staticmethod
-    def cat(parts: list[Constraints]) -> Constraints:
-        parts = [p for p in parts if len(p)]
-        if not parts:
-            return Constraints.empty()
-        return Constraints(
-            np.concatenate([p.i for p in parts]),
-            np.concatenate([p.j for p in parts]),
-            np.concatenate([p.normal for p in parts]),
-            np.concatenate([p.rhs for p in parts]),
-            np.concatenate([p.h for p in parts]),
-            np.concatenate([p.dist for p in parts]),
-            np.concatenate([p.D for p in parts]),
-            sum(p.num_pairs for p in parts),
-        )
-
-    def subset(self, mask: np.ndarray) -> Constraints:
-        """The rows selected by a boolean ``mask`` (pairs stay first)."""
-        idx = np.nonzero(mask)[0]
-        return Constraints(
-            self.i[idx],
-            self.j[idx],
-            self.normal[idx],
-            self.rhs[idx],
-            self.h[idx],
-            self.dist[idx],
-            self.D[idx],
-            int((idx < self.num_pairs).sum()),
-        )
-
-    def residual(self, a: np.ndarray) -> np.ndarray:
-        """``lhs - rhs`` per row for accelerations ``a`` ``(M, 3)`` (>= 0 means satisfied)."""
-        lhs = np.einsum("cd,cd->c", self.normal, a[self.i])
-        pair = self.j >= 0
-        lhs[pair] -= np.einsum("cd,cd->c", self.normal[pair], a[self.j[pair]])
-        return lhs - self.rhs
 
 
 def agent_pairs(pos: np.ndarray, cfg: BarrierConfig, batch: np.ndarray | None = None) -> np.ndarray:
@@ -452,7 +389,7 @@ def split_for_agents(cons: Constraints, num_agents: int | None = None) -> tuple[
 def yaw_angle(rot_flat: np.ndarray) -> np.ndarray:
     """Yaw ``psi`` of the body x axis projected on the horizontal plane, from row-major ``R`` ``(M, 9)``.
 
-    The same heading as :func:`egcbf.control.nominal.desired_heading`: ``R e1 = (R00, R10, R20)``; where its
+    The same heading as :func:`egcbf.robots.quadrotor.nominal.desired_heading`: ``R e1 = (R00, R10, R20)``; where its
     horizontal part is shorter than 1e-3 (body x within 0.06 degrees of vertical) the body y axis turned by
     -90 degrees, ``(R11, -R01)``. Both rotate with the scene, so the bounds stay equivariant.
     """

@@ -1,5 +1,6 @@
-"""The paper's quadrotor as a :class:`~egcbf.robots.base.Robot`: the rigid body of :mod:`egcbf.dynamics.quadrotor`
-with the equivariant geometric controller of :mod:`egcbf.control.nominal`, symmetric under SE(2) x R.
+"""The paper's quadrotor as a :class:`~egcbf.robots.base.Robot`: the rigid body of
+:mod:`~egcbf.robots.quadrotor.dynamics` with the equivariant geometric controller of
+:mod:`~egcbf.robots.quadrotor.nominal`, symmetric under SE(2) x R.
 
 Everything here delegates to those modules (one implementation of each mechanism); this class only says how the
 swarm, the graph and the learner read them. The node features are ``v`` (world velocity), ``R`` (attitude,
@@ -18,9 +19,9 @@ from groupcanon.features import Rotation, Scalar, Vector
 from groupcanon.frames import se2xr_frame
 from groupcanon.groups import SE2xR
 
-from ..control.nominal import desired_heading, nominal_control
-from ..dynamics import quadrotor as dyn
-from .base import Robot
+from ..base import Robot
+from . import dynamics as dyn
+from .nominal import desired_heading, nominal_control
 
 __all__ = ["Quadrotor"]
 
@@ -117,7 +118,7 @@ class Quadrotor(Robot):
         raise ValueError(f"the quadrotor has the command interfaces {self.interfaces}, not {interface!r}")
 
     def yaw_heading(self, x: Tensor) -> Tensor:
-        """Unit horizontal heading ``(*batch, 3)`` (:func:`egcbf.control.nominal.desired_heading`)."""
+        """Unit horizontal heading ``(*batch, 3)`` (:func:`egcbf.robots.quadrotor.nominal.desired_heading`)."""
         return desired_heading(x[..., dyn.ROT].reshape(*x.shape[:-1], 3, 3))
 
     def __repr__(self) -> str:

@@ -16,6 +16,7 @@ from egcbf.algo.learner import LearnedController
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.evaluate import evaluate, run_episodes
 from egcbf.faults import DEFAULT_FIELD, FaultConfig, FaultProcess, draws, noncooperative_mask, parse_faults
+from egcbf.faults.sensing import STREAMS
 from egcbf.graph import KIND_AGENT, build_graph
 from egcbf.nn import ModelConfig, PolicyNet
 from egcbf.robots import make_robot
@@ -56,6 +57,13 @@ def test_spec_strings_round_trip_and_bad_specs_name_the_problem(tmp_path):
             parse_faults(bad)
     assert FaultConfig(wind=(0.0, 0.0, 0.0)).is_null and not DEFAULT_FIELD.is_null
     assert DEFAULT_FIELD.edge_faults and not FaultConfig(pos_noise=1.0).edge_faults
+    # the receivers' message handling: spec keys, and inert (not a fault) on its own
+    held = parse_faults("default,hold=3,predict=1")
+    assert (held.msg_hold, held.msg_predict) == (3, 1) and parse_faults(held.spec()) == held
+    assert FaultConfig(msg_hold=3, msg_predict=1).is_null and not FaultConfig(msg_hold=3).edge_faults
+    for bad, match in (("predict=2", "0 or 1"), ("hold=-1", "whole number"), ("hold=1.5", "not a number")):
+        with pytest.raises(ValueError, match=match):
+            parse_faults(bad)
 
 
 # ----------------------------------------------------------------------------------------------------- draws
@@ -128,6 +136,57 @@ def test_message_loss_rate_and_delay_match_their_parameters():
     assert torch.allclose(g.pos_src[:m], sender) and torch.allclose(g.pos_dst, ROBOT.positions(xs[3].reshape(m, -1)))
     src, dst = g.edge_index[:, g.edge_kind == KIND_AGENT]
     assert (torch.linalg.vector_norm(g.pos_src[src] - g.pos_dst[dst], dim=-1) < cfg.comm_radius).all()
+
+
+def _held_run(faults: FaultConfig, steps: int = 5):
+    """A swarm whose estimates drift by 1 um per step (so a message's age shows in what it carries, and no link
+    crosses the comm radius), observed ``steps`` times; returns the config, the estimates per step, the last
+    Sensing and the candidate agent links ``(src, dst)`` of the fault-free graph."""
+    cfg = dataclasses.replace(CFG, num_agents=40, area_size=1.5, num_obstacles=0)
+    state = SwarmEnv(cfg, dtype=F64).reset(9)
+    proc = FaultProcess(faults, cfg, ROBOT, [1, 2], dtype=F64)
+    xs = []
+    for t in range(steps):
+        x = state.x.clone()
+        x[..., 0:3] += 1e-6 * t
+        seen = proc.observe(dataclasses.replace(state, x=x, t=t))
+        xs.append(seen.x)
+    links = build_graph(dataclasses.replace(seen, sensing=None), cfg).edge_index
+    kind = build_graph(dataclasses.replace(seen, sensing=None), cfg).edge_kind
+    return cfg, xs, seen, links[:, kind == KIND_AGENT]
+
+
+def test_receivers_hold_the_last_message_within_hold_steps_and_predict_it_over_its_age():
+    """``msg_hold = 2``: a link whose message of this step is lost uses the newest message of the two steps before
+    that was not (the draws of those steps), which carries the sender's estimate of ``msg_delay`` steps before it
+    was sent; a link lost three steps running has none. The graph gives those edges their own sender rows.
+    ``msg_predict``: each message's position moves on at its velocity over its age."""
+    f = FaultConfig(msg_loss=0.5, msg_delay=1, msg_hold=2)
+    cfg, xs, seen, (src, dst) = _held_run(f)
+    sens, n, t = seen.sensing, cfg.num_agents, len(xs) - 1
+    keep, states = sens.received(dst, src, cfg.comm_radius)
+    seeds = sens.seeds[dst // n]
+    arrived = torch.stack([draws.uniform(STREAMS["loss"], seeds, t - k, dst % n, src % n) >= 0.5 for k in range(3)])
+    newest = arrived.to(torch.int64).argmax(0)  # the first step back whose message arrived
+    assert torch.equal(keep, arrived.any(0))
+    assert abs(keep.double().mean().item() - (1 - 0.5**3)) < 0.05 and 0.3 < arrived[0].double().mean() < 0.7
+    sent = torch.stack([xs[t - k - 1].reshape(-1, xs[0].shape[-1]) for k in range(3)])  # delay 1 behind sending
+    expected = sent[newest, src]
+    assert torch.equal(states[keep], expected[keep])
+    assert len(set(newest[keep].tolist())) == 3  # messages of every age are in use
+    # the graph: every kept edge reads its own message (phantom sender rows), lost ones are gone
+    graph = build_graph(seen, cfg)
+    g_src = graph.edge_index[0, graph.edge_kind == KIND_AGENT]
+    assert g_src.shape[0] == int(keep.sum()) and bool((g_src >= graph.x_src.shape[0] - src.shape[0]).all())
+    torch.testing.assert_close(graph.pos_src[g_src], ROBOT.positions(expected[keep]), rtol=0, atol=0)
+    # prediction: the same messages moved on at their velocity over their age (steps since sent + delay)
+    _, _, seen_p, _ = _held_run(dataclasses.replace(f, msg_predict=1))
+    keep_p, states_p = seen_p.sensing.received(dst, src, cfg.comm_radius)
+    age = (newest + 1).to(F64)[:, None] * cfg.dt
+    moved = ROBOT.positions(expected) + age * ROBOT.velocities(expected)
+    assert torch.equal(keep_p, keep)  # nothing crossed the comm radius
+    torch.testing.assert_close(ROBOT.positions(states_p)[keep], moved[keep], rtol=0, atol=1e-12)
+    torch.testing.assert_close(ROBOT.velocities(states_p), ROBOT.velocities(expected), rtol=0, atol=0)
 
 
 def test_lidar_faults_move_and_drop_returns_around_the_estimate():
@@ -245,7 +304,7 @@ def test_closed_loop_under_faults_is_equivariant(yaw, shift, dtype):
     """The rotated scene with the same draws rotated gives the rotated trajectory (every fault on)."""
     faults = FaultConfig(pos_noise=0.01, vel_noise=0.02, msg_loss=0.2, msg_delay=1, lidar_noise=0.01,
                          lidar_drop=0.2, thrust_gain=0.1, torque_gain=0.05, torque_bias=1e-4, act_delay=1,
-                         wind=(0.3, -0.2, 0.1), gust=0.2, noncoop=0.2)  # fmt: skip
+                         wind=(0.3, -0.2, 0.1), gust=0.2, noncoop=0.2, msg_hold=2, msg_predict=1)  # fmt: skip
     env = SwarmEnv(CFG, dtype=dtype)
     state = env.reset(21)
     c, s = math.cos(yaw), math.sin(yaw)

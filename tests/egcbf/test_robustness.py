@@ -31,7 +31,7 @@ def test_a_sweep_under_faults_keeps_its_cells_apart_and_the_perfect_world_unchan
 def test_the_plan_runs_the_perfect_world_first_and_message_faults_only_where_they_are_read():
     assert axis("field").specs() == ["none", DEFAULT_FIELD.spec()]
     assert all(a.levels[0] == 0 and a.specs()[0] == "none" for a in AXES)
-    assert all(len(a.levels) >= 5 for a in AXES if a.name != "field")
+    assert all(len(a.levels) >= 5 for a in AXES if not a.name.startswith("field"))
     assert reads_sensing("egcbf+") and not reads_sensing("ccbf") and not reads_sensing("nominal")
     assert state_level("default") == "pos_noise=0.01,vel_noise=0.02,thrust_gain=0.1,noncoop=0.05"
     cfg = RobustnessConfig(axes=("field", "loss"))
@@ -50,6 +50,12 @@ def test_the_plan_runs_the_perfect_world_first_and_message_faults_only_where_the
     for m in ("dcbf", "egcbf+:dcbf"):
         assert cfg.cell_spec(m, DEFAULT_FIELD.spec()) == DEFAULT_FIELD.spec()
         assert cfg.cell_spec(m, "msg_loss=0.1,lidar_noise=0.1") == "msg_loss=0.1"
+    # the receivers' axes: the message handling goes with the messages (a controller without them runs the
+    # state-level part, the very cell of the plain axis)
+    held = axis("field_receivers").specs()[1]
+    assert "msg_hold=5" in held and "msg_predict=1" in held and cfg.cell_spec("egcbf+", held) == held
+    assert cfg.cell_spec("ccbf", held) == state_level("default")
+    assert axis("loss_receivers").specs()[2] == "msg_loss=0.3,msg_hold=5,msg_predict=1"
 
 
 def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
@@ -68,6 +74,12 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     assert "nominal_obs0/N4.json" in cells and any("thrust_gain_0.3" in c for c in cells)
     rec = json.loads((out / "nominal_obs1" / "N4.json").read_text())
     assert rec["row"]["num_episodes"] == 2
+    # the receivers' fix: its own section, the message-reading controllers only, pending cells shown as such
+    r = CliRunner().invoke(app, [*args, "--axes", "field,field_receivers", "--controllers", "nominal,dcbf",
+                                 "--report-only"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    fixes = report.read_text().split("## Fixes")[1].split("## What to choose")[0]
+    assert "| dCBF-QP | 4 | 0 | - | - | - |" in fixes and "nominal" not in fixes
     assert (tmp_path / "fig" / "robustness_thrust.png").exists() and "(fig/robustness_thrust.png)" in text
     before = (out / "nominal_obs1" / "N4.json").read_text()
     again = CliRunner().invoke(app, args)

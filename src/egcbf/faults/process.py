@@ -86,7 +86,7 @@ class FaultProcess:
         self._axes = torch.arange(d, device=self.device).view(1, 1, d)
         self.noncoop = noncooperative_mask(faults, self.seeds, n)
         self.gains, self.bias = self._actuator_errors(b, n)
-        self._seen: deque[Tensor] = deque(maxlen=faults.msg_delay + 1)
+        self._seen: deque[Tensor] = deque(maxlen=faults.msg_delay + faults.msg_hold + 1)  # newest first
         self._commands: deque[Tensor] = deque()
         self._starts: Tensor | None = None
         self._gust = self._world(faults.gust * draws.normal(STREAMS["gust"], self.seeds.view(b, 1), -1,
@@ -136,10 +136,12 @@ class FaultProcess:
             dp = self._noise("pos", f.pos_noise, state.t)
             dv = self._noise("vel", f.vel_noise, state.t) if f.vel_noise > 0 else None
             seen = robot.perturbed(state.x, dp, dv)
-        self._seen.append(seen)
+        self._seen.appendleft(seen)
         sensing = None
         if f.edge_faults:
-            sensing = Sensing(f, robot, self.seeds, state.t, state.x, seen, self._seen[0], state.obstacles)
+            sent = self._seen[min(f.msg_delay, len(self._seen) - 1)]
+            sensing = Sensing(f, robot, self.seeds, state.t, state.x, seen, sent, state.obstacles,
+                              tuple(self._seen), self.config.dt)  # fmt: skip
         return SwarmState(seen, state.goals, state.obstacles, state.t, state.robot, sensing)
 
     def actuate(self, u: Tensor, state: SwarmState) -> Tensor:

@@ -11,9 +11,13 @@ passes the graph it built through :meth:`Sensing.messages`. So every controller 
 * **Messages**: an agent-to-agent edge carries the sender's broadcast estimate; with ``msg_delay = k`` it is the
   estimate of ``k`` steps ago (sender features and position), and the edge vector is that position minus the
   receiver's current estimate; an edge whose delayed neighbour lies outside the communication radius is dropped, and
-  each edge is lost with probability ``msg_loss`` in each step. :meth:`Sensing.received` decides which directed
-  links (receiver, sender) carry a message and what it carries; the graph (:meth:`Sensing.messages`) and the
-  decentralized CBF-QP (:class:`~.cbf_qp.DecentralizedCBFQP`) both read it, so they lose the same messages.
+  each edge is lost with probability ``msg_loss`` in each step. The receivers' handling (:data:`RECEIVER_FIELDS`):
+  with ``msg_hold = H`` a lost message is replaced by the last one received on that link within ``H`` steps (so
+  one link's message can be older than another's: the graph then gives each such edge its own sender row), and
+  with ``msg_predict`` every message is moved to the present at the velocity it carries, over its age.
+  :meth:`Sensing.received` decides which directed links (receiver, sender) carry a message and what it carries;
+  the graph (:meth:`Sensing.messages`) and the decentralized CBF-QP (:class:`~.cbf_qp.DecentralizedCBFQP`) both
+  read it, so they lose the same messages.
 
 A controller declares the channels it perceives in its ``reads_sensing`` attribute (:data:`CHANNELS`,
 :func:`unread_faults`): ``True`` for every channel (it builds its whole graph from the observed state), or a
@@ -35,7 +39,7 @@ from ..env.swarm import cast_lidar
 from ..graph import KIND_AGENT, SwarmGraph, agent_features, edge_vectors
 from ..robots import Robot
 from . import draws
-from .spec import CHANNELS, FaultConfig
+from .spec import CHANNELS, RECEIVER_FIELDS, FaultConfig
 
 __all__ = ["CHANNELS", "STREAMS", "Sensing", "unread_faults", "unread_fields"]
 
@@ -83,6 +87,10 @@ class Sensing:
         x_seen: ``(B, N, S)`` the agents' estimates (what they broadcast and where they place their scans).
         x_sent: ``(B, N, S)`` the estimates the messages of this step carry (``x_seen`` of ``msg_delay`` steps ago).
         obstacles: the true obstacles.
+        history: the estimates of the steps before, newest first (``history[k]``: ``x_seen`` of step ``t - k``,
+            ``history[0] = x_seen``), as many as ``msg_delay + msg_hold + 1`` once the episode is that old; empty:
+            ``(x_seen,)`` (no hold).
+        dt: the control period (s), for ``msg_predict``.
     """
 
     faults: FaultConfig
@@ -93,6 +101,8 @@ class Sensing:
     x_seen: Tensor
     x_sent: Tensor
     obstacles: Obstacles
+    history: tuple[Tensor, ...] = ()
+    dt: float = 0.0
 
     # -------------------------------------------------------------------------------------------------- LiDAR
     def scan(self, config: EnvConfig) -> LidarScan:
@@ -124,13 +134,25 @@ class Sensing:
     # ----------------------------------------------------------------------------------------------- messages
     @property
     def message_faults(self) -> bool:
-        """Whether messages are lost or late (else every agent hears its neighbours' current estimates)."""
-        return any(getattr(self.faults, name) > 0 for name in CHANNELS["messages"])
+        """Whether messages are lost or late (else every agent hears its neighbours' current estimates, and the
+        receivers' handling has nothing to do)."""
+        return any(getattr(self.faults, n) > 0 for n in CHANNELS["messages"] if n not in RECEIVER_FIELDS)
+
+    @property
+    def delay_age(self) -> int:
+        """Steps since the messages of this step were sent: ``msg_delay``, or fewer at an episode's first steps."""
+        return min(self.faults.msg_delay, len(self.history) - 1) if self.history else self.faults.msg_delay
+
+    @property
+    def per_link(self) -> bool:
+        """Whether the messages of one sender can differ between its links (held messages of different ages), so
+        that every link carries its own sender state."""
+        return self.faults.msg_hold > 0 and self.faults.msg_loss > 0
 
     def received(
         self, receivers: Tensor, senders: Tensor, comm_radius: float, like: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
-        """Which candidate directed links carry a message in this step, and what every message carries.
+        """Which candidate directed links carry a message in this step, and what each message tells its receiver.
 
         Args:
             receivers, senders: ``(E,)`` long, the agents of each candidate link ``receiver <- sender`` as flat rows
@@ -141,43 +163,73 @@ class Sensing:
             like: the dtype and device of the states returned (default: ``x_sent``'s).
 
         Returns:
-            ``keep`` ``(E,)`` bool on the device of ``receivers``: the message arrived, i.e. it is not lost in this
-            step (draw ``(seed, "loss", t, i, j) < msg_loss`` with ``i, j`` the local indices of receiver and sender)
-            and, with ``msg_delay > 0``, the sender's delayed estimate lies within ``comm_radius`` of the receiver's
-            current one; ``sent`` ``(B N, S)``: every agent's broadcast as it arrives (``x_sent``, its estimate of
-            ``msg_delay`` steps ago), world frame.
+            ``keep`` ``(E,)`` bool on the device of ``receivers``: the link has a message, i.e. the one of this step
+            is not lost (draw ``(seed, "loss", t, i, j) < msg_loss`` with ``i, j`` the local indices of receiver
+            and sender) or, with ``msg_hold = H``, one of the ``H`` steps before was not (the newest is used);
+            and, with a delay or a held message, the sender's position it carries lies within ``comm_radius`` of
+            the receiver's current estimate. ``states`` ``(E, S)``: the sender's state as the receiver uses it,
+            world frame: its estimate of ``msg_delay`` steps before the message was sent (``x_sent`` for a message
+            of this step), moved to the present at its velocity with ``msg_predict``.
         """
         f, robot = self.faults, self.robot
         b, n = self.x_seen.shape[:2]
         like = self.x_sent if like is None else like
-        sent = self.x_sent.reshape(b * n, -1).to(device=like.device, dtype=like.dtype)
+        history = self.history or (self.x_seen,)
         keep = torch.ones(receivers.shape, dtype=torch.bool, device=receivers.device)
-        if f.msg_delay > 0:
-            seen = self.x_seen.reshape(b * n, -1).to(device=like.device, dtype=like.dtype)
-            src, dst = senders.to(like.device), receivers.to(like.device)
-            gap = torch.linalg.vector_norm(robot.positions(sent)[src] - robot.positions(seen)[dst], dim=-1)
-            keep &= (gap < comm_radius).to(receivers.device)
+        held = torch.zeros(receivers.shape, dtype=torch.long, device=receivers.device)  # steps since it was sent
         if f.msg_loss > 0:
             seeds = self.seeds.to(receivers.device)[receivers // n]
-            keep &= draws.uniform(STREAMS["loss"], seeds, self.t, receivers % n, senders % n) >= f.msg_loss
-        return keep, sent
+            address = (seeds, receivers % n, senders % n)
+            keep = draws.uniform(STREAMS["loss"], address[0], self.t, *address[1:]) >= f.msg_loss
+            for k in range(1, min(f.msg_hold, self.t) + 1):  # the newest message of the last msg_hold steps
+                older = ~keep & (draws.uniform(STREAMS["loss"], address[0], self.t - k, *address[1:]) >= f.msg_loss)
+                held[older] = k
+                keep |= older
+        src = senders.to(like.device)
+        if self.per_link:
+            age = (held.to(like.device) + f.msg_delay).clamp_max(len(history) - 1)
+            stacked = torch.stack(history).reshape(len(history) * b * n, -1)
+            states = stacked[age * (b * n) + src].to(dtype=like.dtype)
+        else:
+            age = torch.full(src.shape, self.delay_age, dtype=torch.long, device=like.device)
+            states = self.x_sent.reshape(b * n, -1).to(device=like.device, dtype=like.dtype)[src]
+        if f.msg_predict:
+            step = (age.to(like.dtype) * self.dt)[:, None]
+            states = robot.perturbed(states, step * robot.velocities(states), None)
+        if f.msg_delay > 0 or self.per_link:
+            seen = self.x_seen.reshape(b * n, -1).to(device=like.device, dtype=like.dtype)
+            gap = torch.linalg.vector_norm(robot.positions(states) - robot.positions(seen)[receivers.to(like.device)],
+                                           dim=-1)  # fmt: skip
+            keep &= (gap < comm_radius).to(receivers.device)
+        return keep, states
 
     def messages(self, graph: SwarmGraph) -> SwarmGraph:
         """``graph`` (built from the estimates) with its agent-to-agent edges as the messages arrive
-        (:meth:`received`): delayed senders, out-of-range and lost messages dropped."""
+        (:meth:`received`): delayed, held and predicted senders, out-of-range and lost messages dropped. Where one
+        sender's messages are the same on all its links (no hold), the sender's row is replaced; otherwise each
+        agent-to-agent edge gets its own sender row, appended to ``x_src``."""
         if not self.message_faults:
             return graph
         m = graph.num_dst
         src, dst = graph.edge_index
         agent_edge = graph.edge_kind == KIND_AGENT
-        arrived, sent = self.received(dst[agent_edge], src[agent_edge], graph.comm_radius, like=graph.x_src)
+        arrived, states = self.received(dst[agent_edge], src[agent_edge], graph.comm_radius, like=graph.x_src)
         keep = ~agent_edge
         keep[agent_edge] = arrived
-        x_src, pos_src = graph.x_src, graph.pos_src
-        if self.faults.msg_delay > 0:
+        x_src, pos_src, edge_index = graph.x_src, graph.pos_src, graph.edge_index
+        if self.per_link:
+            rows = torch.arange(x_src.shape[0], x_src.shape[0] + states.shape[0], device=edge_index.device)
+            edge_index = edge_index.clone()
+            edge_index[0, agent_edge] = rows
+            x_src = torch.cat((x_src, agent_features(self.robot, states)))
+            pos_src = torch.cat((pos_src, self.robot.positions(states)))
+        elif self.faults.msg_delay > 0 or self.faults.msg_predict:
+            sent = self.x_sent.reshape(m, -1).to(device=x_src.device, dtype=x_src.dtype)
+            if self.faults.msg_predict:
+                sent = self.robot.perturbed(sent, self.delay_age * self.dt * self.robot.velocities(sent), None)
             x_src = torch.cat((agent_features(self.robot, sent), x_src[m:]))
             pos_src = torch.cat((self.robot.positions(sent), pos_src[m:]))
-        edge_index = graph.edge_index[:, keep]
+        edge_index = edge_index[:, keep]
         edge_kind = graph.edge_kind[keep]
         edge_attr = edge_vectors(pos_src, graph.pos_dst, edge_index, edge_kind, graph.comm_radius)
         return replace(graph, x_src=x_src, pos_src=pos_src, edge_index=edge_index, edge_kind=edge_kind,

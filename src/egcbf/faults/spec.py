@@ -20,11 +20,15 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["ALIASES", "CHANNELS", "DEFAULT_FIELD", "NONCOOP_MODES", "FaultConfig", "parse_faults"]
+__all__ = ["ALIASES", "CHANNELS", "DEFAULT_FIELD", "NONCOOP_MODES", "RECEIVER_FIELDS", "FaultConfig", "parse_faults"]
 
 #: the perception channels (:class:`egcbf.faults.Sensing`) with the fault fields that act on each; the other faults
 #: act on the state, the commands or the world, and reach every controller
-CHANNELS = {"messages": ("msg_loss", "msg_delay"), "lidar": ("lidar_noise", "lidar_drop")}
+CHANNELS = {"messages": ("msg_loss", "msg_delay", "msg_hold", "msg_predict"), "lidar": ("lidar_noise", "lidar_drop")}
+
+#: the receivers' message handling (not faults: what the agents do about lost and late messages; inert without
+#: them)
+RECEIVER_FIELDS = ("msg_hold", "msg_predict")
 
 #: how a non-cooperative agent flies: ``"hover"`` holds its start position, ``"straight"`` flies the nominal
 #: controller to its goal as if alone (a straight line at the nominal cruise speed)
@@ -46,6 +50,14 @@ class FaultConfig:
             neighbour in that step).
         msg_delay: control steps a message arrives late (the receiver sees the sender's estimate of ``msg_delay``
             steps ago, placed relative to its own current estimate).
+
+    Receivers (not faults: how the agents handle lost and late messages; with neither loss nor delay they change
+    nothing):
+        msg_hold: control steps a receiver keeps using a neighbour's last received message while the newer ones are
+            lost (0: a lost message is a neighbour missing from that step). A held message is as old as the steps
+            since it was sent, plus ``msg_delay``.
+        msg_predict: 1: every message is propagated to the present at the velocity it carries, over its age
+            (``p + v age dt``, the rest of the state as sent); 0: used as it arrives.
 
     Actuation (per agent, drawn once per episode, acting on the command after the controller):
         gain: every control channel's gain is uniform in ``[1 - gain, 1 + gain]``.
@@ -73,6 +85,8 @@ class FaultConfig:
     lidar_drop: float = 0.0
     msg_loss: float = 0.0
     msg_delay: int = 0
+    msg_hold: int = 0
+    msg_predict: int = 0
     gain: float = 0.0
     thrust_gain: float = 0.0
     torque_gain: float = 0.0
@@ -94,10 +108,12 @@ class FaultConfig:
         for name in ("gain", "thrust_gain", "torque_gain"):
             _check(name, getattr(self, name), lambda v: v < 1, "< 1 (a gain error of 100 % switches a motor off)")
         _check("gust_tau", self.gust_tau, lambda v: v > 0, "> 0")
-        for name in ("msg_delay", "act_delay"):
+        for name in ("msg_delay", "act_delay", "msg_hold"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ValueError(f"faults: {name} must be a whole number of control steps >= 0, got {v!r}")
+        if self.msg_predict not in (0, 1) or isinstance(self.msg_predict, bool):
+            raise ValueError(f"faults: msg_predict must be 0 or 1, got {self.msg_predict!r}")
         if not all(math.isfinite(w) for w in self.wind):
             raise ValueError(f"faults: wind must be finite, got {self.wind}")
         if self.noncoop_mode not in NONCOOP_MODES:
@@ -106,15 +122,17 @@ class FaultConfig:
     # ------------------------------------------------------------------------------------------------ queries
     @property
     def is_null(self) -> bool:
-        """Whether every fault is off (the fault-free world)."""
-        zero = dataclasses.replace(FaultConfig(), noncoop_mode=self.noncoop_mode, gust_tau=self.gust_tau)
+        """Whether every fault is off (the fault-free world; the receivers' message handling then changes
+        nothing)."""
+        zero = dataclasses.replace(FaultConfig(), noncoop_mode=self.noncoop_mode, gust_tau=self.gust_tau,
+                                   **{name: getattr(self, name) for name in RECEIVER_FIELDS})  # fmt: skip
         return dataclasses.replace(self, wind=tuple(w for w in self.wind if w != 0.0)) == zero
 
     @property
     def edge_faults(self) -> bool:
         """Whether a fault acts on what the agents perceive of each other and the obstacles (messages, LiDAR): it
         reaches only a controller that reads that channel (:func:`egcbf.faults.sensing.unread_faults`)."""
-        return any(getattr(self, name) > 0 for names in CHANNELS.values() for name in names)
+        return any(getattr(self, n) > 0 for names in CHANNELS.values() for n in names if n not in RECEIVER_FIELDS)
 
     def without(self, names) -> FaultConfig:
         """This config with the fault fields ``names`` switched off."""
@@ -157,9 +175,11 @@ ALIASES = {
     "lidar": "lidar_noise",
     "loss": "msg_loss",
     "delay": "msg_delay",
+    "hold": "msg_hold",
+    "predict": "msg_predict",
 }
 
-_INT_FIELDS = ("msg_delay", "act_delay")
+_INT_FIELDS = ("msg_delay", "act_delay", "msg_hold", "msg_predict")
 
 
 def parse_faults(spec: str | Path | FaultConfig | None) -> FaultConfig:

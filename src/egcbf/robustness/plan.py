@@ -42,6 +42,11 @@ class Axis:
         return [parse_faults(self.spec(x)).spec() if x else "none" for x in self.levels]
 
 
+#: steps a receiver holds a lost neighbour's last message in the receivers' axes (0.125 s at dt = 0.025 s: a
+#: neighbour closing at 1 m/s moves 12.5 cm meanwhile, which the prediction takes back up to its acceleration)
+RECEIVER_HOLD = 5
+RECEIVERS = f"hold={RECEIVER_HOLD},predict=1"
+
 AXES: tuple[Axis, ...] = (
     Axis("field", "default field conditions", "0: none, 1: default", (0, 1), lambda x: "default"),
     Axis("sensing", "state-estimate noise", "position std, m (velocity std: twice, m/s)",
@@ -58,6 +63,14 @@ AXES: tuple[Axis, ...] = (
          lambda x: f"noncoop={x:g},noncoop_mode=straight"),
     Axis("lidar", "LiDAR range noise (drop rate: twice)", "range std, m", (0, 0.01, 0.03, 0.1, 0.3),
          lambda x: f"lidar={x:g},lidar_drop={min(0.9, 2 * x):g}"),
+    # the receivers' fix (docs/robustness.md, "Fixes"): the message axes again, every receiver holding a lost
+    # neighbour's last message up to RECEIVER_HOLD steps and moving each message on at its velocity over its age
+    Axis("field_receivers", "default field conditions, receivers holding and predicting", "0: none, 1: default",
+         (0, 1), lambda x: f"default,{RECEIVERS}"),
+    Axis("loss_receivers", "message loss, receivers holding and predicting", "probability",
+         (0, 0.1, 0.3, 0.5, 0.8), lambda x: f"loss={x:g},{RECEIVERS}"),
+    Axis("delay_receivers", "message delay, receivers predicting", "control steps", (0, 1, 2, 4, 8),
+         lambda x: f"delay={int(x)},predict=1"),
 )  # fmt: skip
 
 assert parse_faults(AXES[0].spec(1)) == DEFAULT_FIELD

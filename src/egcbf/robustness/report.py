@@ -11,7 +11,7 @@ from ..bootstrap import mean_ci
 from ..reproduce.paper import BASELINES, LABELS, base_method
 from ..reproduce.plan import Cell
 from ..reproduce.store import read_json
-from .plan import RobustnessConfig, axis
+from .plan import RECEIVER_HOLD, RobustnessConfig, axis
 
 __all__ = ["load_cells", "write_report"]
 
@@ -27,6 +27,10 @@ _FAULTS_TABLE = (
     ("lidar_drop", "", "probability", "each LiDAR return lost, each step"),
     ("msg_loss", "loss", "probability", "each directed message (receiver <- sender) lost, each step"),
     ("msg_delay", "delay", "control steps", "every message carries the sender's estimate of that many steps ago"),
+    ("msg_hold", "hold", "control steps", "not a fault, the receivers' handling: a lost message is replaced by the "
+     "link's newest message of that many steps before"),
+    ("msg_predict", "predict", "0 or 1", "not a fault, the receivers' handling: each message is moved on at the "
+     "velocity it carries over its age"),
     ("gain", "", "+- fraction", "per agent and channel, drawn once per episode: every control channel"),
     ("thrust_gain", "", "+- fraction", "the same on the collective thrust (quadrotor)"),
     ("torque_gain", "", "+- fraction", "the same on the body torques (quadrotor)"),
@@ -95,12 +99,47 @@ def _field_table(cfg: RobustnessConfig, cells: dict) -> list[str]:
     return lines
 
 
+def _receivers_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
+    """The fix of the message faults (issue 27, item 4): the default field conditions with the receivers holding a
+    lost neighbour's last message and predicting every message over its age, against the same conditions without,
+    for every controller that reads messages (paired over the same scenes)."""
+    if "field_receivers" not in cfg.axes or "field" not in cfg.axes:
+        return []
+    before, after = axis("field").specs()[1], axis("field_receivers").specs()[1]
+    lines = [
+        "## Fixes: what the receivers do about lost and late messages",
+        "",
+        "A lost message removes a neighbour from the receiver's graph (and from its QP rows) for that step, and a "
+        "late one shows it where it was. Neither needs a new controller: each receiver can keep using a "
+        f"neighbour's last message for a few steps (`msg_hold`, here {RECEIVER_HOLD} steps) and move every "
+        "message on at the velocity it carries over its age (`msg_predict`: constant-velocity dead reckoning, "
+        "`p + v age dt`). The receivers' axes (`field_receivers`, `loss_receivers`, "
+        "`delay_receivers`) repeat the message axes with both; the table is the default field conditions without "
+        "and with them (the same scenes; the change is the paired difference, after minus before).",
+        "",
+        "| controller | N | obstacles | safe % (default) | safe % (default, receivers' fix) | change, points "
+        "[95 % CI] | success % (default) | success % (with the fix) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]  # fmt: skip
+    for m in cfg.controllers:
+        if cfg.cell_spec(m, after) == cfg.cell_spec(m, before):
+            continue  # reads no messages: the fix changes nothing for it
+        for n in cfg.num_agents:
+            for k in (0, cfg.obstacles):
+                old, new = cells.get((m, before, n, k)), cells.get((m, after, n, k))
+                change = "-" if old is None or new is None else _loss_text(old, new)
+                lines.append(f"| {LABELS.get(m, m)} | {n} | {k} | {_pct(old, 'safe_rate')} | "
+                             f"{_pct(new, 'safe_rate')} | {change} | {_pct(old, 'success_rate')} | "
+                             f"{_pct(new, 'success_rate')} |")  # fmt: skip
+    return [*lines, ""]
+
+
 def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list[str]:
     """Per axis and controller: the first level whose safe rate drops below each threshold ('>' the last level
     when it never does; '?' where a level is missing)."""
     head = "| axis (unit) | " + " | ".join(LABELS.get(m, m) for m in cfg.controllers) + " |"
     lines = [head, "|---|" + "---|" * len(cfg.controllers)]
-    for a in (axis(x) for x in cfg.axes if x != "field"):
+    for a in (axis(x) for x in cfg.axes if not x.startswith("field")):
         row = [f"{a.title} ({a.unit})"]
         for m in cfg.controllers:
             parts = []
@@ -229,6 +268,7 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         "",
         *_field_table(cfg, cells),
         "",
+        *_receivers_section(cfg, cells),
         "## What to choose",
         "",
         *(_recommendation(cfg, cells, n_big) or ["- pending: the default field conditions at the largest N are not "
@@ -244,7 +284,7 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         lines += [f"**{k} obstacles**", "", *_breaking_levels(cfg, cells, n_big, k), ""]
     lines += ["## Each fault axis", ""]
     for name in cfg.axes:
-        if name == "field":
+        if name.startswith("field"):
             continue
         a = axis(name)
         png = _axis_figure(cfg, cells, name, n_big, figures / f"robustness_{name}.png")

@@ -342,23 +342,28 @@ def perceived_constraints(
 ) -> Constraints:
     """The rows of agents that know their neighbours only from the messages they received (:mod:`egcbf.faults`).
 
-    ``pos, vel`` ``(M, 3)``: each agent's own estimate (world frame); ``sent_pos, sent_vel`` ``(M, 3)``: what each
-    agent's message carries; ``links`` ``(2, L)``: the directed links ``(receiver r, sender s)`` whose messages
-    arrived. Link ``(r, s)`` gives the pair row between agent ``r`` and a phantom agent ``M + s`` at
-    ``sent_pos[s], sent_vel[s]`` (the sender as ``r`` perceives it), ``n . (a_r - a_{M+s}) >= b`` with
-    ``n = (p_r - p_sent_s) / d``, so that ``split_for_agents(cons, num_agents=M)`` keeps exactly ``r``'s half
+    ``pos, vel`` ``(M, 3)``: each agent's own estimate (world frame); ``links`` ``(2, L)``: the directed links
+    ``(receiver r, sender s)`` whose messages arrived; ``sent_pos, sent_vel`` ``(L, 3)``: what each link's message
+    tells its receiver of the sender (the messages of one sender may differ between links: held messages of
+    different ages). Link ``l = (r, s)`` gives the pair row between agent ``r`` and a phantom agent ``M + l`` at
+    ``sent_pos[l], sent_vel[l]`` (the sender as ``r`` perceives it), ``n . (a_r - a_{M+l}) >= b`` with
+    ``n = (p_r - p_sent_l) / d``, so that ``split_for_agents(cons, num_agents=M)`` keeps exactly ``r``'s half
     ``n . a_r >= b / 2``: ``r``'s view of the pair need not be ``s``'s view of it. Obstacle rows, the pruning by
     ``bounds`` and the rest of the arguments as :func:`build_constraints`.
     """
     m = pos.shape[0]
     recv, send = np.asarray(links, dtype=np.int64).reshape(2, -1)
+    sent_pos, sent_vel = np.asarray(sent_pos).reshape(-1, 3), np.asarray(sent_vel).reshape(-1, 3)
+    if sent_pos.shape[0] != recv.shape[0] or sent_vel.shape[0] != recv.shape[0]:
+        raise ValueError(f"perceived_constraints: {recv.shape[0]} links but {sent_pos.shape[0]} sent positions and "
+                         f"{sent_vel.shape[0]} sent velocities (one per link)")  # fmt: skip
     both_pos = np.concatenate((pos, sent_pos))
     both_vel = np.concatenate((vel, sent_vel))
-    pairs = pair_constraints(both_pos, both_vel, np.stack((recv, m + send)), cfg)
+    pairs = pair_constraints(both_pos, both_vel, np.stack((recv, m + np.arange(recv.shape[0]))), cfg)
     if len(pairs):
         # coincident and at rest relative to each other (module doc): the phantom is always the row's j, which
         # would push every receiver up; +z for the lower agent index, -z for the higher, as build_constraints' halves
-        dv = vel[recv] - sent_vel[send]
+        dv = vel[recv] - sent_vel
         still = (pairs.dist <= 1e-9) & (np.sqrt((dv * dv).sum(-1)) <= 1e-9) & (recv > send)
         pairs.normal[still] *= -1.0
     parts = [pairs, *_obstacle_parts(pos, vel, cfg, centers, radii, batch)]

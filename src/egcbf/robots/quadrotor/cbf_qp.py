@@ -395,8 +395,9 @@ class DecentralizedCBFQP(_CBFQPBase):
     ``state.x``; or proxsuite's ``dense.BatchQP`` + ``solve_in_parallel`` with ``dcbf_solver="proxsuite"``).
 
     Under message faults (``state.sensing``, :mod:`egcbf.faults`; module doc) agent ``i``'s pair rows come from its
-    own perception: its estimate ``state.x[b, i]`` against the estimate each neighbour ``j`` broadcast and ``i``
-    received in this step (``sensing.x_sent[b, j]``, ``msg_delay`` steps old), for the directed links that
+    own perception: its estimate ``state.x[b, i]`` against what the message of each neighbour ``j`` on link
+    ``(i, j)`` tells it (``sensing.x_sent[b, j]``, ``msg_delay`` steps old; or an older message held by the receiver,
+    ``msg_hold``; moved to the present with ``msg_predict``), for the directed links that
     :meth:`egcbf.faults.Sensing.received` keeps; the obstacle rows read the agent's estimate and the obstacle map.
 
     ``info`` as :class:`CentralizedCBFQP`, counting per-agent QPs: ``num_slack`` agents whose slack exceeds
@@ -508,24 +509,25 @@ class DecentralizedCBFQP(_CBFQPBase):
         Candidates are the neighbour pairs of the agents' current estimates ``p_now`` ``(M, 3)`` within the
         barrier's cull radius and the communication radius (a neighbour is known only from its messages), in both
         directions. Returns the directed links ``(receiver, sender)`` ``(2, L)`` whose messages arrived (flat agent
-        rows ``b N + i``, sorted), and every agent's broadcast position and velocity as its message arrives
-        ``(M, 3)`` each (world frame, float64), ``lookahead`` seconds ahead under ``accel`` ``(B, N, 3)``
-        (``None``: zero).
+        rows ``b N + i``, sorted), and the sender's position and velocity as each link's message tells its receiver
+        ``(L, 3)`` each (world frame, float64), ``lookahead`` seconds ahead under the sender's ``accel``
+        ``(B, N, 3)`` (``None``: zero).
         """
         comm = float(env_config.comm_radius)
         near = replace(prep.barrier, cull_radius=min(prep.barrier.cull_radius, comm))
         pairs = agent_pairs(p_now, near, batch)
         recv = np.concatenate((pairs[0], pairs[1]))
         send = np.concatenate((pairs[1], pairs[0]))
-        keep, sent = sensing.received(torch.from_numpy(recv), torch.from_numpy(send), comm, like=prep.x)
+        keep, states = sensing.received(torch.from_numpy(recv), torch.from_numpy(send), comm, like=prep.x)
         keep = keep.cpu().numpy()
+        p = sensing.robot.positions(states).cpu().numpy()[keep]
+        v = sensing.robot.velocities(states).cpu().numpy()[keep]
         recv, send = recv[keep], send[keep]
         order = np.lexsort((send, recv))
         links = np.stack((recv[order], send[order]))
-        p = sensing.robot.positions(sent).cpu().numpy()
-        v = sensing.robot.velocities(sent).cpu().numpy()
+        p, v = p[order], v[order]
         if lookahead:
-            acc = _accel_or_zero(accel, prep.v).reshape(p.shape)
+            acc = _accel_or_zero(accel, prep.v).reshape(-1, 3)[links[1]]
             p = p + lookahead * v + 0.5 * lookahead**2 * acc
             v = v + lookahead * acc
         return links, p, v

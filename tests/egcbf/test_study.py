@@ -18,6 +18,7 @@ from egcbf.reproduce.store import checkpoint_dir
 from egcbf.study import ARMS, Arm, RotatedCell, Run, arm, pending_runs, train_command, train_runs, verdict, write_report
 from egcbf.study.driver import evaluate_arm, evaluate_rotated, sweep_config
 from egcbf.study.plan import rotated_cells
+from egcbf.study.report import default_quote_targets
 
 
 # ---------------------------------------------------------------------------------------------------------- plan
@@ -136,8 +137,16 @@ def test_report_reads_effects_and_verdicts_from_result_files(tmp_path):
     for name in ("cpu-20", "no-closest", "mlp-cbf", "mlp-policy"):
         gap = {"egcbf+": 0.95, "gcbf+": 0.80 if name == "mlp-cbf" else 0.95}
         _write_cells(arm(name), root, dict(gap), rng)
-    path, verdicts = write_report(report, root)
+    quoting, plain = tmp_path / "docs" / "reproduction.md", tmp_path / "README.md"
+    quoting.parent.mkdir(parents=True, exist_ok=True)
+    quoting.write_text("Before.\n\n<!-- equivariance-verdicts:begin -->\nold\n<!-- equivariance-verdicts:end -->\n")
+    plain.write_text("No markers here.\n")
+    path, verdicts = write_report(report, root, quote_in=default_quote_targets(report))
     assert verdicts == {"generalization": "supported", "convergence": "not supported", "transfer": "supported"}
+    quoted = quoting.read_text()
+    assert quoted.startswith("Before.") and "old" not in quoted and "[equivariance.md](equivariance.md)" in quoted
+    assert "zero-shot generalization" in quoted and "**supported** (+9." in quoted and "**not supported**" in quoted
+    assert plain.read_text() == "No markers here.\n"
     assert "**Reading: supported for mlp-cbf: switching it off opens a gap in EGCBF+'s favour**" in path.read_text()
     assert "GCBF+ loses up to 3" in path.read_text()  # 95 % -> 60 %: 35 points, beyond the interval
     text = path.read_text()

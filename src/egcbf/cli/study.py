@@ -31,6 +31,7 @@ def study_cmd(
     """Train, evaluate and report the equivariance study (docs/equivariance.md): what SE(2)xR equivariance buys,
     claim by claim, with seeds and 95 % intervals. Everything resumes: rerun the same command."""
     from ..study import ARMS, arm, evaluate_arm, pending_runs, train_runs, write_report
+    from ..study.report import default_quote_targets
 
     require(jobs >= 1, f"--jobs must be >= 1, got {jobs}")
     try:
@@ -53,7 +54,7 @@ def study_cmd(
         if evaluate:
             for a in chosen:
                 evaluate_arm(a, root, workers=jobs, log=typer.echo)
-    path, verdicts = write_report(report, root)
+    path, verdicts = write_report(report, root, quote_in=default_quote_targets(report))
     for claim, v in verdicts.items():
         typer.echo(f"{claim}: {v}")
     typer.echo(f"wrote {path}")

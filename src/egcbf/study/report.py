@@ -9,6 +9,7 @@ computed. The sections between ``<!-- name:begin/end -->`` markers are regenerat
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 from ..atomic import write_text_atomic
@@ -19,7 +20,7 @@ from .figures import curves_figure, rotated_figure, zero_shot_figure
 from .plan import ARMS, ROOT, Arm, arm, rotated_cells
 from .results import arm_cells, auc, curve, difference, method_mean, per_episode, rotated_rows, updates_to
 
-__all__ = ["verdict", "write_report"]
+__all__ = ["default_quote_targets", "verdict", "write_report"]
 
 _SECTIONS = (
     ("status", "## What is computed"),
@@ -101,10 +102,10 @@ def _pair_effects(a: Arm, cells: dict, n: int, scale: bool) -> list[tuple[str, I
     return out
 
 
-def _generalization(root: Path, figures: Path, report: Path) -> tuple[str, str]:
+def _generalization(root: Path, figures: Path, report: Path) -> tuple[str, str, str]:
     arms = [arm("paper-cpu"), arm("paper-cpu-mlp")]
     cells = {a.name: arm_cells(a, root) for a in arms}
-    lines, effects = [], []
+    lines, effects, evidence = [], [], []
     for a in arms:
         c = cells[a.name]
         head = [
@@ -125,19 +126,20 @@ def _generalization(root: Path, figures: Path, report: Path) -> tuple[str, str]:
                 lines.append(f"- {a.name}, N = {n}: {name} = {_iv(e)} safe-rate points")
                 if name.startswith("EGCBF+"):
                     effects.append(e)
+                    evidence.append(f"{_iv(e)} ({a.name}, N = {n})")
         lines.append("")
     if any(cells.values()):
         png = zero_shot_figure(arms, cells, figures / "equivariance_zero_shot.png")
         lines += [f"![zero-shot safety against N]({_rel(png, report)})", ""]
     v = verdict(effects)
     lines.append(f"**Verdict: {v}** (EGCBF+ minus GCBF+ at N = 512 under both heads, and at N = 4096).")
-    return "\n".join(lines), v
+    return "\n".join(lines), v, "; ".join(evidence)
 
 
-def _convergence(root: Path, figures: Path, report: Path) -> tuple[str, str]:
+def _convergence(root: Path, figures: Path, report: Path) -> tuple[str, str, str]:
     arms = [arm("paper-cpu"), arm("paper-cpu-mlp"), arm("low-data")]
     curves = {a.name: [(r, c) for r in a.all_runs() if (c := curve(r, root)) is not None] for a in arms}
-    lines, effects = [], []
+    lines, effects, evidence = [], [], []
     rows = []
     for a in arms[:2]:
         got = {(r.algo, r.seed): c for r, c in curves[a.name]}
@@ -157,6 +159,7 @@ def _convergence(root: Path, figures: Path, report: Path) -> tuple[str, str]:
             rows.append([a.name, f"{LABELS[e]} - {LABELS[g]}", f"{upto:g}", _iv(d), t90_text])
             if e == "egcbf+":
                 effects.append(d)
+                evidence.append(f"{_iv(d)} in mean validation success ({a.name})")
     lines += [
         md_table(
             [
@@ -178,19 +181,20 @@ def _convergence(root: Path, figures: Path, report: Path) -> tuple[str, str]:
         )
         if name.startswith("EGCBF+"):
             effects.append(e)
+            evidence.append(f"{_iv(e)} safe points at N = 512 (low-data)")
     if any(curves.values()):
         png = curves_figure({k: v for k, v in curves.items() if v}, figures / "equivariance_curves.png")
         lines += ["", f"![validation curves]({_rel(png, report)})"]
     v = verdict(effects)
     lines += ["", f"**Verdict: {v}** (EGCBF+ minus GCBF+: validation success over training under both heads, and the "
               "low-data run's zero-shot safety at N = 512)."]  # fmt: skip
-    return "\n".join(lines), v
+    return "\n".join(lines), v, "; ".join(evidence)
 
 
 _ROTATED_METRICS = (("safe_rate", "Safe"), ("success_rate", "Success"))
 
 
-def _rotated(root: Path, figures: Path, report: Path) -> tuple[str, str]:
+def _rotated(root: Path, figures: Path, report: Path) -> tuple[str, str, str]:
     a = arm("crossing")
     head = ["run", "cell", "yaw 0", "yaw 90", "yaw 180", "uniform", "90 - 0 (points)", "180 - 0 (points)"]
     sizes = sorted({c.num_agents for c in rotated_cells()})
@@ -240,7 +244,7 @@ def _rotated(root: Path, figures: Path, report: Path) -> tuple[str, str]:
         v = "not supported (the world-frame method transfers as well)"
     lines.append(f"**Verdict: {v}** ({detail}EGCBF+ must be constant under rotation; GCBF+'s change is the effect; "
                  "safety and success).")  # fmt: skip
-    return "\n".join(lines), v
+    return "\n".join(lines), v, detail.strip().rstrip(".")
 
 
 def _ablation(root: Path) -> str:
@@ -281,15 +285,20 @@ def _rel(path: Path, report: Path) -> str:
     return Path(os.path.relpath(path, report.parent)).as_posix()
 
 
-def write_report(report: str | Path = "docs/equivariance.md", root: str | Path = ROOT) -> tuple[Path, dict]:
+def write_report(
+    report: str | Path = "docs/equivariance.md", root: str | Path = ROOT, quote_in: Sequence[str | Path] = ()
+) -> tuple[Path, dict]:
     """Write (or update) ``report`` and its figures (``<report dir>/figures/equivariance_*.png``); returns the path
-    and the verdicts ``{claim: verdict}``."""
+    and the verdicts ``{claim: verdict}``. Each page of ``quote_in`` that holds an ``equivariance-verdicts`` block
+    gets the verdicts and their effect sizes there (:func:`default_quote_targets`: the README and
+    docs/reproduction.md)."""
     report, root = Path(report), Path(root)
     figures = report.parent / "figures"
-    gen, v1 = _generalization(root, figures, report)
-    conv, v2 = _convergence(root, figures, report)
-    rot, v3 = _rotated(root, figures, report)
+    gen, v1, e1 = _generalization(root, figures, report)
+    conv, v2, e2 = _convergence(root, figures, report)
+    rot, v3, e3 = _rotated(root, figures, report)
     verdicts = {"generalization": v1, "convergence": v2, "transfer": v3}
+    evidence = {"generalization": e1, "convergence": e2, "transfer": e3}
     bodies = {"status": _status(root), "generalization": gen, "convergence": conv, "rotated": rot,
               "ablation": _ablation(root)}  # fmt: skip
     text = report.read_text() if report.exists() else _TEMPLATE
@@ -299,7 +308,37 @@ def write_report(report: str | Path = "docs/equivariance.md", root: str | Path =
     text = replace_block(text, "verdicts", summary, heading="## Verdicts")
     report.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(report, text)
+    for target in quote_in:
+        _quote(Path(target), report, verdicts, evidence)
     return report, verdicts
+
+
+#: what each claim's verdict is about, for the quotes in other pages
+_CLAIMS = {
+    "generalization": "zero-shot generalization from 8 agents to larger, denser swarms (EGCBF+ minus GCBF+, safe %)",
+    "convergence": "faster convergence and fewer samples (EGCBF+ minus GCBF+)",
+    "transfer": "transfer to rotated states",
+}
+
+
+def default_quote_targets(report: Path) -> tuple[Path, ...]:
+    """The pages that quote the verdicts of ``report`` (``docs/equivariance.md``): its sibling ``reproduction.md``
+    and the README beside its folder, where they exist (a report written elsewhere quotes into nothing)."""
+    return tuple(p for p in (report.parent / "reproduction.md", report.parent.parent / "README.md") if p.exists())
+
+
+def _quote(target: Path, report: Path, verdicts: dict, evidence: dict) -> None:
+    """Rewrite the ``equivariance-verdicts`` block of ``target`` (only where the page has the markers) with the
+    verdicts and their effect sizes, so that no page paraphrases them by hand."""
+    text = target.read_text()
+    if "<!-- equivariance-verdicts:begin -->" not in text:
+        return
+    link = _rel(report, target)
+    items = [f"{_CLAIMS[k]}: **{v}**" + (f" ({evidence[k]})" if evidence[k] and v != "pending" else "")
+             for k, v in verdicts.items()]  # fmt: skip
+    body = (f"What equivariance buys, claim by claim ([{link}]({link}), generated by `egcbf study --report-only`; "
+            "95 % intervals over training seeds and episodes): " + "; ".join(items) + ".")  # fmt: skip
+    write_text_atomic(target, replace_block(text, "equivariance-verdicts", body))
 
 
 _TEMPLATE = """# What equivariance buys: the paper's three claims, tested

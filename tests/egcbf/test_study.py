@@ -16,7 +16,7 @@ from egcbf.config import TrainConfig
 from egcbf.reproduce import cell_key
 from egcbf.reproduce.store import checkpoint_dir
 from egcbf.study import ARMS, Arm, RotatedCell, Run, arm, pending_runs, train_command, train_runs, verdict, write_report
-from egcbf.study.driver import evaluate_arm, evaluate_rotated, sweep_config
+from egcbf.study.driver import evaluate_arm, evaluate_rotated, evaluate_rotated_many, sweep_config
 from egcbf.study.plan import rotated_cells
 from egcbf.study.report import default_quote_targets
 
@@ -85,6 +85,12 @@ def test_tiny_runs_train_resume_and_evaluate_end_to_end(tmp_path):
     run = Run("tiny", "egcbf+", 0)
     assert evaluate_rotated(run, root, lambda s: None, small) == 2
     assert evaluate_rotated(run, root, lambda s: None, small) == 0  # stored with the same checkpoint: kept
+    # several runs' cells at once over two worker processes: the same files as one at a time
+    more = [*small, RotatedCell("uniform", 0.0, 3, 1.5, 0, episodes=1)]
+    logs: list[str] = []
+    assert evaluate_rotated_many([run, Run("tiny", "gcbf+", 0)], root, 2, logs.append, more) == 4
+    assert len(logs) == 4 and all(line.startswith("rotated tiny/") for line in logs)
+    assert evaluate_rotated_many([run, Run("tiny", "gcbf+", 0)], root, 2, logs.append, more) == 0
 
 
 # -------------------------------------------------------------------------------------------------------- report

@@ -25,7 +25,7 @@ from pathlib import Path
 from ..atomic import write_json_atomic
 from .plan import EVAL_SEED, ROOT, Arm, RotatedCell, Run, rotated_cells
 
-__all__ = ["evaluate_arm", "pending_runs", "train_command", "train_runs"]
+__all__ = ["evaluate_arm", "evaluate_rotated", "evaluate_rotated_many", "pending_runs", "train_command", "train_runs"]
 
 RUNS = Path("runs/equivariance")
 DONE = "study_done.json"
@@ -151,6 +151,11 @@ def _rotated_key(run: Run, cell: RotatedCell, sha: str) -> dict:
     return {"run": f"{run.arm}/{run.name}", "checkpoint_sha256": sha, "seed": EVAL_SEED, **cell.__dict__}
 
 
+def _rotated_stored(run: Run, cell: RotatedCell, root: str | Path, sha: str) -> bool:
+    path = cell.path(run, root)
+    return path.exists() and json.loads(path.read_text()).get("key") == _rotated_key(run, cell, sha)
+
+
 def evaluate_rotated(
     run: Run,
     root: str | Path = ROOT,
@@ -172,7 +177,7 @@ def evaluate_rotated(
     for cell in rotated_cells() if cells is None else cells:
         path = cell.path(run, root)
         key = _rotated_key(run, cell, sha)
-        if path.exists() and json.loads(path.read_text()).get("key") == key:
+        if _rotated_stored(run, cell, root, sha):
             continue
         if controller is None:
             controller, train_cfg = load_controller(ckpt, device="cpu", dtype=torch.float32)
@@ -198,15 +203,52 @@ def evaluate_rotated(
     return computed
 
 
+def _rotated_task(task: tuple[Run, RotatedCell, str]) -> list[str]:
+    """One rotated cell in a worker process (one torch thread); returns its log lines."""
+    import torch
+
+    torch.set_num_threads(1)
+    run, cell, root = task
+    lines: list[str] = []
+    evaluate_rotated(run, root, lines.append, [cell])
+    return lines
+
+
+def evaluate_rotated_many(
+    runs: Sequence[Run],
+    root: str | Path = ROOT,
+    workers: int = 1,
+    log: Callable[[str], None] = print,
+    cells: Sequence[RotatedCell] | None = None,
+) -> int:
+    """:func:`evaluate_rotated` for every run of ``runs``, the cells not stored yet spread over ``workers``
+    processes (one cell each, largest swarms first); returns how many cells were computed."""
+    from ..checkpoint import sha256
+
+    cells = rotated_cells() if cells is None else list(cells)
+    todo = []
+    for run in runs:
+        sha = sha256(run.checkpoint_dir(root) / "model.safetensors")
+        todo += [(run, c, str(root)) for c in cells if not _rotated_stored(run, c, root, sha)]
+    todo.sort(key=lambda t: -t[1].num_agents)
+    if workers <= 1 or len(todo) <= 1:
+        return sum(evaluate_rotated(run, root, log, [cell]) for run, cell, _ in todo)
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(min(workers, len(todo))) as pool:
+        for lines in pool.imap_unordered(_rotated_task, todo):
+            for line in lines:
+                log(line)
+    return len(todo)
+
+
 def evaluate_arm(arm: Arm, root: str | Path = ROOT, workers: int = 2, log: Callable[[str], None] = print) -> None:
     """Evaluate every trained run of ``arm`` (runs not trained yet are skipped and named)."""
     missing = pending_runs([arm], root)
     if missing:
         log(f"{arm.name}: not trained yet, not evaluated: {[r.name for r in missing]}")
     if arm.evaluation == "rotated":
-        for run in arm.all_runs():
-            if run not in missing:
-                evaluate_rotated(run, root, log)
+        evaluate_rotated_many([r for r in arm.all_runs() if r not in missing], root, workers, log)
         return
     if missing:  # the sweep needs every checkpoint of the arm
         return

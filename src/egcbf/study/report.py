@@ -98,7 +98,10 @@ def _pair_effects(a: Arm, cells: dict, n: int, scale: bool) -> list[tuple[str, I
     out = []
     for e, g in _PAIRS:
         if e in a.algos() and g in a.algos():
-            out.append((f"{LABELS[e]} - {LABELS[g]}", difference(cells, e, g, a.seeds(e), a.seeds(g), n, scale)))
+            name = f"{LABELS[e]} - {LABELS[g]}"
+            if min(len(a.seeds(e)), len(a.seeds(g))) == 1:
+                name += " (one training seed each: the interval covers episodes only)"
+            out.append((name, difference(cells, e, g, a.seeds(e), a.seeds(g), n, scale)))
     return out
 
 
@@ -156,7 +159,8 @@ def _convergence(root: Path, figures: Path, report: Path) -> tuple[str, str, str
             d = difference_ci(ae, ag)
             t90 = [updates_to(got[(x, s)], "success_rate", 0.9) for x, ss in ((e, se), (g, sg)) for s in ss]
             t90_text = ", ".join("never" if t is None else f"{t:g}" for t in t90)
-            rows.append([a.name, f"{LABELS[e]} - {LABELS[g]}", f"{upto:g}", _iv(d), t90_text])
+            d_text = _iv(d) if min(len(se), len(sg)) > 1 else f"{100 * d.estimate:+.1f} (one seed each: no interval)"
+            rows.append([a.name, f"{LABELS[e]} - {LABELS[g]}", f"{upto:g}", d_text, t90_text])
             if e == "egcbf+":
                 effects.append(d)
                 evidence.append(f"{_iv(d)} in mean validation success ({a.name})")

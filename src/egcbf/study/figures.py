@@ -79,6 +79,7 @@ def curves_figure(
             ax.set_ylabel(f"{name}: val. {key.split('_')[0]} %")
             ax.grid(alpha=0.3)
         row[0].legend(fontsize=7)
+    fig.tight_layout()
     return _save(fig, Path(out_png))
 
 

@@ -151,9 +151,8 @@ def _held_run(faults: FaultConfig, steps: int = 5):
         x[..., 0:3] += 1e-6 * t
         seen = proc.observe(dataclasses.replace(state, x=x, t=t))
         xs.append(seen.x)
-    links = build_graph(dataclasses.replace(seen, sensing=None), cfg).edge_index
-    kind = build_graph(dataclasses.replace(seen, sensing=None), cfg).edge_kind
-    return cfg, xs, seen, links[:, kind == KIND_AGENT]
+    clean = build_graph(dataclasses.replace(seen, sensing=None), cfg)
+    return cfg, xs, seen, clean.edge_index[:, clean.edge_kind == KIND_AGENT]
 
 
 def test_receivers_hold_the_last_message_within_hold_steps_and_predict_it_over_its_age():

@@ -143,6 +143,20 @@ class Sensing:
         """Steps since the messages of this step were sent: ``msg_delay``, or fewer at an episode's first steps."""
         return min(self.faults.msg_delay, len(self.history) - 1) if self.history else self.faults.msg_delay
 
+    def _moved_on(self, states: Tensor, steps: Tensor | int) -> Tensor:
+        """``states`` ``(E, S)`` as the receiver uses them: with ``msg_predict`` moved on at their velocity over
+        ``steps`` control steps (an int, or ``(E,)`` per row), else unchanged."""
+        if not self.faults.msg_predict:
+            return states
+        dt = (steps.to(states.dtype) * self.dt)[:, None] if isinstance(steps, Tensor) else steps * self.dt
+        return self.robot.perturbed(states, dt * self.robot.velocities(states), None)
+
+    def sent_states(self, like: Tensor) -> Tensor:
+        """``(B N, S)``: every agent's message of this step as its receivers use it (``x_sent``, moved on over
+        :attr:`delay_age` with ``msg_predict``), in the dtype and on the device of ``like``."""
+        sent = self.x_sent.reshape(-1, self.x_sent.shape[-1]).to(device=like.device, dtype=like.dtype)
+        return self._moved_on(sent, self.delay_age)
+
     @property
     def per_link(self) -> bool:
         """Whether the messages of one sender can differ between its links (held messages of different ages), so
@@ -189,13 +203,9 @@ class Sensing:
         if self.per_link:
             age = (held.to(like.device) + f.msg_delay).clamp_max(len(history) - 1)
             stacked = torch.stack(history).reshape(len(history) * b * n, -1)
-            states = stacked[age * (b * n) + src].to(dtype=like.dtype)
+            states = self._moved_on(stacked[age * (b * n) + src].to(dtype=like.dtype), age)
         else:
-            age = torch.full(src.shape, self.delay_age, dtype=torch.long, device=like.device)
-            states = self.x_sent.reshape(b * n, -1).to(device=like.device, dtype=like.dtype)[src]
-        if f.msg_predict:
-            step = (age.to(like.dtype) * self.dt)[:, None]
-            states = robot.perturbed(states, step * robot.velocities(states), None)
+            states = self.sent_states(like)[src]
         if f.msg_delay > 0 or self.per_link:
             seen = self.x_seen.reshape(b * n, -1).to(device=like.device, dtype=like.dtype)
             gap = torch.linalg.vector_norm(robot.positions(states) - robot.positions(seen)[receivers.to(like.device)],
@@ -224,9 +234,7 @@ class Sensing:
             x_src = torch.cat((x_src, agent_features(self.robot, states)))
             pos_src = torch.cat((pos_src, self.robot.positions(states)))
         elif self.faults.msg_delay > 0 or self.faults.msg_predict:
-            sent = self.x_sent.reshape(m, -1).to(device=x_src.device, dtype=x_src.dtype)
-            if self.faults.msg_predict:
-                sent = self.robot.perturbed(sent, self.delay_age * self.dt * self.robot.velocities(sent), None)
+            sent = self.sent_states(x_src)
             x_src = torch.cat((agent_features(self.robot, sent), x_src[m:]))
             pos_src = torch.cat((self.robot.positions(sent), pos_src[m:]))
         edge_index = edge_index[:, keep]

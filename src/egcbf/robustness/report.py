@@ -81,6 +81,13 @@ def _loss_text(clean: dict, faulty: dict) -> str:
     return mean_ci([[x - y for x, y in zip(a, b)]], resamples=2000).text(100, 2)
 
 
+def _before_after(before: dict | None, after: dict | None) -> str:
+    """The table cells ``safe before | safe after | change [95 % CI] | success before | success after``."""
+    change = "-" if before is None or after is None else _loss_text(before, after)
+    return (f"{_pct(before, 'safe_rate')} | {_pct(after, 'safe_rate')} | {change} | {_pct(before, 'success_rate')} | "
+            f"{_pct(after, 'success_rate')}")  # fmt: skip
+
+
 def _field_table(cfg: RobustnessConfig, cells: dict) -> list[str]:
     spec = axis("field").specs()[1]
     lines = ["| controller | N | obstacles | safe % (none) | safe % (default) | change, points [95 % CI] | "
@@ -89,13 +96,10 @@ def _field_table(cfg: RobustnessConfig, cells: dict) -> list[str]:
     for m in cfg.controllers:
         for n in cfg.num_agents:
             for k in (0, cfg.obstacles):
-                clean, faulty = cells.get((m, "none", n, k)), cells.get((m, spec, n, k))
-                change = "-" if clean is None or faulty is None else _loss_text(clean, faulty)
                 sees = cfg.cell_spec(m, spec)
                 note = "all" if sees == spec else f"state-level only (`{sees}`)"
-                lines.append(f"| {LABELS.get(m, m)} | {n} | {k} | {_pct(clean, 'safe_rate')} | "
-                             f"{_pct(faulty, 'safe_rate')} | {change} | {_pct(clean, 'success_rate')} | "
-                             f"{_pct(faulty, 'success_rate')} | {note} |")  # fmt: skip
+                pair = _before_after(cells.get((m, "none", n, k)), cells.get((m, spec, n, k)))
+                lines.append(f"| {LABELS.get(m, m)} | {n} | {k} | {pair} | {note} |")
     return lines
 
 
@@ -126,11 +130,8 @@ def _receivers_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
             continue  # reads no messages: the fix changes nothing for it
         for n in cfg.num_agents:
             for k in (0, cfg.obstacles):
-                old, new = cells.get((m, before, n, k)), cells.get((m, after, n, k))
-                change = "-" if old is None or new is None else _loss_text(old, new)
-                lines.append(f"| {LABELS.get(m, m)} | {n} | {k} | {_pct(old, 'safe_rate')} | "
-                             f"{_pct(new, 'safe_rate')} | {change} | {_pct(old, 'success_rate')} | "
-                             f"{_pct(new, 'success_rate')} |")  # fmt: skip
+                pair = _before_after(cells.get((m, before, n, k)), cells.get((m, after, n, k)))
+                lines.append(f"| {LABELS.get(m, m)} | {n} | {k} | {pair} |")
     return [*lines, ""]
 
 

@@ -39,7 +39,8 @@ from egcbf.control.sparse_solvers import available_solvers
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.report import replace_section
 from egcbf.robots.quadrotor.barriers import build_constraints, split_for_agents
-from egcbf.robots.quadrotor.cbf_qp import CentralizedCBFQP, DecentralizedCBFQP
+from egcbf.robots.quadrotor.cbf_qp import CentralizedCBFQP
+from egcbf.robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from qp_direct import DIRECT, solve_direct  # the pre-qpsolvers adapters, for --direct

@@ -222,7 +222,7 @@ class AgentFilteredController:
 
     def __post_init__(self) -> None:
         from .algo.filtered import FilterConfig
-        from .robots.quadrotor.cbf_qp import DecentralizedCBFQP
+        from .robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 
         self.filter_config = self.filter_config or FilterConfig.for_kind("dcbf")
         cfg = self.filter_config

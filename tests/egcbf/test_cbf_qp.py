@@ -33,11 +33,11 @@ from egcbf.robots.quadrotor.barriers import (
 )
 from egcbf.robots.quadrotor.cbf_qp import (
     CentralizedCBFQP,
-    DecentralizedCBFQP,
     default_bounds,
     nominal_acceleration,
     track_acceleration,
 )
+from egcbf.robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 from egcbf.robots.quadrotor.nominal import nominal_control
 from egcbf.robots.quadrotor.so3 import so3_exp, yaw_rotation
 

@@ -23,7 +23,8 @@ from egcbf.graph import KIND_AGENT, build_graph
 from egcbf.robots import make_robot
 from egcbf.robots.quadrotor import dynamics as dyn
 from egcbf.robots.quadrotor.barriers import BarrierConfig, build_constraints, perceived_constraints, split_for_agents
-from egcbf.robots.quadrotor.cbf_qp import CentralizedCBFQP, DecentralizedCBFQP
+from egcbf.robots.quadrotor.cbf_qp import CentralizedCBFQP
+from egcbf.robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 from egcbf.robots.quadrotor.so3 import yaw_rotation
 
 F64 = torch.float64

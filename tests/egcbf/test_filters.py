@@ -231,7 +231,7 @@ def test_eval_filter_refuses_what_it_cannot_do(tiny_checkpoint, tmp_path):
 def test_lookahead_reads_the_predicted_state():
     """The dcbf filter with ``lookahead T`` and accelerations ``a`` solves the QPs of the state moved to
     ``p + T v + T^2 a / 2``, ``v + T a`` (same reference), exactly."""
-    from egcbf.robots.quadrotor.cbf_qp import DecentralizedCBFQP
+    from egcbf.robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 
     state, cfg = _scene(8, 1.0, 4, envs=2, obstacles=2)
     qp = DecentralizedCBFQP()
@@ -272,7 +272,7 @@ def test_the_nominal_controller_behind_the_dcbf_filter_is_the_dcbf_qp_with_the_f
 
     from egcbf.algo.filtered import DCBF_FILTER_BARRIER
     from egcbf.cli import app
-    from egcbf.robots.quadrotor.cbf_qp import DecentralizedCBFQP
+    from egcbf.robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 
     state, cfg = _scene(6, 1.0, 9, envs=1, obstacles=1)
     ctrl = FilteredController(None, None, FilterConfig(kind="dcbf", lookahead=0.0))

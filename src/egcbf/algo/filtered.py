@@ -25,7 +25,7 @@ brakes. Three filters (``FILTERS``):
 * ``"prior"``: the same rows from the head's untrained prior ``b = d_min - D`` (closest-approach distance within
   the horizon minus the checkpoint's ``cbf_distance``): the ablation that shows what learning the barrier adds.
 * ``"dcbf"`` (the recommended one): the hand-crafted pairwise and obstacle barriers of the dCBF-QP baseline (Wang
-  et al.'s braking-distance barrier, :class:`~.cbf_qp.DecentralizedCBFQP`) with the policy's command
+  et al.'s braking-distance barrier, :class:`~.dcbf_qp.DecentralizedCBFQP`) with the policy's command
   as the reference instead of the nominal one, its own settings (``DCBF_FILTER_BARRIER``), its QP box, and a
   look-ahead (``DCBF_FILTER_LOOKAHEAD``): the rows read every agent ``T`` seconds ahead under the acceleration it
   realized over the last step, a predictor for the attitude loop's lag. Learned liveness, hand-crafted safety.
@@ -35,7 +35,7 @@ the ablation that shows what the policy adds. docs/safety_filters.md has the mea
 
 Under faults (:mod:`egcbf.faults`) the policy and the ``cbf`` / ``prior`` rows read the agent's graph, which carries
 the messages and the LiDAR scan as the agent receives them; the ``dcbf`` rows read the same messages
-(:class:`~.cbf_qp.DecentralizedCBFQP`) but the obstacle map, not the scan. ``reads_sensing`` says so:
+(:class:`~.dcbf_qp.DecentralizedCBFQP`) but the obstacle map, not the scan. ``reads_sensing`` says so:
 every channel for ``cbf`` and ``prior``, the messages for ``dcbf`` (``READS_SENSING``).
 
 Every piece is an invariant or an equivariant of the agent's frame (edge vectors rotate with the scene, the box
@@ -60,7 +60,7 @@ from ..filter_names import FILTERS
 from ..graph import SwarmGraph, build_graph
 from ..nn.models import CBFNet, ModelConfig, PolicyNet
 from ..robots.quadrotor.barriers import BarrierConfig
-from ..robots.quadrotor.cbf_qp import DecentralizedCBFQP
+from ..robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 from .edge_qp import BRAKE_GAIN, SLACK_TOL, EdgeRows, edge_qp_commands, edge_rows
 from .interface import AccelInterface, make_interface
 from .learner import policy_command
@@ -103,7 +103,7 @@ class FilterConfig:
         active_tol: an agent's command counts as changed by the filter above this (m/s^2).
         barrier: the hand-crafted pairwise barrier of the ``dcbf`` filter (``DCBF_FILTER_BARRIER``).
         lookahead: (s) the ``dcbf`` filter's barriers read every agent ``lookahead`` seconds ahead under the
-            acceleration it realized over the last step (:meth:`~.cbf_qp.DecentralizedCBFQP.filter`;
+            acceleration it realized over the last step (:meth:`~.dcbf_qp.DecentralizedCBFQP.filter`;
             ``DCBF_FILTER_LOOKAHEAD``; 0: the current state; ``cbf`` and ``prior`` ignore it).
     """
 

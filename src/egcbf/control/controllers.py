@@ -15,7 +15,8 @@ import time
 
 from torch import Tensor
 
-from ..robots.quadrotor.cbf_qp import CBFQPConfig, CentralizedCBFQP, DecentralizedCBFQP
+from ..robots.quadrotor.cbf_qp import CBFQPConfig, CentralizedCBFQP
+from ..robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 from ..robots.quadrotor.nominal import DEFAULT_GAINS, DEFAULT_MAX_POSITION_ERROR, NominalGains, nominal_control
 
 __all__ = [

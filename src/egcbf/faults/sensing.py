@@ -16,7 +16,7 @@ passes the graph it built through :meth:`Sensing.messages`. So every controller 
   one link's message can be older than another's: the graph then gives each such edge its own sender row), and
   with ``msg_predict`` every message is moved to the present at the velocity it carries, over its age.
   :meth:`Sensing.received` decides which directed links (receiver, sender) carry a message and what it carries;
-  the graph (:meth:`Sensing.messages`) and the decentralized CBF-QP (:class:`~.cbf_qp.DecentralizedCBFQP`) both
+  the graph (:meth:`Sensing.messages`) and the decentralized CBF-QP (:class:`~.dcbf_qp.DecentralizedCBFQP`) both
   read it, so they lose the same messages.
 
 A controller declares the channels it perceives in its ``reads_sensing`` attribute (:data:`CHANNELS`,

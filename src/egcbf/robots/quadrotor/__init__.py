@@ -7,9 +7,10 @@
 * :mod:`~egcbf.robots.quadrotor.nominal`: its equivariant geometric controller, and the inner loop
   (:func:`~egcbf.robots.quadrotor.nominal.track_acceleration`) that turns an acceleration command into body torque
   and thrust;
-* :mod:`~egcbf.robots.quadrotor.barriers` and :mod:`~egcbf.robots.quadrotor.cbf_qp`: its hand-crafted barriers
-  (through the thrust-vector double-integrator model) and the cCBF-QP and dCBF-QP built on them, on the generic QP
-  cores of :mod:`egcbf.control`;
+* :mod:`~egcbf.robots.quadrotor.barriers`: its hand-crafted barriers (through the thrust-vector double-integrator
+  model); :mod:`~egcbf.robots.quadrotor.cbf_qp` (the two loops around the filter, the shared configuration, the
+  cCBF-QP) and :mod:`~egcbf.robots.quadrotor.dcbf_qp` (the dCBF-QP) built on them, on the generic QP cores of
+  :mod:`egcbf.control`;
 * :mod:`~egcbf.robots.quadrotor.robot`: :class:`Quadrotor`, the :class:`~egcbf.robots.base.Robot` the swarm, the
   graph and the learner read.
 

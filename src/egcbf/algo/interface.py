@@ -81,6 +81,11 @@ class CommandInterface:
         """``lo, hi`` ``(k,)``: the box of the local coordinates."""
         raise NotImplementedError
 
+    def state_bounds(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """``lo, hi`` (``(k,)`` or ``(*batch, k)``): the box of the local coordinates that acts at the states ``x``
+        (:meth:`egcbf.robots.base.Robot.effective_control_bounds`). Default: :meth:`bounds`."""
+        return self.bounds(x)
+
     def to_local(self, x: Tensor, c: Tensor) -> Tensor:
         return c
 
@@ -88,8 +93,9 @@ class CommandInterface:
         return z
 
     def clip(self, x: Tensor, c: Tensor) -> Tensor:
-        """``c`` projected into the bounds (a clamp in local coordinates; its gradient is 0 where active)."""
-        lo, hi = self.bounds(c)
+        """``c`` projected into the bounds that act at ``x`` (:meth:`state_bounds`; a clamp in local coordinates,
+        its gradient 0 where active)."""
+        lo, hi = (t.to(c) for t in self.state_bounds(x))
         return self.from_local(x, torch.maximum(torch.minimum(self.to_local(x, c), hi), lo))
 
     def nominal(self, x: Tensor, goals: Tensor) -> Tensor:
@@ -256,6 +262,11 @@ class ControlInterface(CommandInterface):
         s = self._scale(like)
         return lo / s, hi / s
 
+    def state_bounds(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        lo, hi = self.robot.effective_control_bounds(x)
+        s = self._scale(x)
+        return lo / s, hi / s
+
     def nominal(self, x: Tensor, goals: Tensor) -> Tensor:
         return self.robot.nominal_control(x, goals) / self._scale(x)
 
@@ -306,7 +317,7 @@ def solve_command_qp(
     reference ``c_nom`` ``(B, N, k)``. Returns the QP's commands in world coordinates (dtype of ``x``) and the
     solver's result. ``solver``: ``slack_linear``, ``slack_quadratic``, ``tol``, ``max_iter``, ``chunk``."""
     h, lf, lg = itf.lie_derivatives(cbf, graph, x, env, c_nom)
-    lo, hi = itf.bounds(h)
+    lo, hi = itf.state_bounds(x)
     res = solve_cbf_qp(
         h, lf, itf.to_local(x[:, None].to(lg.dtype), lg), itf.to_local(x, c_nom), lo, hi, alpha=alpha, **solver
     )

@@ -249,7 +249,7 @@ def solve_cbf_qp(
     Args:
         h, lf: ``(B, N)``; lg: ``(B, N, N, k)`` ``[b, i, j]`` = the derivative of ``h_i`` along agent ``j``'s command.
         u_ref: ``(B, N, k)`` the reference command (clipped into the box here).
-        lo, hi: ``(k,)`` the box.
+        lo, hi: ``(k,)`` the box, or ``(B, N, k)`` one box per agent.
         alpha: slope of the linear class-K function in the constraint.
         slack_linear, slack_quadratic: ``w1`` and ``w2`` of the slack cost.
         tol: an environment's QP has converged when its merit ``max(dual residual / (1 + max(|u_ref|, w1, 1)),
@@ -264,15 +264,19 @@ def solve_cbf_qp(
     k = lg.shape[-1]
     f64 = torch.float64
     h, lf, lg, u_ref, lo, hi = (t.detach().to(f64) for t in (h, lf, lg, u_ref, lo, hi))
-    lo_v, hi_v = lo.repeat(n), hi.repeat(n)
+    if lo.dim() == 1:
+        lo_v, hi_v = lo.repeat(n), hi.repeat(n)
+    else:  # per-agent boxes (B, N, k), e.g. narrowed at a speed limit
+        lo_v, hi_v = lo.expand(b, n, k).reshape(b, n * k), hi.expand(b, n, k).reshape(b, n * k)
     a = lg.reshape(b, n, k * n)  # rows: agent i; columns: (agent j, channel)
     rhs = lf + alpha * h
     u_ref = torch.maximum(torch.minimum(u_ref, hi), lo).reshape(b, k * n)
     us, ss, conv, iters = [], [], [], 0
     for c in range(0, b, chunk):
         sl = slice(c, min(c + chunk, b))
-        u, s, ok, it = _solve(a[sl], rhs[sl], u_ref[sl], lo_v, hi_v, slack_linear, slack_quadratic, tol, max_iter)
-        us.append(u.clamp(lo_v, hi_v))
+        lo_c, hi_c = (lo_v, hi_v) if lo_v.dim() == 1 else (lo_v[sl], hi_v[sl])
+        u, s, ok, it = _solve(a[sl], rhs[sl], u_ref[sl], lo_c, hi_c, slack_linear, slack_quadratic, tol, max_iter)
+        us.append(torch.maximum(torch.minimum(u, hi_c), lo_c))
         ss.append(s.clamp_min(0.0))
         conv.append(ok)
         iters = max(iters, it)

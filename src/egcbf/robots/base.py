@@ -114,6 +114,18 @@ class Robot:
         """``lo, hi`` ``(control_dim,)``: the actuator box (dtype and device of ``like``)."""
         raise _not_implemented(self, "control_bounds")
 
+    def effective_control_bounds(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """``lo, hi`` ``(*batch, control_dim)``: the part of the actuator box that acts at state ``x``.
+
+        A robot whose step clips part of its state (a speed limit) discards any control that pushes a component
+        already at its limit further out; a QP or a policy that counted on such a control would expect a motion
+        that never happens (a double integrator at its speed limit "braking" by pushing less hard forward). Those
+        robots narrow the box there, to the control that holds the component at its limit
+        (:func:`hold_at_limit`). Default: the box."""
+        lo, hi = self.control_bounds(x)
+        shape = (*x.shape[:-1], self.control_dim)
+        return lo.expand(shape), hi.expand(shape)
+
     def clip_control(self, u: Tensor) -> Tensor:
         """``u`` clamped into the actuator box."""
         lo, hi = self.control_bounds(u)
@@ -223,3 +235,16 @@ def rk4_step(xdot, x: Tensor, u: Tensor, dt: float, substeps: int = 1, project=N
         if project is not None:
             x = project(x)
     return x
+
+
+def hold_at_limit(
+    lo: Tensor, hi: Tensor, value: Tensor, limit: float, hold: Tensor, tol: float = 1e-6
+) -> tuple[Tensor, Tensor]:
+    """The box ``lo, hi`` ``(..., k)`` narrowed where a clipped state component is at its limit: channel ``k``
+    drives component ``value[..., k]`` (clipped to ``+-limit`` after each step) and ``hold[..., k]`` is the control
+    that keeps it constant; at ``+limit`` controls above ``hold`` are discarded by the clip, at ``-limit`` those
+    below (:meth:`Robot.effective_control_bounds`). ``hold`` is kept inside the box."""
+    hold = torch.minimum(torch.maximum(hold, lo), hi)
+    hi = torch.where(value >= limit - tol, torch.minimum(hi, hold), hi)
+    lo = torch.where(value <= -limit + tol, torch.maximum(lo, hold), lo)
+    return lo, hi

@@ -5,7 +5,8 @@ controls within the actuator box) and random group elements, and measures every 
 graph and the learner rely on:
 
 * the control-affine form: ``xdot(x, u) == f0(x) + f1(x) u``;
-* equivariance of the dynamics: ``step(phi_g x, psi_g u) == phi_g step(x, u)``, and of the actuator box;
+* equivariance of the dynamics: ``step(phi_g x, psi_g u) == phi_g step(x, u)``, of the actuator box and of the
+  part of it that acts at a state (``effective_control_bounds``);
 * the geometry: positions move as points, velocities and the heading as vectors, frames by ``g frames(x)``;
 * the node features: ``agent_features(phi_g x) == rho_g agent_features(x)`` (``rho`` from ``node_fields``);
 * the nominal controller: ``nominal_control(phi_g x, g goal) == psi_g nominal_control(x, goal)``.
@@ -63,6 +64,12 @@ def _frames_error(robot: Robot, group, g: Tensor, x: Tensor, gx: Tensor, err) ->
     return err(fgx, group.compose(g, fx))
 
 
+def _clip_effective(robot: Robot, x: Tensor, u: Tensor) -> Tensor:
+    """``u`` clamped into the part of the box that acts at ``x`` (:meth:`Robot.effective_control_bounds`)."""
+    lo, hi = robot.effective_control_bounds(x)
+    return torch.maximum(torch.minimum(u, hi), lo)
+
+
 def check_robot(
     robot: Robot, *, batch: int = 64, seed: int = 0, dtype: torch.dtype = torch.float64, atol: float = 1e-9
 ) -> dict[str, float]:
@@ -90,6 +97,9 @@ def check_robot(
         "xdot = f0 + f1 u": err(robot.xdot(x, u), robot.f0(x) + (robot.f1(x) @ u[..., None])[..., 0]),
         "step equivariant": err(robot.step(gx, act_u(g, u), 0.05, 2), act_x(g, robot.step(x, u, 0.05, 2))),
         "actuator box equivariant": err(robot.clip_control(act_u(g, u)), act_u(g, robot.clip_control(u))),
+        "effective box equivariant": err(
+            _clip_effective(robot, gx, act_u(g, u)), act_u(g, _clip_effective(robot, x, u))
+        ),
         "positions are points": err(robot.positions(gx), group.transform(g, robot.positions(x))),
         "velocities are vectors": err(robot.velocities(gx), vec.act(g, robot.velocities(x))),
         "heading is a vector": 0.0 if robot.world_fixed_lidar else err(robot.heading(gx), vec.act(g, robot.heading(x))),

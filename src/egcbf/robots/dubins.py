@@ -33,7 +33,7 @@ from groupcanon import FieldType
 from groupcanon.features import Point, Scalar, Vector
 from groupcanon.groups import SE2
 
-from .base import require_positive
+from .base import hold_at_limit, require_positive
 from .integrators import PLANAR_DEFAULTS
 from .planar import H, HeadingSpeedRobot, P, V, perp
 
@@ -111,6 +111,14 @@ class DubinsCar(HeadingSpeedRobot):
     def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
         hi = torch.full((2,), self.params.max_control, dtype=like.dtype, device=like.device)
         return -hi, hi
+
+    def effective_control_bounds(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """The box, less the acceleration the speed clip discards at ``+-max_speed``
+        (:meth:`egcbf.robots.base.Robot.effective_control_bounds`)."""
+        lo, hi = super().effective_control_bounds(x)
+        v = x[..., V]
+        lo_a, hi_a = hold_at_limit(lo[..., 1:], hi[..., 1:], v, self.params.max_speed, torch.zeros_like(v))
+        return torch.cat((lo[..., :1], lo_a), -1), torch.cat((hi[..., :1], hi_a), -1)
 
     # ------------------------------------------------------------------------------------------- control
     def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:

@@ -45,7 +45,7 @@ from groupcanon.features import Point, Vector
 from groupcanon.frames import cyclic_frames
 from groupcanon.groups import CyclicSE2, CyclicSE2xR
 
-from .base import Robot, require_positive, rk4_step
+from .base import Robot, hold_at_limit, require_positive, rk4_step
 
 __all__ = [
     "PLANAR_DEFAULTS",
@@ -128,6 +128,18 @@ class _PointMass(Robot):
 
     def _clip_state(self, x: Tensor) -> Tensor:
         return x
+
+    def effective_control_bounds(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """The box, less the pushes the velocity clip discards (:meth:`Robot.effective_control_bounds`): on an axis
+        at ``+-max_speed`` the control beyond the one that holds the speed (``-f0_v / B``; 0 for the double
+        integrator, ``D v / 10`` for the linear drone's damping)."""
+        lo, hi = super().effective_control_bounds(x)
+        if self.state_dim == self.dim:  # the single integrator: no velocity state, no clip
+            return lo, hi
+        v = self.velocities(x)
+        gain = torch.diagonal(self.f1(x)[..., self.dim :, :], dim1=-2, dim2=-1)
+        hold = -self.f0(x)[..., self.dim :] / gain
+        return hold_at_limit(lo, hi, v, self.params.max_speed, hold)
 
     def step(self, x: Tensor, u: Tensor, dt: float, substeps: int = 1, integrator: str = "euler") -> Tensor:
         if int(substeps) != substeps or substeps < 1:

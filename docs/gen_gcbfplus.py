@@ -85,6 +85,35 @@ def table(reference: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def meets_reference(metrics: dict, row: dict) -> bool:
+    """Issue 26's bar for a learned method in one cell: at least as safe as the reference's pretrained GCBF+ (at
+    least 99.9 % where it is 100 % safe) and at least as many goals reached."""
+    safe, reach = 100 * metrics["safe_rate"], 100 * metrics["reach_rate"]
+    need = 99.9 if row["safe"] >= 100 else row["safe"]
+    return safe >= need and reach >= row["reach"]
+
+
+def learned_summary(reference: list[dict]) -> str:
+    """Per learned method: how many non-CrazyFlie cells meet the reference (and which do not), and Experiment B."""
+    lines = []
+    rows = [r for r in reference if r["env"] != "CrazyFlie"]
+    exp_b = [r for r in rows if (r["env"], r["N"], r["l"], r["steps"]) == ("DoubleIntegrator", 256, 16, 1024)]
+    for m in ("gcbf+", "egcbf+"):
+        done = [(r, json.loads(cell_path(m, r).read_text())["metrics"]) for r in rows if cell_path(m, r).exists()]
+        if not done:
+            lines.append(f"- {m}: no cells yet.")
+            continue
+        short = [f"{r['env']} N={r['N']} l={r['l']:g} obs={r['obstacles']} T={r['steps']}" for r, c in done
+                 if not meets_reference(c, r)]  # fmt: skip
+        line = f"- {m}: {len(done) - len(short)} of {len(rows)} cells meet the reference ({len(done)} computed)"
+        line += f"; short of it: {'; '.join(short)}." if short else "."
+        b = [f"{r['obstacles']} obstacles {100 * c['success_rate']:.1f} %" for r, c in done if r in exp_b]
+        if b:
+            line += f" Experiment B success (target >= 80 %): {', '.join(b)}."
+        lines.append(line)
+    return "\n".join(lines)
+
+
 def report() -> str:
     ref = json.loads((RESULTS / "reference.json").read_text())
     speed = RESULTS / "speed.json"
@@ -102,6 +131,15 @@ def report() -> str:
         "`checkpoints/<robot>/{gcbf+,egcbf+}`). CrazyFlie's row is our quadrotor: another plant and command.",
         "",
         table(ref["rows"]),
+        "",
+        "## Our learned controllers against the reference's",
+        "",
+        "Issue 26's bar, per cell but CrazyFlie's: at least as safe as the reference's pretrained GCBF+ (at least "
+        "99.9 % where it is 100 % safe) and at least as many goals reached; Experiment B (double integrator, N = 256, "
+        "l = 16, 0 / 32 / 128 obstacles, 1024 steps): success >= 80 %. Checkpoints: `checkpoints/<robot>/<method>` "
+        "(how they were trained and chosen: [robots.md](robots.md)).",
+        "",
+        learned_summary(ref["rows"]),
         "",
         "## Step time",
         "",

@@ -93,8 +93,10 @@ class TrainConfig:
     (``lr_cbf``, ``lr_policy``, ``weight_decay``), gradient norm clipped to ``max_grad_norm`` per network.
 
     Loss (:func:`egcbf.algo.loss.cbf_loss`): ``gamma``, ``alpha``, ``eta_d``, ``eta_c``, ``eta_safe``,
-    ``eta_unsafe``, ``control_loss`` (``"squared"`` or ``"norm"``), ``hdot_trains_cbf`` (``False``: the derivative
-    term trains the policy only, through the next state, with the CBF frozen for every agent).
+    ``eta_unsafe``, ``control_loss`` (``"squared"`` or ``"norm"``), ``straight_through_clip`` (the control
+    term's gradient passes straight through the command's clip, so a policy beyond the box still learns; the
+    ``gcbfplus`` recipe), ``hdot_trains_cbf`` (``False``: the derivative term trains the policy only, through the
+    next state, with the CBF frozen for every agent).
 
     QP target (:mod:`egcbf.algo.qp`): ``qp_alpha`` (the constraint's class-K slope; GCBF+ uses 0.1 alpha),
     ``qp_slack_linear``/``qp_slack_quadratic`` (slack cost ``w1 s + w2 s^2 / 2``), ``qp_tol``, ``qp_max_iter``,
@@ -157,6 +159,7 @@ class TrainConfig:
     eta_safe: float = 1.0
     eta_unsafe: float = 1.0
     control_loss: str = "squared"
+    straight_through_clip: bool = False
     hdot_trains_cbf: bool = True
     # QP target
     qp_alpha: float = 0.1
@@ -472,7 +475,7 @@ class TrainConfig:
             obstacles, side = GCBFPLUS_TRAINING[robot]
             # class-K slope 10 / s in the QP and the derivative loss: with 0.1-1 the untrained CBF's QP let a
             # negative h recover too slowly to stop a 1.4 m/s approach (65 % safe vs 100 % at 16 agents, l = 4)
-            base.update(alpha=10.0, qp_alpha=10.0)
+            base.update(alpha=10.0, qp_alpha=10.0, straight_through_clip=True)
             base.update(
                 num_agents=8, area_size=side, area_sizes=[round(0.7 * side, 3), side], num_obstacles=obstacles,
                 eval_num_agents=16, eval_area_size=side, eval_num_obstacles=0, max_wall_minutes=None,

@@ -133,3 +133,20 @@ def test_the_qp_honours_one_box_per_agent(seed):
     shared = solve_cbf_qp(h, lf, lg, u_ref, box_lo, box_hi, alpha=1.0)
     per_agent = solve_cbf_qp(h, lf, lg, u_ref, box_lo.expand(b, n, k), box_hi.expand(b, n, k), alpha=1.0)
     assert torch.allclose(shared.u, per_agent.u, atol=1e-9, rtol=0)
+
+
+def test_the_straight_through_clip_passes_the_gradient_of_a_clipped_command():
+    """At a speed limit the policy's command is clipped to 0; the imitation term must still push it towards a
+    braking reference: the straight-through command has the clipped value and the raw command's gradient."""
+    from egcbf.algo.learner import straight_through
+
+    raw = torch.tensor([[0.4, -0.2]], dtype=F64, requires_grad=True)
+    lo, hi = torch.tensor([[-1.0, -1.0]], dtype=F64), torch.tensor([[0.0, 1.0]], dtype=F64)
+    clipped = torch.maximum(torch.minimum(raw, hi), lo)
+    target = torch.tensor([[-0.5, -0.2]], dtype=F64)
+    (grad_clipped,) = torch.autograd.grad((clipped - target).square().sum(), raw)
+    st_cmd = straight_through(raw, clipped)
+    (grad_st,) = torch.autograd.grad((st_cmd - target).square().sum(), raw)
+    assert torch.equal(st_cmd.detach(), clipped.detach())
+    assert grad_clipped[0, 0] == 0 and grad_st[0, 0] == 2 * (0.0 + 0.5)
+    assert grad_st[0, 1] == grad_clipped[0, 1] == 0

@@ -83,11 +83,24 @@ def policy_command(
     policy: PolicyNet, model_config: ModelConfig, itf: CommandInterface, graph: SwarmGraph, x: Tensor, goals: Tensor
 ) -> tuple[Tensor, Tensor]:
     """The policy's command ``clip(c_nom + scale * pi)`` ``(B, N, k)`` and the nominal command ``c_nom``."""
+    raw, c_nom = raw_policy_command(policy, model_config, itf, graph, x, goals)
+    return itf.clip(x, raw), c_nom
+
+
+def straight_through(raw: Tensor, clipped: Tensor) -> Tensor:
+    """``clipped``'s value with ``raw``'s gradient (the identity): a straight-through clip."""
+    return raw + (clipped - raw).detach()
+
+
+def raw_policy_command(
+    policy: PolicyNet, model_config: ModelConfig, itf: CommandInterface, graph: SwarmGraph, x: Tensor, goals: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The policy's command before the clip, ``c_nom + scale * pi`` ``(B, N, k)``, and ``c_nom``."""
     b, n, _ = x.shape
     residual = policy(graph).view(b, n, itf.dim)
     c_nom = itf.nominal(x, goals).to(residual.dtype)
     scales = torch.as_tensor(model_config.action_scales, dtype=residual.dtype, device=residual.device)
-    return itf.clip(x, c_nom + scales * residual), c_nom
+    return c_nom + scales * residual, c_nom
 
 
 def act(
@@ -228,7 +241,11 @@ class GraphCBFLearner:
         graph = batch.graph(env_cfg)
         k = itf.dim
         h = self.cbf(graph)
-        c, _ = policy_command(self.policy, cfg.model, itf, graph, batch.x, batch.goals)
+        raw, _ = raw_policy_command(self.policy, cfg.model, itf, graph, batch.x, batch.goals)
+        c = itf.clip(batch.x, raw)
+        # straight through the clip: the command's value, the raw command's gradient, so that a policy pushing
+        # beyond the box (at a speed limit: beyond 0) still learns from the reference's braking
+        c_imitated = straight_through(raw, c) if cfg.straight_through_clip else c
         x_next = itf.model_step(batch.x, c, env_cfg)
         graph_next = refresh_graph(graph, x_next)
         # h(x') with the CBF's parameters for labelled agents and with them frozen for the others (cbf_loss): each
@@ -240,7 +257,8 @@ class GraphCBFLearner:
         frozen = {name: v.detach() for name, v in self.cbf.named_parameters()}
         h_next_frozen = functional_call(self.cbf, frozen, (graph_next.with_receivers(~labelled),))
         return cbf_loss(
-            h, h_next, batch.safe.reshape(-1), batch.unsafe.reshape(-1), c.reshape(-1, k), u_ref.reshape(-1, k),
+            h, h_next, batch.safe.reshape(-1), batch.unsafe.reshape(-1), c_imitated.reshape(-1, k),
+            u_ref.reshape(-1, k),
             env_cfg.dt, gamma=cfg.gamma, alpha=cfg.alpha, eta_d=cfg.eta_d, eta_c=cfg.eta_c, eta_safe=cfg.eta_safe,
             eta_unsafe=cfg.eta_unsafe, control=cfg.control_loss, h_next_frozen=h_next_frozen,
             hdot_labelled=labelled,

@@ -173,6 +173,23 @@ def test_agent_obstacle_masks():
     assert m["unsafe"][0].tolist() == [True, True, False, True]
 
 
+def test_unsafe_distances_move_the_labels_not_the_collisions():
+    """EnvConfig.unsafe_agent_distance / unsafe_obstacle_distance (agent radii) widen the training labels' unsafe
+    set; collisions stay at 2 r and r; values below those are refused."""
+    pos = [[0, 0, 0], [0.09, 0, 0], [5, 0, 0], [5.14, 0, 0], [9, 0, 0], [9.16, 0, 0], [0, 0, 3.28]]
+    p, g, obs = _scene(pos, centers=[[0, 0, 3]], radii=[0.2])  # the last agent 0.08 m from the sphere's surface
+    m = safety_masks(p, g, obs, R, 3.0, 2.0)
+    assert m["collision"][0].tolist() == [True, True, False, False, False, False, False]
+    assert m["unsafe"][0].tolist() == [True, True, True, True, False, False, True]
+    assert m["unsafe"][0].tolist() != safety_masks(p, g, obs, R)["unsafe"][0].tolist()
+    cfg = EnvConfig(num_envs=1, num_agents=2, unsafe_agent_distance=3.0)
+    assert SwarmEnv(cfg, dtype=F64).config.unsafe_agent_distance == 3.0
+    with pytest.raises(ValueError, match="unsafe_agent_distance"):
+        EnvConfig(unsafe_agent_distance=1.5)
+    with pytest.raises(ValueError, match="unsafe_obstacle_distance"):
+        EnvConfig(unsafe_obstacle_distance=0.5)
+
+
 def test_reached_mask():
     pos = [[0, 0, 0], [1, 1, 1], [2, 2, 2]]
     goals = [[0.099, 0, 0], [1, 1.101, 1], [2, 2, 2]]

@@ -52,6 +52,9 @@ class EnvConfig:
         random_yaw: start each agent at a uniformly random yaw (else yaw 0).
         clip_control: clip controls to the actuator box (``dynamics.clip_control``) before integrating.
         start_separation, obstacle_clearance: sampling separations in units of ``agent_radius`` (GCBF+: 4 and 4).
+        unsafe_agent_distance, unsafe_obstacle_distance: the training labels' unsafe set (``StepInfo.unsafe``), in
+            units of ``agent_radius``: another agent closer than the first (>= 2, GCBF+: 2.5), an obstacle surface
+            closer than the second (>= 1, GCBF+: 1.5). Collisions, and so every metric, stay at 2 r and r.
         max_sampling_rounds: bound on the rejection-sampling rounds before ``reset`` gives up with ``ValueError``.
         scene: where starts and goals are drawn (:data:`egcbf.env.scenes.SCENES`): ``"uniform"`` (the arena; GCBF+'s
             and the paper's) or ``"crossing"`` (starts in ``x < l / 2``, goals in ``x > l / 2``).
@@ -83,6 +86,8 @@ class EnvConfig:
     clip_control: bool = True
     start_separation: float = 4.0
     obstacle_clearance: float = 4.0
+    unsafe_agent_distance: float = 2.5
+    unsafe_obstacle_distance: float = 1.5
     max_sampling_rounds: int = 200
     scene: str = "uniform"
     scene_yaw: float = 0.0
@@ -133,6 +138,10 @@ class EnvConfig:
         need(_is_int(self.num_envs) and self.num_envs >= 1, "num_envs", "an integer >= 1")
         need(_is_num(self.start_separation) and self.start_separation >= 0, "start_separation", "a number >= 0")
         need(_is_num(self.obstacle_clearance) and self.obstacle_clearance >= 0, "obstacle_clearance", "a number >= 0")
+        need(_is_num(self.unsafe_agent_distance) and self.unsafe_agent_distance >= 2, "unsafe_agent_distance",
+             "a number >= 2 (agent radii)")  # fmt: skip
+        need(_is_num(self.unsafe_obstacle_distance) and self.unsafe_obstacle_distance >= 1,
+             "unsafe_obstacle_distance", "a number >= 1 (agent radii)")  # fmt: skip
         need(
             _is_int(self.max_sampling_rounds) and self.max_sampling_rounds >= 1,
             "max_sampling_rounds",

@@ -187,8 +187,16 @@ class StepInfo:
     u: Tensor | None = None
 
 
-def safety_masks(positions: Tensor, goals: Tensor, obstacles: Obstacles, agent_radius: float) -> dict[str, Tensor]:
+def safety_masks(
+    positions: Tensor,
+    goals: Tensor,
+    obstacles: Obstacles,
+    agent_radius: float,
+    unsafe_agent: float = 2.5,
+    unsafe_obstacle: float = 1.5,
+) -> dict[str, Tensor]:
     """Collision / unsafe / reached masks ``(B, N)`` (module doc conventions); sparse agent–agent search.
+    ``unsafe_agent``, ``unsafe_obstacle``: the unsafe distances in agent radii (``EnvConfig.unsafe_*_distance``).
 
     Returns a dict with keys ``collision``, ``unsafe``, ``reached``, ``agent_collision``, ``obstacle_collision``,
     ``agent_unsafe``, ``obstacle_unsafe``.
@@ -197,7 +205,7 @@ def safety_masks(positions: Tensor, goals: Tensor, obstacles: Obstacles, agent_r
     r = float(agent_radius)
     p = positions.detach().reshape(b * n, d)
     batch = torch.arange(b, device=p.device).repeat_interleave(n)
-    src, dst = radius_neighbors(p, 2.5 * r, batch, sort=False)  # every pair closer than 2.5 r
+    src, dst = radius_neighbors(p, unsafe_agent * r, batch, sort=False)  # every pair closer than the unsafe distance
     close = (p.index_select(0, src) - p.index_select(0, dst)).norm(dim=-1) < 2 * r
     agent_unsafe = torch.zeros(b * n, dtype=torch.bool, device=p.device)
     agent_unsafe[dst] = True
@@ -207,7 +215,7 @@ def safety_masks(positions: Tensor, goals: Tensor, obstacles: Obstacles, agent_r
     obs_coll = torch.zeros(b * n, dtype=torch.bool, device=p.device)
     obs_unsafe = torch.zeros_like(obs_coll)
     if obstacles.num_obstacles > 0:  # sparse agent-obstacle pairs within 1.5 r of a surface
-        bi, ni, ki = obstacles.near_pairs(positions.detach(), 1.5 * r)
+        bi, ni, ki = obstacles.near_pairs(positions.detach(), unsafe_obstacle * r)
         sd = obstacles.pair_distance(positions.detach()[bi, ni], bi, ki)
         flat = bi * n + ni
         obs_unsafe[flat] = True
@@ -355,7 +363,9 @@ class SwarmEnv:
     # ---------------------------------------------------------------------------------------------- masks
     def info(self, state: SwarmState, u: Tensor | None = None) -> StepInfo:
         """The masks of ``state`` (also usable on a reset state)."""
-        m = safety_masks(state.positions, state.goals, state.obstacles, self.config.agent_radius)
+        c = self.config
+        m = safety_masks(state.positions, state.goals, state.obstacles, c.agent_radius, c.unsafe_agent_distance,
+                         c.unsafe_obstacle_distance)  # fmt: skip
         done = torch.full((state.num_envs,), state.t >= self.config.max_steps, dtype=torch.bool, device=state.x.device)
         return StepInfo(
             collision=m["collision"],

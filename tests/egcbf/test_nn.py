@@ -16,7 +16,7 @@ from egcbf.algo.learner import LearnedController, policy_command
 from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmState
 from egcbf.graph import GROUP, KIND_GOAL, build_graph
-from egcbf.nn import CBFNet, GraphTransformerLayer, ModelConfig, PolicyNet
+from egcbf.nn import CBFNet, GraphTransformerLayer, ModelConfig, PolicyNet, frames_for
 from egcbf.robots.quadrotor import dynamics as dyn
 from groupcanon import FieldType
 from groupcanon.features import Vector
@@ -312,6 +312,30 @@ def test_edge_min_head_starts_at_the_closest_approach_barrier():
         terms = torch.cat((-(dmin - d) / tau, torch.tensor([-(1 - d) / tau], dtype=F64)))
         assert abs(float(h[i]) - math.tanh(-tau * float(torch.logsumexp(terms, 0)))) <= 1e-12
     assert (h < 0).any() or (h > 0).all()  # well defined either way; the scene decides
+
+
+@given(seed=st.integers(0, 2**16), bound=st.floats(0.01, 0.2))
+@settings(max_examples=10, deadline=None)
+def test_edge_min_head_correction_bound_keeps_each_edge_near_its_prior(seed, bound):
+    """With ``cbf_correction_bound = B`` every per-edge barrier stays within ``B`` of ``d_min - D``, whatever the
+    weights (here large random ones), and equals the unbounded head's at zero correction."""
+    cfg = EnvConfig(num_agents=5, num_envs=2, n_rays=8, lidar_max_hits=4, area_size=1.0, num_obstacles=2)
+    state = moving_scene(cfg, seed % 50)
+    torch.manual_seed(seed)
+    mcfg = ModelConfig(hidden=16, heads=2, head_hidden=16, cbf_head="edge_min", cbf_attitude=False,
+                       cbf_correction_bound=bound)  # fmt: skip
+    cbf = CBFNet(mcfg).double()
+    graph = build_graph(state, cfg)
+    frames = frames_for(cbf.encoder.group, graph)
+    with torch.no_grad():
+        z = cbf.encoder(graph)
+        prior, _ = cbf.head.edge_values(graph, z, frames)  # zero-initialized last layer: the prior itself
+        for q in cbf.head.edge_mlp.parameters():
+            q.add_(3.0 * torch.randn_like(q))
+        b, _ = cbf.head.edge_values(graph, z, frames)
+    assert (b - prior).abs().max() <= bound + 1e-12 and (b - prior).abs().max() > 0.5 * bound
+    with pytest.raises(ValueError, match="cbf_correction_bound"):
+        ModelConfig(cbf_correction_bound=0.0)
 
 
 def test_edge_min_head_gradients_are_finite_for_isolated_agents():

@@ -89,13 +89,18 @@ class EdgeMinHead(nn.Module):
         temperature: ``tau`` (m) of the smooth minimum.
         horizon: look-ahead (s) of the closest approach.
         dim: the spatial dimension ``d`` of the edge vectors (3: quadrotor, 2: planar robots).
+        correction_bound: ``None`` (the correction ``m`` as is) or ``B > 0`` (m): ``m`` replaced by
+            ``B tanh(m / B)``, so every ``b_ij`` stays within ``B`` of its prior.
     """
 
     def __init__(self, group: Group, hidden: int, head_hidden: int, distance: float, temperature: float,
-                 horizon: float, dim: int = 3):  # fmt: skip
+                 horizon: float, dim: int = 3, correction_bound: float | None = None):  # fmt: skip
         super().__init__()
         if not (distance > 0 and temperature > 0 and horizon > 0):
             raise ValueError("EdgeMinHead: distance, temperature and horizon must be > 0")
+        if correction_bound is not None and not correction_bound > 0:
+            raise ValueError("EdgeMinHead: correction_bound must be > 0 or None")
+        self.correction_bound = correction_bound
         self.vectors = FieldType(group, [Vector(dim, 2)])
         self.group = group
         self.dim = dim
@@ -114,7 +119,10 @@ class EdgeMinHead(nn.Module):
         :func:`edge_features` (pass tensors that require grad to get ``db/d dp``, ``db/d dv``)."""
         feats, dst = edge_features(graph, frames, self.group, self.vectors, self.horizon, dp, dv)
         approach = feats[:, 2 * self.dim + 1 : 2 * self.dim + 3]
-        return approach[:, 0] - self.distance + mlp_on_edges(self.edge_mlp, feats, z, dst).squeeze(-1), dst
+        correction = mlp_on_edges(self.edge_mlp, feats, z, dst).squeeze(-1)
+        if self.correction_bound is not None:
+            correction = self.correction_bound * torch.tanh(correction / self.correction_bound)
+        return approach[:, 0] - self.distance + correction, dst
 
     def forward(self, graph: SwarmGraph, z: Tensor, frames: Tensor) -> Tensor:
         b, dst = self.edge_values(graph, z, frames)
@@ -122,4 +130,5 @@ class EdgeMinHead(nn.Module):
         return -tau * segment_logsumexp(-b / tau, dst, graph.num_dst, -(1.0 - self.distance) / tau)
 
     def extra_repr(self) -> str:
-        return f"distance={self.distance}, temperature={self.temperature}, horizon={self.horizon}"
+        bound = "" if self.correction_bound is None else f", correction_bound={self.correction_bound}"
+        return f"distance={self.distance}, temperature={self.temperature}, horizon={self.horizon}{bound}"

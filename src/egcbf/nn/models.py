@@ -159,6 +159,9 @@ class ModelConfig:
         cbf_head: ``"mlp"`` (the paper's: an MLP on the receiver's graph-transformer features) or ``"edge_min"``
             (:class:`egcbf.nn.edge_min.EdgeMinHead`: a smooth minimum over learned per-edge barrier values that start
             at the closest-approach distance minus ``cbf_distance`` (m), temperature ``cbf_temperature`` (m)).
+        cbf_correction_bound: ``None`` or ``> 0`` (m): the edge-min head's learned correction passes through
+            ``bound * tanh(. / bound)``, so the barrier stays within ``bound`` of its closest-approach prior and
+            keeps its gradient (labels alone flatten an unbounded one; docs/robots.md).
         policy_init_scale: the last layer of the policy head is initialised with weights scaled by this and zero
             bias, so that an untrained policy stays close to the nominal controller.
         interface: what the policy commands (:mod:`egcbf.algo.interface`): ``"accel"``, a desired acceleration
@@ -197,6 +200,7 @@ class ModelConfig:
     cbf_head: str = "mlp"
     cbf_distance: float = 0.15
     cbf_temperature: float = 0.05
+    cbf_correction_bound: float | None = None
     policy_init_scale: float = 0.1
     interface: str = "torque"
     accel_action_scale: float = 1.0
@@ -229,6 +233,8 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.torque_action_scale must be > 0 or None, got {self.torque_action_scale}")
         if self.interface not in ("accel", "torque", "control"):
             raise ValueError(f"ModelConfig.interface must be 'accel', 'torque' or 'control', got {self.interface!r}")
+        if self.cbf_correction_bound is not None and not self.cbf_correction_bound > 0:
+            raise ValueError(f"ModelConfig.cbf_correction_bound must be > 0 or None, got {self.cbf_correction_bound}")
         if self.cbf_head not in ("mlp", "edge_min"):
             raise ValueError(f"ModelConfig.cbf_head must be 'mlp' or 'edge_min', got {self.cbf_head!r}")
         if self.policy_head not in ("mlp", "edge_sum"):
@@ -326,6 +332,7 @@ class CBFNet(nn.Module):
             self.head = EdgeMinHead(
                 self.encoder.group, config.hidden, config.head_hidden, config.cbf_distance,
                 config.cbf_temperature, config.closest_approach_horizon, self.encoder.dim,
+                correction_bound=config.cbf_correction_bound,
             )  # fmt: skip
         else:
             self.head = mlp([config.hidden, config.head_hidden, config.head_hidden, 1])

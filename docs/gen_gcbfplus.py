@@ -127,8 +127,9 @@ def report() -> str:
         "(within 2 r of another agent or r of an obstacle), reach = within 2 r of the goal at some step, success = "
         "both, the reference's definitions (docs/metrics.md). ccbf / dcbf: the hand-crafted centralized / "
         "decentralized CBF-QP (`egcbf.control.point_mass_qp` for the point masses and the Dubins car; the "
-        "quadrotor's own for the CrazyFlie row). `pending`: not computed yet (the learned columns wait for "
-        "`checkpoints/<robot>/{gcbf+,egcbf+}`). CrazyFlie's row is our quadrotor: another plant and command.",
+        "quadrotor's own for the CrazyFlie row). gcbf+ / egcbf+: `checkpoints/<robot>/<method>`; for the CrazyFlie "
+        "row the quadrotor's shipped `checkpoints/<method>` (the `cpu` recipe). `pending`: not computed yet (a "
+        "robot whose checkpoints are not shipped yet). CrazyFlie's row is our quadrotor: another plant and command.",
         "",
         table(ref["rows"]),
         "",

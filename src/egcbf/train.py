@@ -299,7 +299,8 @@ def train(
             best[0] = key
             save_best(learner, out, row["wall_s"], row)
         log(
-            f"[{config.algo}] update {learner.step:5d}  {row['wall_s']:8.1f}s  safe {100 * row['safe_rate']:5.1f}%  "
+            f"[{config.algo}] update {learner.step:5d}  {row['wall_s']:8.1f}s wall {row['cpu_s']:8.1f}s cpu  "
+            f"safe {100 * row['safe_rate']:5.1f}%  "
             f"reach {100 * row['reach_rate']:5.1f}%  success {100 * row['success_rate']:5.1f}%  "
             f"reward {row['reward']:9.2f}"
         )

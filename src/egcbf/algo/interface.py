@@ -18,7 +18,9 @@ learning works with, how the symmetry acts on it, and how a command becomes the 
 
 Each interface gives, for normalized commands ``c`` ``(..., k)``:
 
-* ``nominal(x, goals)``: the nominal controller's command; ``clip(x, c)``: ``c`` projected into the bounds;
+* ``nominal(x, goals)``: the nominal controller's command; ``clip(x, c)``: ``c`` projected into the bounds that
+  act at ``x`` (``state_bounds(x)``: the box, narrowed where a robot's speed clip would discard a push,
+  :meth:`egcbf.robots.base.Robot.effective_control_bounds`);
 * ``apply(x, c)``: the body control ``(tau, F3)`` in physical units (what the plant receives);
 * ``to_local`` / ``from_local``: the coordinates in which the bounds are a box ``[lo, hi]`` (the agent's yaw
   frame for accelerations, the identity for torques), used by the QP;

@@ -35,7 +35,7 @@ from groupcanon import FeatureType, FieldType, Group
 from groupcanon.features import Scalar
 from groupcanon.groups import Trivial
 
-__all__ = ["Robot", "require_positive", "rk4_step"]
+__all__ = ["Robot", "hold_at_limit", "require_positive", "rk4_step"]
 
 
 def require_positive(params, names) -> None:

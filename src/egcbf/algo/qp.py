@@ -264,19 +264,16 @@ def solve_cbf_qp(
     k = lg.shape[-1]
     f64 = torch.float64
     h, lf, lg, u_ref, lo, hi = (t.detach().to(f64) for t in (h, lf, lg, u_ref, lo, hi))
-    if lo.dim() == 1:
-        lo_v, hi_v = lo.repeat(n), hi.repeat(n)
-    else:  # per-agent boxes (B, N, k), e.g. narrowed at a speed limit
-        lo_v, hi_v = lo.expand(b, n, k).reshape(b, n * k), hi.expand(b, n, k).reshape(b, n * k)
+    lo_v, hi_v = (t.expand(b, n, k).reshape(b, n * k) for t in (lo, hi))  # one box per agent
     a = lg.reshape(b, n, k * n)  # rows: agent i; columns: (agent j, channel)
     rhs = lf + alpha * h
-    u_ref = torch.maximum(torch.minimum(u_ref, hi), lo).reshape(b, k * n)
+    u_ref = u_ref.reshape(b, k * n).clamp(lo_v, hi_v)
     us, ss, conv, iters = [], [], [], 0
     for c in range(0, b, chunk):
         sl = slice(c, min(c + chunk, b))
-        lo_c, hi_c = (lo_v, hi_v) if lo_v.dim() == 1 else (lo_v[sl], hi_v[sl])
+        lo_c, hi_c = lo_v[sl], hi_v[sl]
         u, s, ok, it = _solve(a[sl], rhs[sl], u_ref[sl], lo_c, hi_c, slack_linear, slack_quadratic, tol, max_iter)
-        us.append(torch.maximum(torch.minimum(u, hi_c), lo_c))
+        us.append(u.clamp(lo_c, hi_c))
         ss.append(s.clamp_min(0.0))
         conv.append(ok)
         iters = max(iters, it)

@@ -162,7 +162,7 @@ class GraphCBFLearner:
             xs.append(state.x)
             pts.append(scan.points)
             valid.append(scan.valid)
-            uns.append(unsafe)
+            uns.append(unsafe | env.approach_unsafe(state, scan))
             u, _ = act(self.policy, self.config.model, graph, state, self.robot)
             state, info = env.step(state, u)
             unsafe = info.unsafe

@@ -55,6 +55,12 @@ class EnvConfig:
         unsafe_agent_distance, unsafe_obstacle_distance: the training labels' unsafe set (``StepInfo.unsafe``), in
             units of ``agent_radius``: another agent closer than the first (>= 2, GCBF+: 2.5), an obstacle surface
             closer than the second (>= 1, GCBF+: 1.5). Collisions, and so every metric, stay at 2 r and r.
+        unsafe_approach_agent_distance, unsafe_approach_obstacle_distance: the training labels' *approach* part
+            (GCBF+'s double integrator and Dubins car, "unsafe direction"; 0 = off), in agent radii: an agent is
+            also unsafe when another agent closer than the first (>= 2; GCBF+: 3), or a LiDAR hit closer than the
+            second (>= 1; GCBF+: 2), lies in its collision cone: its motion direction
+            (:meth:`Robot.motion_direction`) within ``asin(2 r / d)`` (agents) or ``asin(r / d)`` (hits) of the
+            direction to it (:func:`egcbf.env.swarm.approach_unsafe`). Labels only, like the distances above.
         max_sampling_rounds: bound on the rejection-sampling rounds before ``reset`` gives up with ``ValueError``.
         scene: where starts and goals are drawn (:data:`egcbf.env.scenes.SCENES`): ``"uniform"`` (the arena; GCBF+'s
             and the paper's) or ``"crossing"`` (starts in ``x < l / 2``, goals in ``x > l / 2``).
@@ -88,6 +94,8 @@ class EnvConfig:
     obstacle_clearance: float = 4.0
     unsafe_agent_distance: float = 2.5
     unsafe_obstacle_distance: float = 1.5
+    unsafe_approach_agent_distance: float = 0.0
+    unsafe_approach_obstacle_distance: float = 0.0
     max_sampling_rounds: int = 200
     scene: str = "uniform"
     scene_yaw: float = 0.0
@@ -142,6 +150,11 @@ class EnvConfig:
              "a number >= 2 (agent radii)")  # fmt: skip
         need(_is_num(self.unsafe_obstacle_distance) and self.unsafe_obstacle_distance >= 1,
              "unsafe_obstacle_distance", "a number >= 1 (agent radii)")  # fmt: skip
+        for name, least in (("unsafe_approach_agent_distance", 2), ("unsafe_approach_obstacle_distance", 1)):
+            value = getattr(self, name)
+            need(
+                _is_num(value) and (value == 0 or value >= least), name, f"0 (off) or a number >= {least} (agent radii)"
+            )
         need(
             _is_int(self.max_sampling_rounds) and self.max_sampling_rounds >= 1,
             "max_sampling_rounds",

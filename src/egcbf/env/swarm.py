@@ -10,7 +10,10 @@ loop over agents or environments. Agent–agent proximity always goes through th
 Conventions (GCBF+, see ``docs/metrics.md``), with ``r`` the agent radius:
 
 * collision (evaluation): agent–agent distance ``< 2 r``, or inside an obstacle inflated by ``r``;
-* unsafe (training labels): agent–agent distance ``< 2.5 r``, or inside an obstacle inflated by ``1.5 r``;
+* unsafe (training labels): agent–agent distance ``< 2.5 r``, or inside an obstacle inflated by ``1.5 r``
+  (``EnvConfig.unsafe_*_distance``; the robots name their own), or, where the robot asks for it
+  (``EnvConfig.unsafe_approach_*``, GCBF+'s double integrator and Dubins car), moving toward a near agent or
+  LiDAR hit within its collision cone (:func:`approach_unsafe`);
 * reached: distance to the own goal ``< 2 r``.
 
 Reset: obstacles (spheres in 3-D, discs in 2-D, centre uniform in ``[0, l]^d``, radius uniform in
@@ -46,6 +49,7 @@ __all__ = [
     "StepInfo",
     "SwarmEnv",
     "SwarmState",
+    "approach_unsafe",
     "cast_lidar",
     "safety_masks",
 ]
@@ -233,6 +237,55 @@ def safety_masks(
     }
 
 
+def approach_unsafe(
+    positions: Tensor,
+    direction: Tensor,
+    agent_radius: float,
+    agent_distance: float,
+    scan: LidarScan | None = None,
+    obstacle_distance: float = 0.0,
+) -> Tensor:
+    """GCBF+'s "unsafe direction" labels ``(B, N)`` bool (its double integrator's and Dubins car's unsafe mask).
+
+    Agent ``i`` is unsafe when it moves toward a near obstacle to collision: another agent ``j`` at distance
+    ``d < agent_distance * r`` with the angle between ``direction_i`` and ``p_j - p_i`` below ``asin(2 r / d)``
+    (the cone of directions in which the two discs would touch), or a kept LiDAR hit of ``scan`` at ``d <
+    obstacle_distance * r`` with the angle below ``asin(r / d)``. A distance of 0 turns that part off. Pairs closer
+    than ``2 r`` (hits closer than ``r``) count as in the cone; they are collisions anyway.
+
+    Args:
+        positions: ``(B, N, d)``; direction: ``(B, N, d)`` (:meth:`Robot.motion_direction`: about unit, or about
+            zero for an agent at rest, which is then never in a cone).
+        scan: the LiDAR of the same state (needed when ``obstacle_distance > 0``).
+    """
+    b, n, d = positions.shape
+    r = float(agent_radius)
+    p = positions.detach()
+    u = direction.detach().to(p.dtype)
+    out = torch.zeros(b * n, dtype=torch.bool, device=p.device)
+    if agent_distance > 0 and n > 1:
+        flat = p.reshape(b * n, d)
+        batch = torch.arange(b, device=p.device).repeat_interleave(n)
+        src, dst = radius_neighbors(flat, agent_distance * r, batch, sort=False)
+        offset = flat.index_select(0, src) - flat.index_select(0, dst)
+        out[dst[_in_cone(offset, u.reshape(b * n, d).index_select(0, dst), 2 * r)]] = True
+    out = out.view(b, n)
+    if obstacle_distance > 0 and scan is not None:
+        offset = scan.points.to(p.dtype) - p[..., None, :]  # (B, N, H, d)
+        near = scan.valid & (scan.distance < obstacle_distance * r)
+        out = out | (near & _in_cone(offset, u[..., None, :].expand_as(offset), r)).any(-1)
+    return out
+
+
+def _in_cone(offset: Tensor, direction: Tensor, reach: float) -> Tensor:
+    """Whether ``direction`` points within ``asin(reach / |offset|)`` of ``offset`` (GCBF+'s test, with its
+    ``1e-4`` in the normalization): ``cos(angle) > sqrt(1 - (reach / |offset|)^2)``. ``(...,)`` bool."""
+    dist = torch.linalg.vector_norm(offset, dim=-1)
+    cos_angle = (offset * direction).sum(-1) / (dist + 1e-4)
+    ratio = (reach / dist.clamp_min(1e-12)).clamp(max=1.0)
+    return (dist <= reach) | (cos_angle > torch.sqrt(1 - ratio**2))
+
+
 def cast_lidar(config: EnvConfig, positions: Tensor, heading: Tensor, obstacles: Obstacles) -> LidarScan:
     """:func:`egcbf.env.lidar.lidar_scan` with the ray pattern, range and hit count of ``config``.
 
@@ -377,6 +430,17 @@ class SwarmEnv:
             t=state.t,
             u=u,
         )
+
+    def approach_unsafe(self, state: SwarmState, scan: LidarScan | None = None) -> Tensor:
+        """The approach part of the training labels ``(B, N)`` (``EnvConfig.unsafe_approach_*``; all False when
+        off): :func:`approach_unsafe` with the robot's motion direction and ``scan`` (cast here when needed)."""
+        c = self.config
+        if c.unsafe_approach_agent_distance == 0 and c.unsafe_approach_obstacle_distance == 0:
+            return torch.zeros(state.num_envs, state.num_agents, dtype=torch.bool, device=state.x.device)
+        if scan is None and c.unsafe_approach_obstacle_distance > 0 and state.obstacles.num_obstacles > 0:
+            scan = self.lidar(state)
+        return approach_unsafe(state.positions, self.robot.motion_direction(state.x), c.agent_radius,
+                               c.unsafe_approach_agent_distance, scan, c.unsafe_approach_obstacle_distance)  # fmt: skip
 
     # ---------------------------------------------------------------------------------------- perception
     def lidar(self, state: SwarmState) -> LidarScan:

@@ -163,6 +163,13 @@ class Robot:
         """Unit heading ``(*batch, dim)`` (horizontal for 3-D robots): the LiDAR pattern turns with it."""
         raise _not_implemented(self, "heading")
 
+    def motion_direction(self, x: Tensor) -> Tensor:
+        """The direction the agent moves in ``(*batch, dim)``, for the approach labels
+        (``EnvConfig.unsafe_approach_*``): ``v / (|v| + 1e-4)`` (GCBF+'s double integrator), so about zero at rest.
+        An equivariant vector (it turns with the agent's state)."""
+        v = self.velocities(x)
+        return v / (torch.linalg.vector_norm(v, dim=-1, keepdim=True) + 1e-4)
+
     def frames(self, x: Tensor) -> Tensor:
         """The agents' frames ``(*batch, *group.element_shape)``: ``frames(phi_g x) = g frames(x)``. A robot of a
         finite-rotation group may instead give each agent a set of ``F`` frames, ``(*batch, F, *element_shape)``,

@@ -56,6 +56,10 @@ class HeadingSpeedRobot(Robot):
     def heading(self, x: Tensor) -> Tensor:
         return planar_frame(x[..., H])
 
+    def motion_direction(self, x: Tensor) -> Tensor:
+        """The heading, whatever the speed (GCBF+'s Dubins car labels approaches along ``theta``)."""
+        return self.heading(x)
+
     def frames(self, x: Tensor) -> Tensor:
         return torch.cat((planar_frame(x[..., H]), x[..., P]), -1)
 

@@ -100,8 +100,9 @@ def test_matches_the_dense_reference_formula(seed, n):
 @settings(max_examples=10, deadline=None)
 def test_labels_are_invariant_under_the_robots_symmetry(name, seed, k, angle, t):
     """Quarter turns for the double integrator (world-fixed rays), any rotation for the car; and translations."""
-    cfg = EnvConfig.for_robot(name, num_agents=10, num_obstacles=3, area_size=1.0, start_separation=2.2,
-                              obstacle_clearance=1.5)  # dense: approaches on most draws
+    cfg = EnvConfig.for_robot(
+        name, num_agents=10, num_obstacles=3, area_size=1.0, start_separation=2.2, obstacle_clearance=1.5
+    )  # dense: approaches on most draws
     env = SwarmEnv(cfg, dtype=F64)
     robot = env.robot
     state = env.reset(seed)

@@ -44,6 +44,24 @@ def test_agents_far_from_everything_keep_their_nominal_control():
     assert torch.allclose(u, info["u_ref"], atol=1e-12)
 
 
+@pytest.mark.parametrize("name", ["dcbf", "ccbf"])
+@given(seed=st.integers(0, 2**16))
+@settings(max_examples=8, deadline=None)
+def test_commands_stay_in_the_box_that_acts(name, seed):
+    """Crowded double integrators, most at a speed limit: every command lies in the box that acts at its agent's
+    state (``Robot.effective_control_bounds``), so no row is met on paper by a push the speed clip discards."""
+    cfg = EnvConfig.for_robot("double_integrator", num_agents=12, num_obstacles=2, num_envs=1, area_size=1.0,
+                              start_separation=2.5)  # fmt: skip
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(seed)
+    g = torch.Generator().manual_seed(seed)
+    state.x[0, :, 2:] = 0.5 * torch.sign(torch.randn(12, 2, generator=g, dtype=F64))  # at the limit on both axes
+    state.x[0, ::3, 3] = 0.1  # some free on one axis
+    u, _ = make_controller(name, robot="double_integrator")(state, cfg)
+    lo, hi = env.robot.effective_control_bounds(state.x)
+    assert bool((u >= lo - 1e-7).all() and (u <= hi + 1e-7).all())
+
+
 def test_where_it_does_not_apply():
     from egcbf.control.point_mass_qp import PointMassDCBF
 

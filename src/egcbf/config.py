@@ -95,10 +95,8 @@ class TrainConfig:
     Loss (:func:`egcbf.algo.loss.cbf_loss`): ``gamma``, ``alpha``, ``eta_d``, ``eta_c``, ``eta_safe``,
     ``eta_unsafe``, ``control_loss`` (``"squared"`` or ``"norm"``), ``straight_through_clip`` (the control
     term's gradient passes straight through the command's clip, so a policy beyond the box still learns; the
-    ``gcbfplus`` recipe), ``control_active_weight`` (``w >= 0``: the control term weighs ``1 + w`` the agents whose
-    reference departs from their nominal command projected into the box, the encounters where the QP acts, which a
-    plain mean drowns among cruising agents; the term is the weighted mean), ``hdot_trains_cbf`` (``False``: the
-    derivative term trains the policy only, through the next state, with the CBF frozen for every agent).
+    ``gcbfplus`` recipe), ``hdot_trains_cbf`` (``False``: the derivative term trains the policy only, through the
+    next state, with the CBF frozen for every agent).
 
     QP target (:mod:`egcbf.algo.qp`): ``qp_alpha`` (the constraint's class-K slope; GCBF+ uses 0.1 alpha),
     ``qp_slack_linear``/``qp_slack_quadratic`` (slack cost ``w1 s + w2 s^2 / 2``), ``qp_tol``, ``qp_max_iter``,
@@ -106,11 +104,7 @@ class TrainConfig:
     ``qp_constraints``: ``"cbf"`` (the paper's and GCBF+'s: one centralized QP per scene, one condition per agent on
     its ``h_i``) or ``"edges"`` (one QP per agent over its own command, one condition per barrier of an edge it
     senses, pair conditions halved: :mod:`egcbf.algo.edge_qp`; needs the soft-min CBF head and the acceleration
-    interface), with the class-K gain ``qp_edge_alpha`` (1/s, per-edge barriers in m). ``qp_project_nominal``:
-    measure the QP's cost from the nominal command projected into the box that acts at the state
-    (:meth:`CommandInterface.clip`) instead of from the nominal itself (the ``gcbfplus`` recipe; a nominal beyond an
-    agent's speed limit is executed as its projection, and measured from beyond it the joint QP found that agent's
-    braking dearer than its neighbours' and left the braking to them).
+    interface), with the class-K gain ``qp_edge_alpha`` (1/s, per-edge barriers in m).
 
     Run: ``steps`` (updates), ``max_wall_minutes`` (stop earlier, after the first update that ends past this much
     training wall time, with a final evaluation and checkpoint; ``None``: no limit), ``max_cpu_minutes`` (the same
@@ -166,7 +160,6 @@ class TrainConfig:
     eta_unsafe: float = 1.0
     control_loss: str = "squared"
     straight_through_clip: bool = False
-    control_active_weight: float = 0.0
     hdot_trains_cbf: bool = True
     # QP target
     qp_alpha: float = 0.1
@@ -177,7 +170,6 @@ class TrainConfig:
     qp_chunk: int = 1024
     qp_constraints: str = "cbf"
     qp_edge_alpha: float = 1.0
-    qp_project_nominal: bool = False
     target_tau: float = 0.5
     # run
     steps: int = 1000
@@ -235,7 +227,7 @@ class TrainConfig:
             v = getattr(self, name)
             need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, name, "a finite number > 0")
         for name in ("weight_decay", "gamma", "alpha", "eta_d", "eta_c", "eta_safe", "eta_unsafe", "qp_alpha",
-                     "qp_slack_linear", "control_active_weight"):  # fmt: skip
+                     "qp_slack_linear"):  # fmt: skip
             v = getattr(self, name)
             need(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0, name, "a finite number >= 0")
         need(0 <= self.target_tau <= 1, "target_tau", "in [0, 1]")
@@ -484,7 +476,7 @@ class TrainConfig:
             obstacles, side = GCBFPLUS_TRAINING[robot]
             # class-K slope 10 / s in the QP and the derivative loss: with 0.1-1 the untrained CBF's QP let a
             # negative h recover too slowly to stop a 1.4 m/s approach (65 % safe vs 100 % at 16 agents, l = 4)
-            base.update(alpha=10.0, qp_alpha=10.0, straight_through_clip=True, qp_project_nominal=True)
+            base.update(alpha=10.0, qp_alpha=10.0, straight_through_clip=True)
             base.update(
                 num_agents=8, area_size=side, area_sizes=[round(0.7 * side, 3), side], num_obstacles=obstacles,
                 eval_num_agents=16, eval_area_size=side, eval_num_obstacles=0, max_wall_minutes=None,

@@ -241,34 +241,6 @@ def test_loss_terms_hand_computed():
     assert float(none["safe"]) == 0.0 and float(none["unsafe"]) == 0.0  # empty label sets: 0, not nan
 
 
-def test_loss_control_weights():
-    """``control_weights`` make the control term the weighted mean; all ones is the plain mean."""
-    h, h_next, safe, unsafe, u, u_ref = _loss_inputs()
-    w = torch.tensor([1.0, 11.0, 1.0, 1.0])
-    out = cbf_loss(h, h_next, safe, unsafe, u, u_ref, 0.1, control_weights=w)
-    assert float(out["control"]) == pytest.approx((0.01 + 11 * 0.05 + 0.25) / 14, abs=1e-6)
-    plain = cbf_loss(h, h_next, safe, unsafe, u, u_ref, 0.1)
-    ones = cbf_loss(h, h_next, safe, unsafe, u, u_ref, 0.1, control_weights=torch.ones(4))
-    assert float(ones["control"]) == pytest.approx(float(plain["control"]), abs=1e-7)
-
-
-def test_qp_measured_from_the_projected_nominal():
-    """``project_nominal``: the learned-CBF QP of a nominal beyond the box is the QP of its projection."""
-    from egcbf.algo.interface import solve_command_qp
-
-    state = _scene(_CFG, 3, speed=2.0)
-    itf = make_interface("accel")
-    net = _cbf("se2xr", bias=-0.6)  # negative barriers: the constraints act
-    graph = build_graph(state, _CFG)
-    c_nom = 3 * itf.nominal(state.x, state.goals)  # far beyond the box
-    lo, hi = itf.state_bounds(state.x)
-    inside = itf.from_local(state.x, torch.maximum(torch.minimum(itf.to_local(state.x, c_nom), hi), lo))
-    a, _ = solve_command_qp(itf, net, graph, state.x, c_nom, _CFG, alpha=0.1, project_nominal=True)
-    b, _ = solve_command_qp(itf, net, graph, state.x, inside, _CFG, alpha=0.1)
-    assert (itf.to_local(state.x, c_nom) - itf.to_local(state.x, inside)).abs().max() > 0.1
-    assert torch.allclose(a, b, atol=1e-7)
-
-
 def test_loss_unlabelled_agents_train_only_the_action():
     h, h_next, safe, unsafe, u, u_ref = _loss_inputs()
     h, h_next, frozen = h.clone().requires_grad_(), h_next.clone().requires_grad_(), h_next.clone().requires_grad_()

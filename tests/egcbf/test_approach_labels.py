@@ -15,6 +15,7 @@ from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.env.lidar import LidarScan
 from egcbf.env.swarm import approach_unsafe
+from egcbf.robots import make_robot
 
 F64 = torch.float64
 R = 0.05
@@ -101,7 +102,13 @@ def test_matches_the_dense_reference_formula(seed, n):
 def test_labels_are_invariant_under_the_robots_symmetry(name, seed, k, angle, t):
     """Quarter turns for the double integrator (world-fixed rays), any rotation for the car; and translations."""
     cfg = EnvConfig.for_robot(
-        name, num_agents=10, num_obstacles=3, area_size=1.0, start_separation=2.2, obstacle_clearance=1.5
+        name,
+        num_agents=10,
+        num_obstacles=3,
+        area_size=1.0,
+        start_separation=2.2,
+        obstacle_clearance=1.5,
+        **make_robot(name).reference_labels,
     )  # dense: approaches on most draws
     env = SwarmEnv(cfg, dtype=F64)
     robot = env.robot
@@ -118,7 +125,7 @@ def test_labels_are_invariant_under_the_robots_symmetry(name, seed, k, angle, t)
 
 
 def test_motion_directions():
-    di, car = EnvConfig.for_robot("double_integrator").make_robot(), EnvConfig.for_robot("dubins_car").make_robot()
+    di, car = make_robot("double_integrator"), make_robot("dubins_car")
     x = torch.tensor([[0.0, 0.0, 0.3, -0.4]], dtype=F64)
     assert torch.allclose(di.motion_direction(x), torch.tensor([[0.3, -0.4]], dtype=F64) / (0.5 + 1e-4))
     assert di.motion_direction(torch.zeros(1, 4, dtype=F64)).abs().max() == 0
@@ -127,13 +134,17 @@ def test_motion_directions():
 
 
 def test_the_robots_name_the_references_labels():
-    expect = {"double_integrator": (2.0, 1.0, 3.0, 2.0), "dubins_car": (2.0, 1.5, 3.0, 2.0),
-              "single_integrator": (2.5, 1.5, 0.0, 0.0), "linear_drone": (2.5, 1.5, 0.0, 0.0)}  # fmt: skip
+    """The reference's labels are named by the robots (EnvConfig fields); the defaults stay the distance labels."""
+    expect = {"double_integrator": (2.0, 1.0, 3.0, 2.0), "dubins_car": (2.0, 1.5, 3.0, 2.0)}
     for name, values in expect.items():
-        c = EnvConfig.for_robot(name)
+        c = EnvConfig.for_robot(name, **make_robot(name).reference_labels)
         got = (c.unsafe_agent_distance, c.unsafe_obstacle_distance, c.unsafe_approach_agent_distance,
                c.unsafe_approach_obstacle_distance)  # fmt: skip
         assert got == values, name
+    for name in ("double_integrator", "dubins_car", "single_integrator", "linear_drone"):
+        c = EnvConfig.for_robot(name)
+        assert (c.unsafe_agent_distance, c.unsafe_obstacle_distance) == (2.5, 1.5)
+        assert c.unsafe_approach_agent_distance == c.unsafe_approach_obstacle_distance == 0
     with pytest.raises(ValueError, match="unsafe_approach_agent_distance"):
         EnvConfig.for_robot("double_integrator", unsafe_approach_agent_distance=1.5)
     with pytest.raises(ValueError, match="unsafe_approach_obstacle_distance"):
@@ -147,7 +158,8 @@ def test_the_learner_labels_approaches_unsafe(monkeypatch):
     """A head-on pair 2.8 r apart, closing, is unsafe by the approach labels (the distance labels alone, 2 r, call it
     safe), and the learner's rollouts take their labels from them."""
     cfg = TrainConfig.preset("gcbf+", "tiny", robot="double_integrator")
-    env = SwarmEnv(EnvConfig.for_robot("double_integrator", num_agents=3, num_obstacles=0))
+    labels = make_robot("double_integrator").reference_labels
+    env = SwarmEnv(EnvConfig.for_robot("double_integrator", num_agents=3, num_obstacles=0, **labels))
     state = env.reset(0)
     x = state.x.clone()
     x[0, 0] = torch.tensor([1.0, 1.0, 0.5, 0.0])

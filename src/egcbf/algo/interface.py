@@ -312,19 +312,15 @@ def solve_command_qp(
     env: EnvConfig,
     *,
     alpha: float,
-    project_nominal: bool = False,
     **solver,
 ) -> tuple[Tensor, CBFQPResult]:
     """The learned-CBF QP over the commands of ``itf`` (:mod:`egcbf.algo.qp`) for the states ``x`` ``(B, N, 18)``
     of ``graph``: ``Lg h`` by the interface's model, variables in the coordinates where the bounds are a box,
-    reference ``c_nom`` ``(B, N, k)`` (``project_nominal``: its projection into the box that acts at ``x``, what
-    the robot would execute; ``TrainConfig.qp_project_nominal``). Returns the QP's commands in world coordinates
-    (dtype of ``x``) and the solver's result. ``solver``: ``slack_linear``, ``slack_quadratic``, ``tol``,
-    ``max_iter``, ``chunk``."""
+    reference ``c_nom`` ``(B, N, k)``. Returns the QP's commands in world coordinates (dtype of ``x``) and the
+    solver's result. ``solver``: ``slack_linear``, ``slack_quadratic``, ``tol``, ``max_iter``, ``chunk``."""
     h, lf, lg = itf.lie_derivatives(cbf, graph, x, env, c_nom)
     lo, hi = itf.state_bounds(x)
-    ref = itf.to_local(x, c_nom)
-    if project_nominal:
-        ref = torch.maximum(torch.minimum(ref, hi.to(ref)), lo.to(ref))
-    res = solve_cbf_qp(h, lf, itf.to_local(x[:, None].to(lg.dtype), lg), ref, lo, hi, alpha=alpha, **solver)
+    res = solve_cbf_qp(
+        h, lf, itf.to_local(x[:, None].to(lg.dtype), lg), itf.to_local(x, c_nom), lo, hi, alpha=alpha, **solver
+    )
     return itf.from_local(x.to(res.u.dtype), res.u).to(x.dtype), res

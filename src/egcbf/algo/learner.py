@@ -202,9 +202,8 @@ class GraphCBFLearner:
             chunk = data[k : k + cfg.qp_chunk]
             c_qp, res = solve_command_qp(
                 itf, self.cbf_target, chunk.graph(self.env_config), chunk.x, c_nom[k : k + cfg.qp_chunk],
-                self.env_config, alpha=cfg.qp_alpha, project_nominal=cfg.qp_project_nominal,
-                slack_linear=cfg.qp_slack_linear, slack_quadratic=cfg.qp_slack_quadratic, tol=cfg.qp_tol,
-                max_iter=cfg.qp_max_iter, chunk=cfg.qp_chunk,
+                self.env_config, alpha=cfg.qp_alpha, slack_linear=cfg.qp_slack_linear,
+                slack_quadratic=cfg.qp_slack_quadratic, tol=cfg.qp_tol, max_iter=cfg.qp_max_iter, chunk=cfg.qp_chunk,
             )  # fmt: skip
             out.append(c_qp.to(self.dtype))
             s = res.stats()
@@ -242,12 +241,8 @@ class GraphCBFLearner:
         graph = batch.graph(env_cfg)
         k = itf.dim
         h = self.cbf(graph)
-        raw, c_nom = raw_policy_command(self.policy, cfg.model, itf, graph, batch.x, batch.goals)
+        raw, _ = raw_policy_command(self.policy, cfg.model, itf, graph, batch.x, batch.goals)
         c = itf.clip(batch.x, raw)
-        weights = None
-        if cfg.control_active_weight > 0:  # the agents whose reference departs from what the nominal would do
-            active = (u_ref - itf.clip(batch.x, c_nom.detach())).abs().amax(-1) > 1e-3
-            weights = 1 + cfg.control_active_weight * active.reshape(-1).to(h.dtype)
         # straight through the clip: the command's value, the raw command's gradient, so that a policy pushing
         # beyond the box (at a speed limit: beyond 0) still learns from the reference's braking
         c_imitated = straight_through(raw, c) if cfg.straight_through_clip else c
@@ -266,7 +261,7 @@ class GraphCBFLearner:
             u_ref.reshape(-1, k),
             env_cfg.dt, gamma=cfg.gamma, alpha=cfg.alpha, eta_d=cfg.eta_d, eta_c=cfg.eta_c, eta_safe=cfg.eta_safe,
             eta_unsafe=cfg.eta_unsafe, control=cfg.control_loss, h_next_frozen=h_next_frozen,
-            hdot_labelled=labelled, control_weights=weights,
+            hdot_labelled=labelled,
         )  # fmt: skip
 
     def train_step(self, batch: Samples, u_ref: Tensor) -> dict[str, float]:

@@ -51,7 +51,6 @@ def cbf_loss(
     h_frozen: Tensor | None = None,
     h_next_frozen: Tensor | None = None,
     hdot_labelled: Tensor | None = None,
-    control_weights: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """The loss terms and diagnostics (module doc).
 
@@ -64,8 +63,6 @@ def cbf_loss(
             used for unlabelled agents; ``None``: use ``h`` and ``h_next`` everywhere.
         hdot_labelled: ``(M,)`` bool, the agents whose derivative term trains the CBF too (default: the labelled
             ones, ``safe | unsafe``); the others use the frozen values.
-        control_weights: ``(M,)`` positive weights of the control term (``TrainConfig.control_active_weight``): its
-            weighted mean; ``None``: the plain mean.
 
     Returns:
         dict with ``total`` and the weighted-sum parts ``unsafe``, ``safe``, ``hdot``, ``control`` (unweighted), and
@@ -85,12 +82,7 @@ def cbf_loss(
         v = torch.where(safe | unsafe if hdot_labelled is None else hdot_labelled.bool(), v, v_frozen)
     l_hdot = v.mean()
     err = (u - u_ref.detach()).square().sum(-1)
-    per_agent = err if control == "squared" else err.clamp_min(1e-12).sqrt()
-    if control_weights is None:
-        l_control = per_agent.mean()
-    else:
-        w = control_weights.to(per_agent)
-        l_control = (w * per_agent).sum() / w.sum().clamp_min(1e-12)
+    l_control = (err if control == "squared" else err.clamp_min(1e-12).sqrt()).mean()
     total = eta_unsafe * l_unsafe + eta_safe * l_safe + eta_d * l_hdot + eta_c * l_control
     with torch.no_grad():
         acc_unsafe = _masked_mean((h < 0).to(h.dtype), unsafe)

@@ -56,7 +56,8 @@ class EnvConfig:
             units of ``agent_radius``: another agent closer than the first (>= 2, GCBF+: 2.5), an obstacle surface
             closer than the second (>= 1, GCBF+: 1.5). Collisions, and so every metric, stay at 2 r and r.
         unsafe_approach_agent_distance, unsafe_approach_obstacle_distance: the training labels' *approach* part
-            (GCBF+'s double integrator and Dubins car, "unsafe direction"; 0 = off), in agent radii: an agent is
+            (the GCBF+ reference's double integrator and Dubins car, "unsafe direction", ``Robot.reference_labels``;
+            0 = off, the default), in agent radii: an agent is
             also unsafe when another agent closer than the first (>= 2; GCBF+: 3), or a LiDAR hit closer than the
             second (>= 1; GCBF+: 2), lies in its collision cone: its motion direction
             (:meth:`Robot.motion_direction`) within ``asin(2 r / d)`` (agents) or ``asin(r / d)`` (hits) of the

@@ -11,8 +11,8 @@ Conventions (GCBF+, see ``docs/metrics.md``), with ``r`` the agent radius:
 
 * collision (evaluation): agent–agent distance ``< 2 r``, or inside an obstacle inflated by ``r``;
 * unsafe (training labels): agent–agent distance ``< 2.5 r``, or inside an obstacle inflated by ``1.5 r``
-  (``EnvConfig.unsafe_*_distance``; the robots name their own), or, where the robot asks for it
-  (``EnvConfig.unsafe_approach_*``, GCBF+'s double integrator and Dubins car), moving toward a near agent or
+  (``EnvConfig.unsafe_*_distance``), or, when ``EnvConfig.unsafe_approach_*`` ask for it (the GCBF+ reference's
+  labels of its double integrator and Dubins car, ``Robot.reference_labels``), moving toward a near agent or
   LiDAR hit within its collision cone (:func:`approach_unsafe`);
 * reached: distance to the own goal ``< 2 r``.
 

@@ -76,6 +76,9 @@ class Robot:
     world_fixed_lidar: ClassVar[bool] = False
     #: :class:`egcbf.env.EnvConfig` defaults for this robot (fields not named keep the EnvConfig defaults)
     env_defaults: ClassVar[dict[str, Any]] = {}
+    #: the GCBF+ reference's training labels for this robot where they differ from the defaults (EnvConfig's
+    #: ``unsafe_*`` fields; ``EnvConfig.for_robot(name, **robot.reference_labels)``)
+    reference_labels: ClassVar[dict[str, Any]] = {}
     #: where the state holds the world position and the world velocity (:meth:`perturbed`); ``None``: not a slice
     #: of the state (a robot without one overrides :meth:`perturbed`)
     position_index: ClassVar[slice | None] = None

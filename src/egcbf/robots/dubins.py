@@ -68,10 +68,10 @@ class DubinsCar(HeadingSpeedRobot):
     control_dim = 2
     group_name = "se2"
     interfaces = ("control",)
-    #: the reference's planar environment (rectangles, r, R, dt) and its car's labels: unsafe = an agent within 2 r,
-    #: an obstacle within 1.5 r, or an approach along the heading within 3 r / 2 r (its "unsafe direction")
-    env_defaults: ClassVar[dict] = {
-        **PLANAR_DEFAULTS,
+    env_defaults: ClassVar[dict] = PLANAR_DEFAULTS  # the reference's planar environments (rectangles, r, R, dt)
+    #: the reference's training labels (EnvConfig fields): unsafe = an agent within 2 r, an obstacle within 1.5 r, or
+    #: an approach along the heading within 3 r / 2 r (its "unsafe direction"); not the default (docs/robots.md)
+    reference_labels: ClassVar[dict] = {
         "unsafe_agent_distance": 2.0,
         "unsafe_obstacle_distance": 1.5,
         "unsafe_approach_agent_distance": 3.0,

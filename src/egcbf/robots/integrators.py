@@ -222,11 +222,11 @@ class DoubleIntegrator(_PointMass):
     name = "double_integrator"
     state_dim = 4
     velocity_index = slice(2, 4)
-    #: the reference's labels too: unsafe = a collision (2 r, r) or an approach within 3 r / 2 r (its "unsafe
-    #: direction"; :func:`egcbf.env.swarm.approach_unsafe`)
-    env_defaults: ClassVar[dict] = {
-        **PLANAR_DEFAULTS,
-        "obstacle_side_range": (0.1, 0.5),
+    env_defaults: ClassVar[dict] = {**PLANAR_DEFAULTS, "obstacle_side_range": (0.1, 0.5)}
+    #: the reference's training labels (EnvConfig fields): unsafe = a collision (2 r, r) or an approach within 3 r /
+    #: 2 r (its "unsafe direction", :func:`egcbf.env.swarm.approach_unsafe`); not the default, which kept our
+    #: recipe safer at scale (docs/robots.md)
+    reference_labels: ClassVar[dict] = {
         "unsafe_agent_distance": 2.0,
         "unsafe_obstacle_distance": 1.0,
         "unsafe_approach_agent_distance": 3.0,

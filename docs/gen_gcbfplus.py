@@ -145,7 +145,7 @@ def learned_summary(reference: list[dict]) -> str:
     rows = [r for r in reference if r["env"] != "CrazyFlie"]
     exp_b = [r for r in rows if (r["env"], r["N"], r["l"], r["steps"]) == ("DoubleIntegrator", 256, 16, 1024)]
     for m in ("gcbf+", "egcbf+"):
-        done = [(r, current(m, r)["metrics"]) for r in rows if current(m, r) is not None]
+        done = [(r, cell["metrics"]) for r in rows if (cell := current(m, r)) is not None]
         if not done:
             lines.append(f"- {m}: no cells yet.")
             continue

@@ -98,16 +98,17 @@ class PointMassDCBF:
         t0 = time.perf_counter()
         scene = barrier_rows(state, env_config, self.config, pairs="halves")
         b, n = state.x.shape[:2]
-        u, failed = self._solve(b * n, scene, scene.i, scene.coef_i, scene.bound, scene.cfg)
+        u, failed = self._solve(b * n, scene)
         info = {"qp_ms": 1e3 * (time.perf_counter() - t0), "num_slack": 0, "num_failed": int(failed.sum()),
                 "u_ref": scene.u_nom.view(b, n, -1).to(state.x.dtype)}  # fmt: skip
         return u.view(b, n, -1).to(state.x.dtype), info
 
-    def _solve(self, m: int, scene: BarrierRows, i: Tensor, nrm: Tensor, bound: Tensor, cfg) -> tuple[Tensor, Tensor]:
-        d = scene.robot.control_dim
-        lo, hi, u_nom = scene.lo, scene.hi, scene.target
+    def _solve(self, m: int, scene: BarrierRows) -> tuple[Tensor, Tensor]:
+        d, cfg = scene.robot.control_dim, scene.cfg
+        lo, hi, u_nom = scene.lo, scene.hi, scene.target  # the target is in the box already
+        i, nrm, bound = scene.i, scene.coef_i, scene.bound
         if not i.numel():
-            return u_nom.clamp(lo, hi), torch.zeros(m, dtype=torch.bool)
+            return u_nom, torch.zeros(m, dtype=torch.bool)
         order = torch.argsort(i, stable=True)
         i, nrm, bound = i[order], nrm[order], bound[order]
         counts = torch.bincount(i, minlength=m)
@@ -165,6 +166,7 @@ class PointMassCCBF:
         failed = slack = 0
         env = (rows.i // n).numpy()
         for e in range(b):
+            own = slice(e * n, (e + 1) * n)  # this environment's agents
             k = np.nonzero(env == e)[0]
             if k.size == 0:
                 continue
@@ -181,17 +183,14 @@ class PointMassCCBF:
             C = sp.csc_matrix(entries, shape=(r, n * nu + r))
             qp = SparseQP(
                 H=sp.diags(np.r_[np.ones(n * nu), np.full(r, cfg.w2)]).tocsc(),
-                g=np.r_[-u_nom[e * n : (e + 1) * n].ravel(), np.full(r, cfg.w1)],
+                g=np.r_[-u_nom[own].ravel(), np.full(r, cfg.w1)],
                 C=C, l=rows.bound.numpy()[k], u=np.full(r, INF),
-                x_l=np.r_[lo[e * n : (e + 1) * n].ravel(), np.zeros(r)],
-                x_u=np.r_[hi[e * n : (e + 1) * n].ravel(), np.full(r, INF)],
+                x_l=np.r_[lo[own].ravel(), np.zeros(r)], x_u=np.r_[hi[own].ravel(), np.full(r, INF)],
                 num_agents=n, num_slack=r,
             )  # fmt: skip
             res = solve_with_qpsolvers(qp, self.solver, eps_abs=1e-9, max_iter=500)
             if res.ok and np.isfinite(res.x).all():
-                u[e * n : (e + 1) * n] = np.clip(
-                    res.x[: n * nu].reshape(n, nu), lo[e * n : (e + 1) * n], hi[e * n : (e + 1) * n]
-                )
+                u[own] = np.clip(res.x[: n * nu].reshape(n, nu), lo[own], hi[own])
                 slack += int((res.x[n * nu :] > 1e-6).sum())
             else:
                 failed += n

@@ -261,19 +261,19 @@ def approach_unsafe(
     b, n, d = positions.shape
     r = float(agent_radius)
     p = positions.detach()
-    u = direction.detach().to(p.dtype)
+    heading = direction.detach().to(p.dtype)
     out = torch.zeros(b * n, dtype=torch.bool, device=p.device)
     if agent_distance > 0 and n > 1:
         flat = p.reshape(b * n, d)
         batch = torch.arange(b, device=p.device).repeat_interleave(n)
         src, dst = radius_neighbors(flat, agent_distance * r, batch, sort=False)
         offset = flat.index_select(0, src) - flat.index_select(0, dst)
-        out[dst[_in_cone(offset, u.reshape(b * n, d).index_select(0, dst), 2 * r)]] = True
+        out[dst[_in_cone(offset, heading.reshape(b * n, d).index_select(0, dst), 2 * r)]] = True
     out = out.view(b, n)
     if obstacle_distance > 0 and scan is not None:
         offset = scan.points.to(p.dtype) - p[..., None, :]  # (B, N, H, d)
         near = scan.valid & (scan.distance < obstacle_distance * r)
-        out = out | (near & _in_cone(offset, u[..., None, :].expand_as(offset), r)).any(-1)
+        out = out | (near & _in_cone(offset, heading[..., None, :].expand_as(offset), r)).any(-1)
     return out
 
 

@@ -103,8 +103,10 @@ class TrainConfig:
     ``qp_chunk`` (environments per batched solve), ``target_tau`` (soft update of the target CBF after each update).
     ``qp_constraints``: ``"cbf"`` (the paper's and GCBF+'s: one centralized QP per scene, one condition per agent on
     its ``h_i``) or ``"edges"`` (one QP per agent over its own command, one condition per barrier of an edge it
-    senses, pair conditions halved: :mod:`egcbf.algo.edge_qp`; needs the soft-min CBF head and the acceleration
-    interface), with the class-K gain ``qp_edge_alpha`` (1/s, per-edge barriers in m).
+    senses, pair conditions halved: :mod:`egcbf.algo.edge_qp`; needs the soft-min CBF head, and the acceleration
+    interface or the control interface of a robot whose state holds its velocity), with the class-K gain
+    ``qp_edge_alpha`` (1/s, per-edge barriers in m); for the control interface, rows that a unit of normalized control
+    moves by no more than ``qp_edge_min_authority`` (m/s) are dropped (:func:`egcbf.algo.edge_qp.edge_qp_controls`).
 
     Run: ``steps`` (updates), ``max_wall_minutes`` (stop earlier, after the first update that ends past this much
     training wall time, with a final evaluation and checkpoint; ``None``: no limit), ``max_cpu_minutes`` (the same
@@ -170,6 +172,7 @@ class TrainConfig:
     qp_chunk: int = 1024
     qp_constraints: str = "cbf"
     qp_edge_alpha: float = 1.0
+    qp_edge_min_authority: float = 1e-9
     target_tau: float = 0.5
     # run
     steps: int = 1000
@@ -245,11 +248,17 @@ class TrainConfig:
         need(self.qp_constraints in ("cbf", "edges"), "qp_constraints", "'cbf' or 'edges'")
         v = self.qp_edge_alpha
         need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, "qp_edge_alpha", "a finite number > 0")
+        v = self.qp_edge_min_authority
+        need(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0, "qp_edge_min_authority",
+             "a finite number >= 0")  # fmt: skip
         if self.qp_constraints == "edges":
             m = self.model
-            ok = m.interface == "accel" and m.cbf_head == "edge_min" and not m.cbf_z_symmetric
-            need(ok, "qp_constraints", "'cbf' unless the model has the acceleration interface and the soft-min CBF "
-                 "head (interface = 'accel', cbf_head = 'edge_min', cbf_z_symmetric = False)")  # fmt: skip
+            ok = m.interface in ("accel", "control") and m.cbf_head == "edge_min" and not m.cbf_z_symmetric
+            if m.interface == "control":
+                ok = ok and not make_robot(m.robot).kinematic
+            need(ok, "qp_constraints", "'cbf' unless the model has the acceleration or (for a robot whose state holds "
+                 "its velocity) the control interface and the soft-min CBF head (cbf_head = 'edge_min', "
+                 "cbf_z_symmetric = False)")  # fmt: skip
         if self.area_sizes is not None:
             ok = isinstance(self.area_sizes, (list, tuple)) and len(self.area_sizes) > 0
             ok = ok and all(isinstance(a, (int, float)) and math.isfinite(a) and a > 0 for a in self.area_sizes)

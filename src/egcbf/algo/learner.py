@@ -35,8 +35,8 @@ from ..graph import SwarmGraph, build_graph, refresh_graph
 from ..nn import CBFNet, ModelConfig, PolicyNet
 from ..robots import Robot
 from .buffer import Samples, TrajectoryBuffer, UnsafeBuffer
-from .edge_qp import edge_qp_commands
-from .interface import CommandInterface, make_interface, solve_command_qp
+from .edge_qp import edge_qp_commands, edge_qp_controls
+from .interface import CommandInterface, ControlInterface, make_interface, solve_command_qp
 from .labels import finite_horizon_labels
 from .loss import cbf_loss
 
@@ -222,12 +222,18 @@ class GraphCBFLearner:
         t0 = time.perf_counter()
         for k in range(0, len(data), cfg.qp_chunk):
             chunk = data[k : k + cfg.qp_chunk]
-            a_nom = itf.accel_unit * c_nom[k : k + cfg.qp_chunk]
-            a, info = edge_qp_commands(
-                chunk.graph(self.env_config), chunk.x, itf, a_nom, alpha=cfg.qp_edge_alpha, margin=0.0,
-                cbf=self.cbf_target, distance=mc.cbf_distance, horizon=mc.closest_approach_horizon,
+            barrier = dict(
+                alpha=cfg.qp_edge_alpha, margin=0.0, cbf=self.cbf_target, distance=mc.cbf_distance,
+                horizon=mc.closest_approach_horizon,
             )  # fmt: skip
-            out.append((a / itf.accel_unit).to(self.dtype))
+            if isinstance(itf, ControlInterface):
+                c, info = edge_qp_controls(chunk.graph(self.env_config), chunk.x, itf, c_nom[k : k + cfg.qp_chunk],
+                                           min_authority=cfg.qp_edge_min_authority, **barrier)  # fmt: skip
+                out.append(c.to(self.dtype))
+            else:
+                a_nom = itf.accel_unit * c_nom[k : k + cfg.qp_chunk]
+                a, info = edge_qp_commands(chunk.graph(self.env_config), chunk.x, itf, a_nom, **barrier)
+                out.append((a / itf.accel_unit).to(self.dtype))
             for key in ("num_slack", "num_failed", "rows_dropped"):
                 stats[key] += info[key]
             stats["max_slack"] = max(stats["max_slack"], info["max_slack"])

@@ -42,7 +42,7 @@ from ..neighbors import radius_neighbors
 from .dense_ipm import solve_dense_ipm
 
 __all__ = ["AFFINE_ROBOTS", "BarrierRows", "PointMassCBFConfig", "PointMassCCBF", "PointMassDCBF",
-           "acceleration_affine", "barrier_rows"]  # fmt: skip
+           "acceleration_affine", "barrier_rows", "solve_own_qps"]  # fmt: skip
 
 #: the robots this dCBF-QP drives
 AFFINE_ROBOTS = ("single_integrator", "double_integrator", "linear_drone", "dubins_car", "unicycle")
@@ -98,41 +98,55 @@ class PointMassDCBF:
         t0 = time.perf_counter()
         scene = barrier_rows(state, env_config, self.config, pairs="halves")
         b, n = state.x.shape[:2]
-        u, failed = self._solve(b * n, scene)
+        u, failed = self._solve(scene)
         info = {"qp_ms": 1e3 * (time.perf_counter() - t0), "num_slack": 0, "num_failed": int(failed.sum()),
                 "u_ref": scene.u_nom.view(b, n, -1).to(state.x.dtype)}  # fmt: skip
         return u.view(b, n, -1).to(state.x.dtype), info
 
-    def _solve(self, m: int, scene: BarrierRows) -> tuple[Tensor, Tensor]:
-        d, cfg = scene.robot.control_dim, scene.cfg
-        lo, hi, u_nom = scene.lo, scene.hi, scene.target  # the target is in the box already
-        i, nrm, bound = scene.i, scene.coef_i, scene.bound
-        if not i.numel():
-            return u_nom, torch.zeros(m, dtype=torch.bool)
-        order = torch.argsort(i, stable=True)
-        i, nrm, bound = i[order], nrm[order], bound[order]
-        counts = torch.bincount(i, minlength=m)
-        k = int(counts.max())
-        slot = torch.arange(i.numel()) - (torch.cumsum(counts, 0) - counts)[i]
-        G = torch.zeros(m, k + 2 * d + 1, d + 1, dtype=torch.float64)
-        h = torch.ones(m, k + 2 * d + 1, dtype=torch.float64)  # all-zero rows with h > 0: padding
-        G[i, slot, :d] = -nrm
-        G[i, slot, d] = -1.0
-        h[i, slot] = -bound
-        eye = torch.eye(d, dtype=torch.float64)
-        G[:, k : k + d, :d] = eye
-        h[:, k : k + d] = hi
-        G[:, k + d : k + 2 * d, :d] = -eye
-        h[:, k + d : k + 2 * d] = -lo
-        G[:, -1, d] = -1.0
-        h[:, -1] = 0.0
-        P = torch.diag(torch.cat((torch.ones(d, dtype=torch.float64), torch.tensor([cfg.w2], dtype=torch.float64))))
-        q = torch.cat((-u_nom, torch.full((m, 1), cfg.w1, dtype=torch.float64)), 1)
-        x0 = torch.zeros(m, d + 1, dtype=torch.float64)
-        x0[:, d] = bound.clamp_min(0).max() + 1.0 if bound.numel() else 1.0
-        z, ok, _ = solve_dense_ipm(P, q, G, h, x0=x0)
-        u = torch.where(ok[:, None], z[:, :d], u_nom).clamp(lo, hi)
-        return u, ~ok
+    def _solve(self, scene: BarrierRows) -> tuple[Tensor, Tensor]:
+        cfg = scene.cfg
+        return solve_own_qps(scene.target, scene.lo, scene.hi, scene.i, scene.coef_i, scene.bound, cfg.w1, cfg.w2)
+
+
+def solve_own_qps(
+    target: Tensor, lo: Tensor, hi: Tensor, i: Tensor, coef: Tensor, bound: Tensor, w1: float, w2: float
+) -> tuple[Tensor, Tensor]:
+    """Every agent's QP over its own control, as one batch of the dense interior-point solver::
+
+        min  1/2 ||u - target_a||^2 + 1/2 w2 s^2 + w1 s   s.t.  coef[k] . u + s >= bound[k]  (rows k with i[k] = a),
+             lo_a <= u <= hi_a,  s >= 0
+
+    ``target``, ``lo``, ``hi`` ``(M, nu)`` float64 (``target`` within the box), rows ``i`` ``(R,)`` (the agent),
+    ``coef`` ``(R, nu)``, ``bound`` ``(R,)``. Returns ``u`` ``(M, nu)`` (clamped into the box; an agent whose QP
+    failed keeps its ``target``) and the failed mask ``(M,)``. Used by the dCBF-QP and the learner's per-edge target
+    for control-interface robots (:mod:`egcbf.algo.edge_qp`)."""
+    m, d = target.shape
+    if not i.numel():
+        return target, torch.zeros(m, dtype=torch.bool)
+    order = torch.argsort(i, stable=True)
+    i, nrm, bound = i[order], coef[order], bound[order]
+    counts = torch.bincount(i, minlength=m)
+    k = int(counts.max())
+    slot = torch.arange(i.numel()) - (torch.cumsum(counts, 0) - counts)[i]
+    G = torch.zeros(m, k + 2 * d + 1, d + 1, dtype=torch.float64)
+    h = torch.ones(m, k + 2 * d + 1, dtype=torch.float64)  # all-zero rows with h > 0: padding
+    G[i, slot, :d] = -nrm
+    G[i, slot, d] = -1.0
+    h[i, slot] = -bound
+    eye = torch.eye(d, dtype=torch.float64)
+    G[:, k : k + d, :d] = eye
+    h[:, k : k + d] = hi
+    G[:, k + d : k + 2 * d, :d] = -eye
+    h[:, k + d : k + 2 * d] = -lo
+    G[:, -1, d] = -1.0
+    h[:, -1] = 0.0
+    P = torch.diag(torch.cat((torch.ones(d, dtype=torch.float64), torch.tensor([w2], dtype=torch.float64))))
+    q = torch.cat((-target, torch.full((m, 1), w1, dtype=torch.float64)), 1)
+    x0 = torch.zeros(m, d + 1, dtype=torch.float64)
+    x0[:, d] = bound.clamp_min(0).max() + 1.0 if bound.numel() else 1.0
+    z, ok, _ = solve_dense_ipm(P, q, G, h, x0=x0)
+    u = torch.where(ok[:, None], z[:, :d], target).clamp(lo, hi)
+    return u, ~ok
 
 
 class PointMassCCBF:
@@ -239,7 +253,7 @@ def barrier_rows(state, env_config, config: PointMassCBFConfig | None, pairs: st
     u_nom = robot.nominal_control(x, goals)
     lo, hi = (t.to(x.dtype).expand_as(u_nom).contiguous() for t in robot.effective_control_bounds(x))
     p, v = robot.positions(x), robot.velocities(x)
-    if robot.name == "single_integrator":  # relative degree 1: p' = u
+    if robot.kinematic:  # relative degree 1: p' = u
         drift, gain = None, torch.eye(robot.dim, dtype=x.dtype).expand(x.shape[0], -1, -1)
     else:
         drift, gain = acceleration_affine(robot, x)

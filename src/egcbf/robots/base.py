@@ -83,6 +83,9 @@ class Robot:
     #: of the state (a robot without one overrides :meth:`perturbed`)
     position_index: ClassVar[slice | None] = None
     velocity_index: ClassVar[slice | None] = None
+    #: the control is the velocity (relative degree 1 in position: the single integrator); the per-edge QPs and the
+    #: second-order barriers need a robot whose velocity is part of its state
+    kinematic: ClassVar[bool] = False
     #: named groups of control channels (:mod:`egcbf.faults`: a per-agent gain error on ``"thrust"``, a gain and a
     #: bias on ``"torque"``); a robot without them only takes the faults' ``gain`` on every channel
     actuator_groups: ClassVar[dict[str, tuple[int, ...]]] = {}

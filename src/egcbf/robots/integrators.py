@@ -193,6 +193,7 @@ class SingleIntegrator(_PointMass):
 
     name = "single_integrator"
     state_dim = 2
+    kinematic = True
 
     def __init__(self, params: IntegratorParams | None = None):
         super().__init__(params)

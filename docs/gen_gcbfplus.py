@@ -10,7 +10,8 @@ sampler: the episodes differ, the settings and the metric definitions do not), a
 count: :func:`our_episodes` raises it to 2560 agent-episodes per cell, because a few episodes leave the rates to the
 draw (at N = 256, l = 22.6 and 256 steps, where only the goals within about 5 m can be reached, three episodes'
 reach rate varies by about one point between draws even for the nominal controller alone). A cell computed with
-fewer episodes than that is recomputed.
+fewer episodes than that is recomputed, and so is a learned method's cell whose ``checkpoint_sha256`` is not the
+shipped checkpoint's (``state.json``'s ``weights_sha256``): replacing a checkpoint makes its cells pending.
 
     .venv/bin/python docs/gen_gcbfplus.py --run nominal,dcbf # evaluates the missing cells, then the report
     .venv/bin/python docs/gen_gcbfplus.py                    # the report from the committed cells only
@@ -33,6 +34,8 @@ RESULTS = ROOT / "results" / "gcbfplus"
 #: the reference's environments -> our robots (CrazyFlie: our quadrotor, another plant)
 ROBOTS = json.loads((RESULTS / "reference.json").read_text())["robots"]
 METHODS = ("nominal", "ccbf", "dcbf", "gcbf+", "egcbf+")
+#: the learned methods: a cell of theirs is current only for the shipped checkpoint's weights (its SHA-256)
+LEARNED = ("gcbf+", "egcbf+")
 #: agent-episodes per cell at least (:func:`our_episodes`)
 MIN_AGENT_EPISODES = 2560
 
@@ -59,7 +62,25 @@ def current(method: str, row: dict) -> dict | None:
     if not path.exists():
         return None
     cell = json.loads(path.read_text())
-    return cell if cell["metrics"]["num_episodes"] >= our_episodes(row) else None
+    if cell["metrics"]["num_episodes"] < our_episodes(row):
+        return None
+    if method in LEARNED and cell.get("checkpoint_sha256") != shipped_sha256(method, row):
+        return None  # computed from other weights than the shipped checkpoint's
+    return cell
+
+
+def checkpoint_dir(method: str, row: dict) -> Path:
+    """The shipped checkpoint of a learned ``method`` for ``row``'s robot (the quadrotor's own for CrazyFlie)."""
+    robot = ROBOTS[row["env"]]
+    if robot == "quadrotor":
+        return ROOT.parent / "checkpoints" / method
+    return ROOT.parent / "checkpoints" / robot / method
+
+
+def shipped_sha256(method: str, row: dict) -> str | None:
+    """The SHA-256 of the shipped checkpoint's weights (its ``state.json``), ``None`` if it is not shipped."""
+    state = checkpoint_dir(method, row) / "state.json"
+    return json.loads(state.read_text())["weights_sha256"] if state.exists() else None
 
 
 def cell_path(method: str, row: dict) -> Path:
@@ -80,9 +101,7 @@ def run_cell(method: str, row: dict) -> dict | None:
         make = lambda _cfg: make_controller(method, robot=robot)  # noqa: E731
         overrides = {}
     else:
-        ckpt = ROOT.parent / "checkpoints" / robot / method
-        if robot == "quadrotor":
-            ckpt = ROOT.parent / "checkpoints" / method
+        ckpt = checkpoint_dir(method, row)
         if not (ckpt / "model.safetensors").exists():
             return None
         ctrl, cfg = load_controller(ckpt)
@@ -94,7 +113,10 @@ def run_cell(method: str, row: dict) -> dict | None:
                        env_overrides=overrides, robot=robot)  # fmt: skip
     out = dict(rows[0])
     out["per_episode"] = {k: rows[0]["per_episode"][k] for k in ("safe_rate", "reach_rate", "success_rate")}
-    return {"method": method, "robot": robot, "setting": row, "metrics": out}
+    cell = {"method": method, "robot": robot, "setting": row, "metrics": out}
+    if method in LEARNED:
+        cell["checkpoint_sha256"] = shipped_sha256(method, row)
+    return cell
 
 
 def table(reference: list[dict]) -> str:

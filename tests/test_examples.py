@@ -34,3 +34,20 @@ def test_the_gcbfplus_report_is_generated_from_its_cells():
     gen = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(gen)
     assert (root / "docs" / "gcbfplus.md").read_text() == gen.report()
+
+
+def test_a_gcbfplus_cell_of_other_weights_is_not_current(monkeypatch):
+    """A learned method's cell counts only for the shipped checkpoint's weights: replacing the checkpoint makes it
+    pending (docs/gen_gcbfplus.py recomputes it)."""
+    import importlib.util
+    import json
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("gen_gcbfplus", root / "docs" / "gen_gcbfplus.py")
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    row = next(r for r in json.loads((gen.RESULTS / "reference.json").read_text())["rows"] if r["env"] != "CrazyFlie")
+    assert gen.current("gcbf+", row) is not None
+    monkeypatch.setattr(gen, "shipped_sha256", lambda method, row: "0" * 64)
+    assert gen.current("gcbf+", row) is None
+    assert gen.current("nominal", row) is not None  # a hand-crafted controller's cell has no checkpoint

@@ -14,10 +14,17 @@ from training, selection and the evaluation seeds of ``egcbf eval`` / ``egcbf re
   target's alpha ``qp_edge_alpha``), ``edges-prior`` (the untrained prior's) and ``dcbf`` (the hand-crafted
   braking-distance rows of the ``dcbf`` filter), each as a controller.
 
+For a checkpoint of a robot driven through its raw control (GCBF+'s benchmark robots) the teachers are
+:func:`egcbf.algo.edge_qp.edge_qp_controls` around the nominal control: ``edges-cbf a=<alpha>`` for each of
+``--edge-alphas`` (default: the config's ``qp_edge_alpha``) and ``edges-prior`` (with ``--prior``), with the rows'
+``--min-authority`` (default: the config's); ``--obstacles`` and ``--max-steps`` set the scene.
+
 ``--out FILE.json`` also writes the rows (with the command) for the docs.
 
     python benchmarks/cbf_teacher.py --checkpoint checkpoints/egcbf+ --num-agents 64 --area 2 --episodes 2 --prior
     python benchmarks/cbf_teacher.py --num-agents 128 --area 2.5 --alphas 0.1,1,3 --prior --edge-teachers
+    python benchmarks/cbf_teacher.py --checkpoint checkpoints/double_integrator/gcbf+ --num-agents 256 --area 16 \
+        --episodes 1 --max-steps 1024 --obstacles 32 --edge-alphas 10,30,100 --prior
 """
 
 from __future__ import annotations
@@ -28,12 +35,34 @@ import dataclasses
 import torch
 from validation_scene import add_scene_arguments, write_record
 
+from egcbf.algo.edge_qp import edge_qp_controls
 from egcbf.algo.filtered import FilterConfig, FilteredController
 from egcbf.algo.interface import solve_command_qp
 from egcbf.checkpoint import load_learner
 from egcbf.evaluate import evaluate
 from egcbf.graph import build_graph
 from egcbf.nn import CBFNet
+
+
+class EdgeTeacher:
+    """``u, info = ctrl(state, env_config)``: the nominal control behind every agent's per-edge QP, for robots driven
+    through their raw control (:func:`egcbf.algo.edge_qp.edge_qp_controls`); ``cbf`` ``None``: the prior's rows."""
+
+    def __init__(self, cbf, model, interface, alpha: float, min_authority: float):
+        self.cbf, self.model, self.itf = cbf, model, interface
+        self.alpha, self.min_authority = alpha, min_authority
+
+    @torch.no_grad()
+    def __call__(self, state, env_config):
+        from egcbf.env import SwarmEnv
+
+        graph = build_graph(state, env_config, lidar=SwarmEnv(env_config, dtype=state.x.dtype).lidar(state))
+        c, _ = edge_qp_controls(
+            graph, state.x, self.itf, self.itf.nominal(state.x, state.goals), alpha=self.alpha, margin=0.0,
+            cbf=self.cbf, distance=self.model.cbf_distance, horizon=self.model.closest_approach_horizon,
+            min_authority=self.min_authority,
+        )  # fmt: skip
+        return self.itf.apply(state.x, c.to(state.x)), {}
 
 
 class LearnedCBFQP:
@@ -52,19 +81,9 @@ class LearnedCBFQP:
         return self.itf.apply(s.x, c).to(state.x), {}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_arguments(ap, num_agents=64, area=2.0, episodes=2)
-    ap.add_argument("--prior", action="store_true", help="also the QP on the untrained soft-min head")
-    ap.add_argument("--alphas", default=None, help="comma-separated QP alphas for the teacher (default: the config's)")
-    ap.add_argument("--edge-teachers", action="store_true", help="also the nominal command behind per-edge QPs")
-    ap.add_argument("--only", default=None, help="comma-separated controller names to run (default: all selected)")
-    args = ap.parse_args()
-    torch.set_num_threads(1)
-    learner = load_learner(args.checkpoint)
+def acceleration_teachers(learner, args) -> dict:
+    """The quadrotor's controllers of the module doc, by name."""
     cfg = learner.config
-    if cfg.model.interface != "accel":
-        raise SystemExit("the teacher check needs a checkpoint on the acceleration interface")
     alphas = [float(a) for a in args.alphas.split(",")] if args.alphas else [cfg.qp_alpha]
     ctrls = {"policy": lambda c: learner.controller()}
     for a in alphas:
@@ -79,6 +98,44 @@ def main() -> None:
         ctrls["edges-cbf"] = lambda c: FilteredController(None, cfg.model, edge, learner.cbf_target)
         ctrls["edges-prior"] = lambda c: FilteredController(None, cfg.model, dataclasses.replace(edge, kind="prior"))
         ctrls["dcbf"] = lambda c: FilteredController(None, cfg.model, FilterConfig.for_kind("dcbf"))
+    return ctrls
+
+
+def raw_control_teachers(learner, args) -> dict:
+    """The policy and the per-edge teachers of a control-interface checkpoint (module doc), by name."""
+    cfg = learner.config
+    ctrls = {"policy": lambda c: learner.controller()}
+    alphas = [float(a) for a in args.edge_alphas.split(",")] if args.edge_alphas else [cfg.qp_edge_alpha]
+    least = cfg.qp_edge_min_authority if args.min_authority is None else args.min_authority
+    for a in alphas:
+        ctrls[f"edges-cbf a={a:g}"] = lambda c, a=a: EdgeTeacher(learner.cbf_target, cfg.model, learner.interface, a,
+                                                                  least)  # fmt: skip
+    if args.prior:
+        ctrls["edges-prior"] = lambda c: EdgeTeacher(None, cfg.model, learner.interface, alphas[-1], least)
+    return ctrls
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_scene_arguments(ap, num_agents=64, area=2.0, episodes=2)
+    ap.add_argument("--prior", action="store_true", help="also the QP on the untrained soft-min head")
+    ap.add_argument("--alphas", default=None, help="comma-separated QP alphas for the teacher (default: the config's)")
+    ap.add_argument("--edge-teachers", action="store_true", help="also the nominal command behind per-edge QPs")
+    ap.add_argument("--only", default=None, help="comma-separated controller names to run (default: all selected)")
+    ap.add_argument("--obstacles", type=int, default=0, help="obstacles per scene")
+    ap.add_argument("--max-steps", type=int, default=None, help="episode length (default: the robot's)")
+    ap.add_argument("--edge-alphas", default=None, help="control-interface robots: comma-separated per-edge alphas")
+    ap.add_argument("--min-authority", type=float, default=None, help="the per-edge rows' qp_edge_min_authority")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    learner = load_learner(args.checkpoint)
+    cfg = learner.config
+    if cfg.model.interface == "control":
+        ctrls = raw_control_teachers(learner, args)
+    elif cfg.model.interface == "accel":
+        ctrls = acceleration_teachers(learner, args)
+    else:
+        raise SystemExit("the teacher check needs a checkpoint on the acceleration or the control interface")
     if args.only:
         keep = args.only.split(",")
         unknown = sorted(set(keep) - set(ctrls))
@@ -89,7 +146,8 @@ def main() -> None:
     results = []
     for name, make in ctrls.items():
         rows, _ = evaluate(make, [args.num_agents], area_size=args.area, episodes=args.episodes, seed=args.seed,
-                           show_progress=False, env_overrides=cfg.env_overrides or None)  # fmt: skip
+                           show_progress=False, env_overrides=cfg.env_overrides or None, robot=cfg.model.robot,
+                           num_obstacles=args.obstacles, max_steps=args.max_steps)  # fmt: skip
         r = rows[0]
         print(f"  {name:14s} safe {100 * r['safe_rate']:5.1f} %  reach {100 * r['reach_rate']:5.1f} %", flush=True)
         results.append({"teacher": name, **{k: r[k] for k in ("safe_rate", "reach_rate", "success_rate")}})

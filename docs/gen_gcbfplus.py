@@ -151,14 +151,23 @@ def meets_reference(metrics: dict, row: dict) -> bool:
     return safe >= need and reach >= row["reach"]
 
 
+def binomial_error(rate_percent: float, trials: int) -> float:
+    """The binomial standard error (percentage points) of a rate measured on ``trials`` independent agents: a lower
+    bound for agents of shared episodes, whose outcomes are correlated."""
+    p = rate_percent / 100
+    return 100 * math.sqrt(p * (1 - p) / trials)
+
+
 def shortfall(metrics: dict, row: dict) -> str:
-    """One cell that misses the bar: its setting, our safe and reach (with the standard error of our mean) against
-    the reference's."""
+    """One cell that misses the bar: its setting, our safe and reach (with the standard error of our mean over
+    episodes) against the reference's (with its binomial standard error over its agent-episodes, a lower bound)."""
     e = our_episodes(row)
     safe, reach = 100 * metrics["safe_rate"], 100 * metrics["reach_rate"]
+    trials = int(row["N"]) * int(row["episodes"])
     return (f"{row['env']} N={row['N']} l={row['l']:g} obs={row['obstacles']} T={row['steps']} (safe {safe:.1f} "
-            f"± {spread(metrics, 'safe_rate', e):.1f} vs {row['safe']:g}, reach {reach:.1f} "
-            f"± {spread(metrics, 'reach_rate', e):.1f} vs {row['reach']:g})")  # fmt: skip
+            f"± {spread(metrics, 'safe_rate', e):.1f} vs {row['safe']:g} ± {binomial_error(row['safe'], trials):.1f}, "
+            f"reach {reach:.1f} ± {spread(metrics, 'reach_rate', e):.1f} vs {row['reach']:g} "
+            f"± {binomial_error(row['reach'], trials):.1f})")  # fmt: skip
 
 
 def learned_summary(reference: list[dict]) -> str:
@@ -209,7 +218,9 @@ def report() -> str:
         "Issue 26's bar, per cell but CrazyFlie's: at least as safe as the reference's pretrained GCBF+ (at least "
         "99.9 % where it is 100 % safe) and at least as many goals reached; Experiment B (double integrator, N = 256, "
         "l = 16, 0 / 32 / 128 obstacles, 1024 steps): success >= 80 %. Checkpoints: `checkpoints/<robot>/<method>` "
-        "(how they were trained and chosen: [robots.md](robots.md)).",
+        "(how they were trained and chosen: [robots.md](robots.md)). A shortfall lists our rate ± the standard error "
+        "of our mean over episodes, and the reference's ± its binomial standard error over its N x episodes agents "
+        "(a lower bound: agents of one episode are not independent).",
         "",
         learned_summary(ref["rows"]),
         "",

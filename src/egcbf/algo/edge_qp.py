@@ -150,8 +150,9 @@ def edge_qp_controls(
     ``min_authority``: a row is dropped (counted in ``rows_dropped``) when a unit of normalized control changes its
     ``db/dt`` by no more than this (m/s per unit): a barrier the agent barely moves (a separating pair, whose
     closest approach is now) would otherwise demand a huge push, and the agent's one slack would then relax all its
-    rows. The Dubins car's teacher needs ``0.1`` (validation seed 777, 16 agents, l = 4: 93.8 % safe with 1e-9,
-    99.6 % with 0.1; ``TrainConfig.qp_edge_min_authority``)."""
+    rows. The Dubins car's runs use ``0.1`` (``TrainConfig.qp_edge_min_authority``; with one checkpoint's CBF, on
+    validation seed 777 with 16 agents at l = 4, the teacher was 93.8 % safe with 1e-9 and 99.6 % with 0.1; with
+    another's 99.2 and 98.4 %: docs/robots.md)."""
     robot = itf.robot
     if robot.kinematic:
         raise ValueError(f"the per-edge QPs need a robot whose velocity is part of its state, not the {robot.name} "

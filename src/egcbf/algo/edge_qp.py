@@ -115,6 +115,14 @@ def edge_barriers(
     return EdgeBarriers(ei[1], kind, b.detach(), gp, gv, dv.detach())
 
 
+def own_share(e: EdgeBarriers, alpha: float, margin: float) -> Tensor:
+    """``(E',)``: what the receiver's own acceleration term ``-gv . a_i`` must reach so that
+    ``db/dt + alpha (b - margin) >= 0`` with ``db/dt = gp . dv + gv . (a_j - a_i)``: half of it on agent edges (the
+    neighbour keeps the other half), all of it on LiDAR hits (static)."""
+    rhs = -alpha * (e.value - margin) - (e.grad_p * e.dv).sum(-1)
+    return torch.where(e.kind == KIND_AGENT, 0.5 * rhs, rhs)
+
+
 def edge_rows(
     graph: SwarmGraph, alpha: float, margin: float, cbf: CBFNet | None = None, distance: float = 0.25,
     horizon: float = 1.0,
@@ -122,10 +130,8 @@ def edge_rows(
     """The ``cbf`` (``cbf`` given) or ``prior`` (``cbf = None``: ``b = d_min - distance``) rows of every agent
     (module doc), from the agent and LiDAR-hit edges of ``graph``. float64 inside (the rows' gradients)."""
     e = edge_barriers(graph, cbf, distance, horizon)
-    b, gp, gv = e.value, e.grad_p, e.grad_v
-    # db/dt = gp . dv + gv . (a_j - a_i): agent i's own part is -gv . a_i
-    rhs = -alpha * (b - margin) - (gp * e.dv).sum(-1)
-    rhs = torch.where(e.kind == KIND_AGENT, 0.5 * rhs, rhs)
+    b, gv = e.value, e.grad_v
+    rhs = own_share(e, alpha, margin)
     norm = gv.norm(dim=-1)
     keep = norm > 1e-6
     normal = -gv[keep] / norm[keep, None]
@@ -165,8 +171,7 @@ def edge_qp_controls(
     drift, gain = acceleration_affine(robot, xf)  # (M, d), (M, d, nu)
     scale = itf._scale(xf)  # (nu,): u = scale c
     i = e.receiver
-    rhs = -alpha * (e.value - margin) - (e.grad_p * e.dv).sum(-1)
-    rhs = torch.where(e.kind == KIND_AGENT, 0.5 * rhs, rhs)
+    rhs = own_share(e, alpha, margin)
     # own part of db/dt: -gv . (A_i + B_i s c_i) >= rhs
     coef = -(e.grad_v[:, None, :] @ gain[i])[:, 0] * scale
     bound = rhs + (e.grad_v * drift[i]).sum(-1)

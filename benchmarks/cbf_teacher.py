@@ -54,9 +54,7 @@ class EdgeTeacher:
 
     @torch.no_grad()
     def __call__(self, state, env_config):
-        from egcbf.env import SwarmEnv
-
-        graph = build_graph(state, env_config, lidar=SwarmEnv(env_config, dtype=state.x.dtype).lidar(state))
+        graph = build_graph(state, env_config)  # casts the LiDAR
         c, _ = edge_qp_controls(
             graph, state.x, self.itf, self.itf.nominal(state.x, state.goals), alpha=self.alpha, margin=0.0,
             cbf=self.cbf, distance=self.model.cbf_distance, horizon=self.model.closest_approach_horizon,

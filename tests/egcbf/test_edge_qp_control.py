@@ -113,7 +113,7 @@ def test_targets_keep_their_rows_and_the_acting_box(name):
     rhs = torch.where(e.kind == KIND_AGENT, 0.5 * rhs, rhs)
     lhs = -(e.grad_v * acc[e.receiver]).sum(-1)
     short = (rhs - lhs).clamp_min(0)
-    norm = (e.grad_v[:, None, :] @ gain[e.receiver])[:, 0].mul(itf._scale(x)).norm(dim=-1)
+    norm = (e.grad_v[:, None, :] @ gain[e.receiver])[:, 0].mul(itf.scale(x)).norm(dim=-1)
     per_row = torch.where(norm > 1e-9, short / norm.clamp_min(1e-12), torch.zeros_like(short))
     assert float(per_row.max()) <= info["max_slack"] + 1e-6
     # an agent whose projected reference keeps all its rows keeps it

@@ -107,9 +107,8 @@ def edge_barriers(
             with torch.no_grad():  # z_i: the receiver's neighbourhood summary, held fixed over the step
                 z = cbf.encoder(g)
             frames = frames_for(cbf.encoder.group, g)
-            dtype = z.dtype
-            rep = (lambda t: t.repeat_interleave(f, 0)) if f > 1 else (lambda t: t)
-            b, _ = head.edge_values(g, z, frames, rep(dp).to(dtype), rep(dv).to(dtype))
+            dp_f, dv_f = (t.repeat_interleave(f, 0).to(z.dtype) for t in (dp, dv))
+            b, _ = head.edge_values(g, z, frames, dp_f, dv_f)
             b = b.to(torch.float64).view(-1, f).mean(1)
         gp, gv = torch.autograd.grad(b.sum(), (dp, dv))
     return EdgeBarriers(ei[1], kind, b.detach(), gp, gv, dv.detach())
@@ -169,22 +168,17 @@ def edge_qp_controls(
     xf = x.reshape(m, -1).detach().to(torch.float64)
     e = edge_barriers(graph, cbf, distance, horizon)
     drift, gain = acceleration_affine(robot, xf)  # (M, d), (M, d, nu)
-    scale = itf._scale(xf)  # (nu,): u = scale c
-    i = e.receiver
-    rhs = own_share(e, alpha, margin)
-    # own part of db/dt: -gv . (A_i + B_i s c_i) >= rhs
-    coef = -(e.grad_v[:, None, :] @ gain[i])[:, 0] * scale
-    bound = rhs + (e.grad_v * drift[i]).sum(-1)
+    # own part of db/dt: -gv . (A_i + B_i s c_i) >= own share, with u = s c
+    coef = -(e.grad_v[:, None, :] @ gain[e.receiver])[:, 0] * itf.scale(xf)
+    bound = own_share(e, alpha, margin) + (e.grad_v * drift[e.receiver]).sum(-1)
     norm = coef.norm(dim=-1)
     keep = norm > min_authority
+    i, coef, bound = e.receiver[keep].cpu(), (coef[keep] / norm[keep, None]).cpu(), (bound[keep] / norm[keep]).cpu()
     lo, hi = (t.to(torch.float64).expand(m, -1).contiguous() for t in itf.state_bounds(xf))
-    target = torch.maximum(torch.minimum(c_ref.reshape(m, -1).detach().to(torch.float64), hi), lo)
-    c, failed = solve_own_qps(
-        target, lo, hi, i[keep].cpu(), (coef[keep] / norm[keep, None]).cpu(), (bound[keep] / norm[keep]).cpu(),
-        penalty.w1, penalty.w2,
-    )  # fmt: skip
-    viol = ((coef[keep] / norm[keep, None] * c[i[keep]]).sum(-1) - bound[keep] / norm[keep]).neg().clamp_min(0)
-    per_agent = torch.zeros(m, dtype=torch.float64).index_reduce_(0, i[keep], viol, "amax", include_self=True)
+    target = c_ref.reshape(m, -1).detach().to(torch.float64).clamp(lo, hi)
+    c, failed = solve_own_qps(target, lo, hi, i, coef, bound, penalty.w1, penalty.w2)
+    viol = (bound - (coef * c[i]).sum(-1)).clamp_min(0)
+    per_agent = torch.zeros(m, dtype=torch.float64).index_reduce_(0, i, viol, "amax", include_self=True)
     info = {
         "num_slack": int((per_agent > slack_tol).sum()),
         "num_failed": int(failed.sum()),

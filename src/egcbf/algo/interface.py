@@ -255,25 +255,26 @@ class ControlInterface(CommandInterface):
         self.robot = robot
         self.dim = robot.control_dim
 
-    def _scale(self, like: Tensor) -> Tensor:
+    def scale(self, like: Tensor) -> Tensor:
+        """``s`` ``(k,)``: the larger bound of each channel, ``u = s c``."""
         lo, hi = self.robot.control_bounds(like)
         return torch.maximum(lo.abs(), hi.abs())
 
     def bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
         lo, hi = self.robot.control_bounds(like)
-        s = self._scale(like)
+        s = self.scale(like)
         return lo / s, hi / s
 
     def state_bounds(self, x: Tensor) -> tuple[Tensor, Tensor]:
         lo, hi = self.robot.effective_control_bounds(x)
-        s = self._scale(x)
+        s = self.scale(x)
         return lo / s, hi / s
 
     def nominal(self, x: Tensor, goals: Tensor) -> Tensor:
-        return self.robot.nominal_control(x, goals) / self._scale(x)
+        return self.robot.nominal_control(x, goals) / self.scale(x)
 
     def apply(self, x: Tensor, c: Tensor) -> Tensor:
-        return c * self._scale(c)
+        return c * self.scale(c)
 
     def lie_derivatives(
         self, cbf: nn.Module, graph: SwarmGraph, x: Tensor, env: EnvConfig | None = None, c_lin: Tensor | None = None
@@ -281,7 +282,7 @@ class ControlInterface(CommandInterface):
         h, jac = cbf_jacobian(cbf, graph, x)
         xd = x.detach().to(jac.dtype)
         lf = torch.einsum("bijs,bjs->bi", jac, self.robot.f0(xd))
-        lg = torch.einsum("bijs,bjsk->bijk", jac, self.robot.f1(xd)) * self._scale(jac)
+        lg = torch.einsum("bijs,bjsk->bijk", jac, self.robot.f1(xd)) * self.scale(jac)
         return h, lf, lg
 
     def model_step(self, x: Tensor, c: Tensor, env: EnvConfig) -> Tensor:

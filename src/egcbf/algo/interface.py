@@ -273,6 +273,10 @@ class ControlInterface(CommandInterface):
     def nominal(self, x: Tensor, goals: Tensor) -> Tensor:
         return self.robot.nominal_control(x, goals) / self.scale(x)
 
+    def brisk(self, x: Tensor, goals: Tensor) -> Tensor:
+        """The robot's :meth:`~egcbf.robots.base.Robot.brisk_control`, normalized."""
+        return self.robot.brisk_control(x, goals) / self.scale(x)
+
     def apply(self, x: Tensor, c: Tensor) -> Tensor:
         return c * self.scale(c)
 

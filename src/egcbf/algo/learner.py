@@ -92,13 +92,22 @@ def straight_through(raw: Tensor, clipped: Tensor) -> Tensor:
     return raw + (clipped - raw).detach()
 
 
+def base_command(model_config: ModelConfig, itf: CommandInterface, x: Tensor, goals: Tensor) -> Tensor:
+    """The command ``(B, N, k)`` of the law the policy acts around and the teacher aims at
+    (``model_config.base_law``): the nominal controller's, or the robot's brisk law (control interface)."""
+    if model_config.base_law == "brisk":
+        return itf.brisk(x, goals)
+    return itf.nominal(x, goals)
+
+
 def raw_policy_command(
     policy: PolicyNet, model_config: ModelConfig, itf: CommandInterface, graph: SwarmGraph, x: Tensor, goals: Tensor
 ) -> tuple[Tensor, Tensor]:
-    """The policy's command before the clip, ``c_nom + scale * pi`` ``(B, N, k)``, and ``c_nom``."""
+    """The policy's command before the clip, ``c_nom + scale * pi`` ``(B, N, k)``, and ``c_nom``, the base law's
+    command (:func:`base_command`)."""
     b, n, _ = x.shape
     residual = policy(graph).view(b, n, itf.dim)
-    c_nom = itf.nominal(x, goals).to(residual.dtype)
+    c_nom = base_command(model_config, itf, x, goals).to(residual.dtype)
     scales = torch.as_tensor(model_config.action_scales, dtype=residual.dtype, device=residual.device)
     return c_nom + scales * residual, c_nom
 
@@ -191,7 +200,7 @@ class GraphCBFLearner:
         """The reference command ``(S, N, k)`` of every sample (world-frame, normalized), and QP statistics (empty
         for the nominal reference)."""
         cfg, itf = self.config, self.interface
-        c_nom = itf.nominal(data.x, data.goals)
+        c_nom = base_command(cfg.model, itf, data.x, data.goals)
         if cfg.reference == "nominal":
             return c_nom, {}
         if cfg.qp_constraints == "edges":

@@ -32,6 +32,7 @@ class Controller(str, Enum):
     """A hand-crafted controller (``egcbf.control.controllers.CONTROLLERS``): ``egcbf eval --controller``."""
 
     nominal = "nominal"
+    brisk = "brisk"
     ccbf = "ccbf"
     dcbf = "dcbf"
 
@@ -69,6 +70,7 @@ class DemoMethod(str, Enum):
     egcbf = "egcbf"
     egcbf_plus = "egcbf+"
     nominal = "nominal"
+    brisk = "brisk"
     ccbf = "ccbf"
     dcbf = "dcbf"
 

@@ -5,7 +5,7 @@
 to the actuators; ``info`` a dict with at least ``qp_ms`` (wall time of the controller's optimization, 0 for the
 nominal controller), ``num_slack`` and ``num_failed`` (QPs that needed slack / fell back; 0 for the nominal one).
 
-    ctrl = make_controller("ccbf")            # "nominal", "ccbf", "dcbf"
+    ctrl = make_controller("ccbf")            # "nominal", "brisk", "ccbf", "dcbf"
     u, info = ctrl(state, env.config)
 """
 
@@ -21,6 +21,7 @@ from ..robots.quadrotor.nominal import DEFAULT_GAINS, DEFAULT_MAX_POSITION_ERROR
 
 __all__ = [
     "CONTROLLERS",
+    "BriskController",
     "CBFQPConfig",
     "CentralizedCBFQP",
     "DecentralizedCBFQP",
@@ -50,16 +51,35 @@ class NominalController:
         return u, info
 
 
-CONTROLLERS = {"nominal": NominalController, "ccbf": CentralizedCBFQP, "dcbf": DecentralizedCBFQP}
+class BriskController:
+    """A robot's brisk law (``Robot.brisk_control``: its nominal law retuned to cruise at its speed limits; the
+    nominal law itself for a robot without one, the quadrotor included), no safety: the base law of a policy trained
+    with ``ModelConfig.base_law = "brisk"``."""
+
+    name = "brisk"
+
+    def __call__(self, state, env_config) -> tuple[Tensor, dict]:
+        t0 = time.perf_counter()
+        u = env_config.make_robot().brisk_control(state.x, state.goals)
+        info = {"qp_ms": 0.0, "num_slack": 0, "num_failed": 0, "ctrl_ms": 1e3 * (time.perf_counter() - t0)}
+        return u, info
+
+
+CONTROLLERS = {
+    "nominal": NominalController,
+    "brisk": BriskController,
+    "ccbf": CentralizedCBFQP,
+    "dcbf": DecentralizedCBFQP,
+}
 #: robots whose "dcbf" is the control-affine dCBF-QP (:mod:`egcbf.control.point_mass_qp`): GCBF+'s point masses and
 #: its cars
 POINT_MASSES = ("single_integrator", "double_integrator", "linear_drone", "dubins_car", "unicycle")
 
 
 def make_controller(name: str, robot: str = "quadrotor", **kwargs):
-    """Controller by name: ``"nominal"``, ``"ccbf"`` (centralized CBF-QP), ``"dcbf"`` (decentralized CBF-QP), for
-    ``robot`` (the quadrotor's QPs; for GCBF+'s point masses and cars ``"dcbf"`` is
-    :class:`egcbf.control.point_mass_qp.PointMassDCBF` and ``"ccbf"`` its centralized
+    """Controller by name: ``"nominal"``, ``"brisk"`` (:class:`BriskController`), ``"ccbf"`` (centralized
+    CBF-QP), ``"dcbf"`` (decentralized CBF-QP), for ``robot`` (the quadrotor's QPs; for GCBF+'s point masses and
+    cars ``"dcbf"`` is :class:`egcbf.control.point_mass_qp.PointMassDCBF` and ``"ccbf"`` its centralized
     :class:`~egcbf.control.point_mass_qp.PointMassCCBF`).
 
     Keyword arguments go to the constructor: for the CBF-QPs a ``config=CBFQPConfig(...)`` and/or overrides of its

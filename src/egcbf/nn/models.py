@@ -180,6 +180,10 @@ class ModelConfig:
             LiDAR hit): with nothing to avoid there is no reason to leave the nominal controller, and the data
             says little about such agents (docs/learning.md, "isolated agents"). The gate is a function of edge
             kinds, an invariant.
+        base_law: the law the policy's residual is added to, which is also the QP teacher's target: ``"nominal"``
+            (GCBF+'s: the robot's nominal controller) or ``"brisk"`` (``"control"`` interface only: the robot's
+            :meth:`~egcbf.robots.base.Robot.brisk_control`, its nominal law retuned to cruise at the speed limits;
+            docs/gcbfplus.md, "Brisk base law").
     """
 
     group: str = "se2xr"
@@ -208,6 +212,7 @@ class ModelConfig:
     policy_head: str = "mlp"
     policy_temperature: float = 0.1
     policy_free_distance: float = 1.0
+    base_law: str = "nominal"
 
     def __post_init__(self) -> None:
         make_group(self.group)
@@ -243,6 +248,10 @@ class ModelConfig:
             raise ValueError("ModelConfig.policy_head = 'edge_sum' needs interface 'accel' or 'control', not 'torque'")
         if not (self.policy_temperature > 0 and self.policy_free_distance > 0):
             raise ValueError("ModelConfig.policy_temperature and policy_free_distance must be > 0")
+        if self.base_law not in ("nominal", "brisk"):
+            raise ValueError(f"ModelConfig.base_law must be 'nominal' or 'brisk', got {self.base_law!r}")
+        if self.base_law == "brisk" and self.interface != "control":
+            raise ValueError(f"ModelConfig.base_law = 'brisk' needs interface 'control', not {self.interface!r}")
         if not self.accel_action_scale > 0:
             raise ValueError(f"ModelConfig.accel_action_scale must be > 0, got {self.accel_action_scale}")
 

@@ -212,6 +212,13 @@ class Robot:
         ``(*batch, dim)``, clipped to the actuator box."""
         raise _not_implemented(self, "nominal_control")
 
+    def brisk_control(self, x: Tensor, goals: Tensor) -> Tensor:
+        """A goal-seeking law ``(*batch, control_dim)`` that cruises at the robot's speed limits: the base law a
+        learned policy may act around instead of :meth:`nominal_control` (``ModelConfig.base_law = "brisk"``),
+        for benchmarks timed by a horizon. Equivariant like the nominal law. Default: the nominal law (a robot
+        whose nominal controller already cruises at its limits)."""
+        return self.nominal_control(x, goals)
+
     def command_feature(self, interface: str) -> FeatureType:
         """How the group acts on the normalized command of ``interface`` (one of :attr:`interfaces`): the policy's
         output type (a ``Vector`` for a world-frame command, a ``Scalar`` for an invariant one)."""

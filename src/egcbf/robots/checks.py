@@ -9,7 +9,8 @@ graph and the learner rely on:
   part of it that acts at a state (``effective_control_bounds``);
 * the geometry: positions move as points, velocities and the heading as vectors, frames by ``g frames(x)``;
 * the node features: ``agent_features(phi_g x) == rho_g agent_features(x)`` (``rho`` from ``node_fields``);
-* the nominal controller: ``nominal_control(phi_g x, g goal) == psi_g nominal_control(x, goal)``.
+* the nominal controller: ``nominal_control(phi_g x, g goal) == psi_g nominal_control(x, goal)``, and the same for
+  the brisk law (``brisk_control``).
 
 It returns the largest error of each claim (max abs error over max(1, max abs value): the quadrotor's angular
 accelerations reach 1e4 rad/s^2) and raises ``AssertionError`` naming every claim above ``atol``.
@@ -107,6 +108,9 @@ def check_robot(
         "node features equivariant": err(robot.agent_features(gx), feats.act(g, robot.agent_features(x))),
         "nominal control equivariant": err(
             robot.nominal_control(gx, group.transform(g, goals)), act_u(g, robot.nominal_control(x, goals))
+        ),
+        "brisk control equivariant": err(
+            robot.brisk_control(gx, group.transform(g, goals)), act_u(g, robot.brisk_control(x, goals))
         ),
     }
     bad = {k: v for k, v in errors.items() if not v <= atol}

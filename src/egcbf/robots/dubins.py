@@ -131,6 +131,10 @@ class DubinsCar(HeadingSpeedRobot):
     # ------------------------------------------------------------------------------------------- control
     def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:
         """The reference's heading / speed law (module doc), unclipped."""
+        return self._goal_law(x, goals, self.params.k_v)
+
+    def _goal_law(self, x: Tensor, goals: Tensor, k_v: float) -> Tensor:
+        """The nominal law with speed gain ``k_v`` (it cruises at ``k_v R / k_a``)."""
         head = x[..., H]
         e = goals.to(x.dtype) - x[..., P]
         forward = (head * e).sum(-1, keepdim=True)
@@ -144,8 +148,14 @@ class DubinsCar(HeadingSpeedRobot):
         dist = torch.linalg.vector_norm(e, dim=-1, keepdim=True) * torch.where(
             soft > r, r / soft, torch.ones_like(soft)
         )
-        a = -q.k_a * x[..., V] + q.k_v * dist
+        a = -q.k_a * x[..., V] + k_v * dist
         return torch.cat((omega, a), -1)
+
+    def brisk_control(self, x: Tensor, goals: Tensor) -> Tensor:
+        """The nominal law with its speed gain raised so that it cruises at ``max_speed`` (``k_v = k_a max_speed /
+        R``; the nominal cruises at ``k_v R / k_a`` = 0.46 m/s of the 0.8 allowed), the same turn law."""
+        q = self.params
+        return self._goal_law(x, goals, q.k_a * q.max_speed / q.max_position_error)
 
     def command_feature(self, interface: str):
         self.check_interface(interface)

@@ -254,12 +254,18 @@ class DoubleIntegrator(_PointMass):
         return discrete_lqr(a, b, 5 * np.eye(4), np.eye(2))
 
     def brisk_control(self, x: Tensor, goals: Tensor) -> Tensor:
-        """A cascade on each axis: the velocity target ``clip(k_p (goal - p), +-max_speed)``, tracked with time
-        constant ``tau``: ``u = clip(m (v_target - v) / tau)``. It cruises at the speed limit on every axis and
-        brakes within about ``max_speed / k_p`` (12.5 cm) of the goal, where the nominal LQR, tuned gently, starts to
-        slow about half a metre out. Quarter-turn equivariant (per-axis clips of vectors)."""
+        """A cascade: the velocity target ``g e`` points straight at the goal (``e = goal - p``) with ``g =
+        min(k_p, max_speed / max_k |e_k|)``: the larger axis at the speed limit, as the nominal law cruises, until
+        ``max_speed / k_p`` (12.5 cm) from the goal, where the nominal LQR, tuned gently, starts to slow about half a
+        metre out; tracked with time constant ``tau``: ``u = clip(m (v_target - v) / tau)``. Quarter-turn
+        equivariant (the max over axes is invariant). Straight, not per-axis saturated: a target of the box's corner
+        leaves an agent behind an obstacle with nothing to slide along (docs/robots.md, "Brisk base law")."""
         q = self.params
-        v_target = (q.brisk_position_gain * (goals.to(x.dtype) - x[..., :2])).clamp(-q.max_speed, q.max_speed)
+        e = goals.to(x.dtype) - x[..., :2]
+        # straight at the goal, the larger axis at the speed limit (as the nominal cruises), braking near the goal
+        largest = e.abs().amax(-1, keepdim=True)
+        gain = torch.minimum(torch.full_like(largest, q.brisk_position_gain), q.max_speed / largest.clamp_min(1e-12))
+        v_target = gain * e
         return self.clip_control(q.mass * (v_target - x[..., 2:4]) / q.brisk_velocity_time)
 
     def f0(self, x: Tensor) -> Tensor:

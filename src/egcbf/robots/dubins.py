@@ -58,11 +58,8 @@ class DubinsParams:
     brisk_speed: float = 0.6
 
     def __post_init__(self) -> None:
-        require_positive(
-            self,
-            ("radius", "turn_gain", "max_control", "max_speed", "k_omega", "k_a", "k_v", "max_position_error",
-             "brisk_speed"),
-        )  # fmt: skip
+        gains = ("k_omega", "k_a", "k_v", "max_position_error", "brisk_speed")
+        require_positive(self, ("radius", "turn_gain", "max_control", "max_speed", *gains))
         if self.brisk_speed > self.max_speed:
             raise ValueError(f"DubinsParams.brisk_speed ({self.brisk_speed}) exceeds max_speed ({self.max_speed})")
 

@@ -91,10 +91,8 @@ class IntegratorParams:
     brisk_velocity_time: float = 0.06
 
     def __post_init__(self) -> None:
-        require_positive(
-            self, ("radius", "mass", "max_control", "max_speed", "max_position_error", "dt", "brisk_position_gain",
-                   "brisk_velocity_time"),
-        )  # fmt: skip
+        positive = ("radius", "mass", "max_control", "max_speed", "max_position_error", "dt", "brisk_position_gain")
+        require_positive(self, (*positive, "brisk_velocity_time"))
 
 
 def discrete_lqr(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -259,12 +257,11 @@ class DoubleIntegrator(_PointMass):
         ``max_speed / k_p`` (12.5 cm) from the goal, where the nominal LQR, tuned gently, starts to slow about half a
         metre out; tracked with time constant ``tau``: ``u = clip(m (v_target - v) / tau)``. Quarter-turn
         equivariant (the max over axes is invariant). Straight, not per-axis saturated: a target of the box's corner
-        leaves an agent behind an obstacle with nothing to slide along (docs/robots.md, "Brisk base law")."""
+        leaves an agent behind an obstacle with nothing to slide along (docs/robots.md, "The brisk base law")."""
         q = self.params
         e = goals.to(x.dtype) - x[..., :2]
         # straight at the goal, the larger axis at the speed limit (as the nominal cruises), braking near the goal
-        largest = e.abs().amax(-1, keepdim=True)
-        gain = torch.minimum(torch.full_like(largest, q.brisk_position_gain), q.max_speed / largest.clamp_min(1e-12))
+        gain = (q.max_speed / e.abs().amax(-1, keepdim=True).clamp_min(1e-12)).clamp_max(q.brisk_position_gain)
         v_target = gain * e
         return self.clip_control(q.mass * (v_target - x[..., 2:4]) / q.brisk_velocity_time)
 

@@ -243,7 +243,9 @@ def report() -> str:
         " (a velocity target at the box's corner) reached as far but left agents stuck behind rectangles (with the "
         "dCBF-QP around it, validation seed 777, N = 256, l = 16, 128 rectangles, 1024 steps: reach 63 % against the "
         "nominal's 88 %; the straight law 84 %); its policies reached 62-74 % there "
-        "(docs/results/gcbfplus/selection/brisk_chebyshev_di.txt).",
+        "(docs/results/gcbfplus/selection/brisk_chebyshev_di.txt). The double integrator's GCBF+ and EGCBF+ and "
+        "the Dubins car's EGCBF+ act around their brisk laws (the car's trained on whole 256-step episodes with "
+        "parked cars, docs/robots.md); the car's GCBF+ around its nominal law.",
         "",
         "## Step time",
         "",

@@ -15,7 +15,7 @@ from egcbf.algo.learner import base_command, policy_command
 from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.graph import build_graph
-from egcbf.nn.models import ModelConfig, PolicyNet
+from egcbf.nn.models import ModelConfig, PolicyNet, sensing
 from egcbf.robots import DoubleIntegrator, DubinsCar, make_robot
 from groupcanon import FieldType
 from groupcanon.features import Scalar, Vector
@@ -109,12 +109,38 @@ def test_a_policy_on_the_brisk_base_acts_around_it(name):
 
 
 @pytest.mark.parametrize("name", ["double_integrator", "dubins_car"])
+def test_the_isolated_brisk_base_switches_on_what_an_agent_senses(name):
+    """base_law 'brisk_isolated': a zero residual commands the brisk law where an agent senses nothing and the
+    nominal law where it senses a neighbour or an obstacle; the teacher's target is the same; no graph, no base."""
+    cfg = TrainConfig.preset("egcbf+", "gcbfplus", robot=name, model={"base_law": "brisk_isolated"})
+    env_cfg = EnvConfig.for_robot(name, num_agents=8, num_obstacles=2, num_envs=1, area_size=2.5)
+    state = SwarmEnv(env_cfg, dtype=F64).reset(3)
+    graph = build_graph(state, env_cfg)
+    pol = PolicyNet(cfg.model).double()
+    with torch.no_grad():
+        for p in pol.parameters():
+            p.zero_()
+    itf = make_interface("control", env_cfg.make_robot())
+    with torch.no_grad():
+        c, c_base = policy_command(pol, cfg.model, itf, graph, state.x, state.goals)
+    sensed = sensing(graph).view(1, -1)
+    assert sensed.any() and (~sensed).any()  # both kinds of agents: the test can fail
+    brisk, nominal = itf.brisk(state.x, state.goals), itf.nominal(state.x, state.goals)
+    assert torch.equal(c_base[sensed], nominal[sensed]) and torch.equal(c_base[~sensed], brisk[~sensed])
+    assert torch.allclose(c, itf.clip(state.x, c_base))
+    assert torch.equal(base_command(cfg.model, itf, state.x, state.goals, graph), c_base)
+    with pytest.raises(ValueError, match="needs the agents' graph"):
+        base_command(cfg.model, itf, state.x, state.goals)
+
+
+@pytest.mark.parametrize("law", ["brisk", "brisk_isolated"])
+@pytest.mark.parametrize("name", ["double_integrator", "dubins_car"])
 @given(seed=st.integers(0, 2**16), k=st.integers(0, 3), angle=st.floats(-math.pi, math.pi), t=st.floats(-2, 2))
 @settings(max_examples=8, deadline=None)
-def test_the_whole_egcbf_plus_command_on_the_brisk_base_is_equivariant(name, seed, k, angle, t):
-    """clip(brisk + scale pi) under a group element (a quarter turn for the double integrator, any rotation for
-    the car, and a translation): float64 within 1e-9."""
-    cfg = TrainConfig.preset("egcbf+", "gcbfplus", robot=name, model={"base_law": "brisk"})
+def test_the_whole_egcbf_plus_command_on_the_brisk_base_is_equivariant(name, law, seed, k, angle, t):
+    """clip(base + scale pi) around the brisk law (always, or while isolated) under a group element (a quarter turn
+    for the double integrator, any rotation for the car, and a translation): float64 within 1e-9."""
+    cfg = TrainConfig.preset("egcbf+", "gcbfplus", robot=name, model={"base_law": law})
     torch.manual_seed(0)
     pol = PolicyNet(cfg.model).double()
     with torch.no_grad():

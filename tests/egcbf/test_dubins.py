@@ -73,7 +73,8 @@ def test_agents_at_their_goals_freeze_and_the_nominal_controller_arrives():
         frozen = (car.positions(state.x) - state.goals).norm(dim=-1) < 0.5 * cfg.agent_radius
         before = state.x.clone()
         state, _ = env.step(state, car.clip_control(car.nominal_control(state.x, state.goals)))
-        assert torch.equal(state.x[frozen], before[frozen])
+        assert torch.equal(state.x[frozen][:, :4], before[frozen][:, :4])  # position and heading kept
+        assert torch.equal(state.x[frozen][:, 4], torch.zeros_like(state.x[frozen][:, 4]))  # parked: speed 0
     assert float((car.positions(state.x) - state.goals).norm(dim=-1).max()) < 0.5 * cfg.agent_radius
 
 

@@ -16,7 +16,7 @@ from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.graph import build_graph
 from egcbf.nn import CBFNet, PolicyNet
-from egcbf.robots import ROBOTS, Quadrotor, Robot, Unicycle, UnicycleParams, make_robot, register_robot
+from egcbf.robots import ROBOTS, DubinsCar, Quadrotor, Robot, Unicycle, UnicycleParams, make_robot, register_robot
 from egcbf.robots.checks import check_robot, generic_states
 from groupcanon.groups import SE2
 from groupcanon.testing import strategies as gst
@@ -51,6 +51,17 @@ def test_check_robot_catches_a_broken_robot():
 
     with pytest.raises(AssertionError, match="nominal control equivariant"):
         check_robot(Skewed(), seed=0)
+
+
+def test_check_robot_catches_a_car_parked_at_speed():
+    class Rolling(DubinsCar):  # the reference's freeze: the speed it arrived with stays in the state
+        name = "rolling"
+
+        def parked(self, x):
+            return x
+
+    with pytest.raises(AssertionError, match="parked: at rest"):
+        check_robot(Rolling(), seed=0)
 
 
 def test_registry():

@@ -32,7 +32,7 @@ from torch.func import functional_call
 from ..config import TrainConfig
 from ..env import EnvConfig, SwarmEnv, SwarmState
 from ..graph import SwarmGraph, build_graph, refresh_graph
-from ..nn import CBFNet, ModelConfig, PolicyNet
+from ..nn import CBFNet, ModelConfig, PolicyNet, sensing
 from ..robots import Robot
 from .buffer import Samples, TrajectoryBuffer, UnsafeBuffer
 from .edge_qp import edge_qp_commands, edge_qp_controls
@@ -92,12 +92,27 @@ def straight_through(raw: Tensor, clipped: Tensor) -> Tensor:
     return raw + (clipped - raw).detach()
 
 
-def base_command(model_config: ModelConfig, itf: CommandInterface, x: Tensor, goals: Tensor) -> Tensor:
+def base_command(
+    model_config: ModelConfig, itf: CommandInterface, x: Tensor, goals: Tensor, graph: SwarmGraph | None = None
+) -> Tensor:
     """The command ``(B, N, k)`` of the law the policy acts around and the teacher aims at
-    (``model_config.base_law``): the nominal controller's, or the robot's brisk law (control interface)."""
-    if model_config.base_law == "brisk":
+    (``model_config.base_law``): the nominal controller's, the robot's brisk law (control interface), or, for
+    ``"brisk_isolated"``, the brisk law where an agent senses nothing in ``graph`` (the graph of ``x``; needed
+    then) and the nominal law elsewhere."""
+    law = model_config.base_law
+    if law == "brisk":
         return itf.brisk(x, goals)
+    if law == "brisk_isolated":
+        if graph is None:
+            raise ValueError("base_law 'brisk_isolated' needs the agents' graph (what each agent senses)")
+        sensed = sensing(graph).view(*x.shape[:2], 1)
+        return torch.where(sensed, itf.nominal(x, goals), itf.brisk(x, goals))
     return itf.nominal(x, goals)
+
+
+def needs_graph(model_config: ModelConfig) -> bool:
+    """Whether :func:`base_command` reads the graph (the base law switches on what an agent senses)."""
+    return model_config.base_law == "brisk_isolated"
 
 
 def raw_policy_command(
@@ -107,7 +122,7 @@ def raw_policy_command(
     command (:func:`base_command`)."""
     b, n, _ = x.shape
     residual = policy(graph).view(b, n, itf.dim)
-    c_nom = base_command(model_config, itf, x, goals).to(residual.dtype)
+    c_nom = base_command(model_config, itf, x, goals, graph).to(residual.dtype)
     scales = torch.as_tensor(model_config.action_scales, dtype=residual.dtype, device=residual.device)
     return c_nom + scales * residual, c_nom
 
@@ -200,7 +215,13 @@ class GraphCBFLearner:
         """The reference command ``(S, N, k)`` of every sample (world-frame, normalized), and QP statistics (empty
         for the nominal reference)."""
         cfg, itf = self.config, self.interface
-        c_nom = base_command(cfg.model, itf, data.x, data.goals)
+        if needs_graph(cfg.model):
+            c_nom = torch.cat([
+                base_command(cfg.model, itf, chunk.x, chunk.goals, chunk.graph(self.env_config))
+                for chunk in (data[k : k + cfg.qp_chunk] for k in range(0, len(data), cfg.qp_chunk))
+            ])  # fmt: skip
+        else:
+            c_nom = base_command(cfg.model, itf, data.x, data.goals)
         if cfg.reference == "nominal":
             return c_nom, {}
         if cfg.qp_constraints == "edges":

@@ -395,9 +395,9 @@ class SwarmEnv:
         if c.clip_control:
             u = self.robot.clip_control(u)
         x = self.robot.step(state.x, u, c.dt, c.substeps, c.integrator)
-        if self.robot.goal_freeze_radius > 0:  # agents at their goals stay put (GCBF+'s Dubins car)
+        if self.robot.goal_freeze_radius > 0:  # agents at their goals park (GCBF+'s Dubins car; Robot.parked)
             gap = torch.linalg.vector_norm(self.robot.positions(state.x) - state.goals.to(x.dtype), dim=-1)
-            x = torch.where((gap < self.robot.goal_freeze_radius)[..., None], state.x, x)
+            x = torch.where((gap < self.robot.goal_freeze_radius)[..., None], self.robot.parked(state.x), x)
         if not bool(torch.isfinite(x).all() & torch.isfinite(u_in).all()):
             if not bool(torch.isfinite(u_in).all()):
                 bad = (~torch.isfinite(u_in)).any(-1).nonzero()[0].tolist()

@@ -2,6 +2,7 @@
 
 from .layers import GraphTransformerLayer, mlp
 from .models import (
+    BASE_LAWS,
     GROUPS,
     CBFNet,
     GraphEncoder,
@@ -11,9 +12,11 @@ from .models import (
     frames_for,
     make_group,
     node_type,
+    sensing,
 )
 
 __all__ = [
+    "BASE_LAWS",
     "GROUPS",
     "CBFNet",
     "GraphEncoder",
@@ -25,4 +28,5 @@ __all__ = [
     "make_group",
     "mlp",
     "node_type",
+    "sensing",
 ]

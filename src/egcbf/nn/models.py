@@ -44,6 +44,7 @@ from .edge_sum import EdgeSumHead
 from .layers import GraphTransformerLayer, mlp
 
 __all__ = [
+    "BASE_LAWS",
     "GROUPS",
     "CBFNet",
     "GraphEncoder",
@@ -64,6 +65,10 @@ GROUPS = {
     "se2xrc4": functools.partial(CyclicSE2xR, 4),
     "trivial": Trivial,
 }
+
+
+#: the laws a policy's residual may act around (``ModelConfig.base_law``)
+BASE_LAWS = ("nominal", "brisk", "brisk_isolated")
 
 
 def make_group(name: str) -> Group:
@@ -183,7 +188,9 @@ class ModelConfig:
         base_law: the law the policy's residual is added to, which is also the QP teacher's target: ``"nominal"``
             (GCBF+'s: the robot's nominal controller) or ``"brisk"`` (``"control"`` interface only: the robot's
             :meth:`~egcbf.robots.base.Robot.brisk_control`, its nominal law retuned to cruise at the speed limits;
-            docs/gcbfplus.md, "Brisk base law").
+            docs/gcbfplus.md, "Brisk base law") or ``"brisk_isolated"`` (``"control"`` interface: the brisk law
+            while the agent senses nothing, no neighbour agent and no LiDAR hit, the nominal law otherwise; an
+            invariant switch, :func:`sensing`).
     """
 
     group: str = "se2xr"
@@ -248,10 +255,12 @@ class ModelConfig:
             raise ValueError("ModelConfig.policy_head = 'edge_sum' needs interface 'accel' or 'control', not 'torque'")
         if not (self.policy_temperature > 0 and self.policy_free_distance > 0):
             raise ValueError("ModelConfig.policy_temperature and policy_free_distance must be > 0")
-        if self.base_law not in ("nominal", "brisk"):
-            raise ValueError(f"ModelConfig.base_law must be 'nominal' or 'brisk', got {self.base_law!r}")
-        if self.base_law == "brisk" and self.interface != "control":
-            raise ValueError(f"ModelConfig.base_law = 'brisk' needs interface 'control', not {self.interface!r}")
+        if self.base_law not in BASE_LAWS:
+            raise ValueError(f"ModelConfig.base_law must be one of {BASE_LAWS}, got {self.base_law!r}")
+        if self.base_law != "nominal" and self.interface != "control":
+            raise ValueError(
+                f"ModelConfig.base_law = {self.base_law!r} needs interface 'control', not {self.interface!r}"
+            )
         if not self.accel_action_scale > 0:
             raise ValueError(f"ModelConfig.accel_action_scale must be > 0, got {self.accel_action_scale}")
 

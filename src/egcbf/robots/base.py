@@ -68,7 +68,7 @@ class Robot:
     group_name: ClassVar[str] = ""
     #: command interfaces the learned methods may use; the first is the default
     interfaces: ClassVar[tuple[str, ...]] = ()
-    #: agents closer than this to their goals are frozen (their whole state kept by the environment's step; GCBF+'s
+    #: agents closer than this to their goals are frozen (parked by the environment's step, :meth:`parked`; GCBF+'s
     #: Dubins car: 0.5 r); 0: never
     goal_freeze_radius: float = 0.0
     #: whether the LiDAR rays are fixed in the world frame (``heading`` then is a constant, not a vector of the
@@ -211,6 +211,11 @@ class Robot:
         """The equivariant nominal controller's control ``(*batch, control_dim)`` towards ``goals``
         ``(*batch, dim)``, clipped to the actuator box."""
         raise _not_implemented(self, "nominal_control")
+
+    def parked(self, x: Tensor) -> Tensor:
+        """The state ``(*batch, S)`` an agent frozen at its goal holds (:attr:`goal_freeze_radius`): ``x`` at rest,
+        its velocity zeroed. Robots that freeze their agents must define it."""
+        raise NotImplementedError(f"{self.name} freezes agents at their goals but does not define parked()")
 
     def brisk_control(self, x: Tensor, goals: Tensor) -> Tensor:
         """A goal-seeking law ``(*batch, control_dim)`` that cruises at the robot's speed limits: the base law a

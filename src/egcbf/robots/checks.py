@@ -10,7 +10,8 @@ graph and the learner rely on:
 * the geometry: positions move as points, velocities and the heading as vectors, frames by ``g frames(x)``;
 * the node features: ``agent_features(phi_g x) == rho_g agent_features(x)`` (``rho`` from ``node_fields``);
 * the nominal controller: ``nominal_control(phi_g x, g goal) == psi_g nominal_control(x, goal)``, and the same for
-  the brisk law (``brisk_control``).
+  the brisk law (``brisk_control``);
+* for a robot that freezes agents at their goals: ``parked(x)`` is at rest, in place, and equivariant.
 
 It returns the largest error of each claim (max abs error over max(1, max abs value): the quadrotor's angular
 accelerations reach 1e4 rad/s^2) and raises ``AssertionError`` naming every claim above ``atol``.
@@ -113,6 +114,11 @@ def check_robot(
             robot.brisk_control(gx, group.transform(g, goals)), act_u(g, robot.brisk_control(x, goals))
         ),
     }
+    if robot.goal_freeze_radius > 0:  # the environment parks agents at their goals
+        parked = robot.parked(x)
+        errors["parked: at rest"] = err(robot.velocities(parked), torch.zeros_like(robot.velocities(x)))
+        errors["parked: in place"] = err(robot.positions(parked), robot.positions(x))
+        errors["parked equivariant"] = err(robot.parked(gx), act_x(g, parked))
     bad = {k: v for k, v in errors.items() if not v <= atol}
     if bad:
         raise AssertionError(f"{robot!r}: claims off by more than {atol:g}: {bad}")

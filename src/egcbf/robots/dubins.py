@@ -8,8 +8,8 @@ State ``x`` ``(*batch, 5)``, control ``u`` ``(*batch, 2)``::
     p' = v h,   theta' = 20 omega_cmd,   v' = a;   one explicit Euler step per period, then v clipped to [-0.8, 0.8]
 
 The heading turns by exactly ``20 omega_cmd dt`` per step (the Euler step of the angle), so ``h`` stays a unit
-vector. An agent within ``0.5 r`` of its goal is frozen (its whole state kept; :attr:`goal_freeze_radius`, applied
-by :meth:`egcbf.env.SwarmEnv.step`).
+vector. An agent within ``0.5 r`` of its goal is frozen: parked, its position and heading kept and its speed set
+to 0 (:attr:`goal_freeze_radius`, :meth:`parked`, applied by :meth:`egcbf.env.SwarmEnv.step`).
 
 Nominal controller (the reference's ``u_ref``, from invariants of the body frame): ``omega_cmd = +-k_omega
 arccos(h . e / (d + 1e-4))`` (the bearing of the goal offset ``e``, regularized as the reference does, turning the
@@ -17,8 +17,10 @@ short way; ``k_omega = 1``), ``a = -k_a v + k_v min(d, R)`` (``k_a = 2.5``, ``k_
 soft-clipped to ``R = 0.5`` as the reference does), **not clipped** (the step clips it, as in the reference).
 
 Departures, on purpose: the LiDAR rays turn with the heading (the reference fixes its 16 rays in the world, which
-breaks the rotation symmetry), and the QP's input matrix uses the dynamics' turn gain 20 (the reference's
-``control_affine_dyn`` says 10).
+breaks the rotation symmetry), the QP's input matrix uses the dynamics' turn gain 20 (the reference's
+``control_affine_dyn`` says 10), and a frozen agent's speed is 0 (the reference keeps the speed it arrived with in
+the state of a car that no longer moves, and its neighbours read it as motion; the trajectories of the frozen
+agents are the same either way, docs/robots.md).
 """
 
 from __future__ import annotations

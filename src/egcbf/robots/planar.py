@@ -63,6 +63,10 @@ class HeadingSpeedRobot(Robot):
     def frames(self, x: Tensor) -> Tensor:
         return torch.cat((planar_frame(x[..., H]), x[..., P]), -1)
 
+    def parked(self, x: Tensor) -> Tensor:
+        """``x`` with its speed zeroed (position and heading kept)."""
+        return torch.cat((x[..., :4], torch.zeros_like(x[..., V])), -1)
+
     def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
         h = torch.stack((torch.cos(yaw), torch.sin(yaw)), -1).to(positions.dtype)
         return torch.cat((positions, h, torch.zeros_like(positions[..., :1])), -1)

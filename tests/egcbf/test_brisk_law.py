@@ -89,19 +89,23 @@ def test_the_base_law_is_checked():
         ModelConfig(base_law="brisk", interface="accel")
 
 
+def _zero_residual_command(cfg, itf, graph, state):
+    """``(command, base command)`` of a float64 policy whose weights are all zero (its residual is zero)."""
+    pol = PolicyNet(cfg.model).double()
+    with torch.no_grad():
+        for p in pol.parameters():
+            p.zero_()
+        return policy_command(pol, cfg.model, itf, graph, state.x, state.goals)
+
+
 @pytest.mark.parametrize("name", ["double_integrator", "dubins_car"])
 def test_a_policy_on_the_brisk_base_acts_around_it(name):
     """A zero residual commands the brisk law; the teacher's target (base_command) is the brisk law too."""
     cfg = TrainConfig.preset("egcbf+", "gcbfplus", robot=name, model={"base_law": "brisk"})
     env_cfg = EnvConfig.for_robot(name, num_agents=5, num_obstacles=0, num_envs=1, area_size=3.0)
     state = SwarmEnv(env_cfg, dtype=F64).reset(1)
-    pol = PolicyNet(cfg.model).double()
-    with torch.no_grad():
-        for p in pol.parameters():
-            p.zero_()
     itf = make_interface("control", env_cfg.make_robot())
-    with torch.no_grad():
-        c, c_base = policy_command(pol, cfg.model, itf, build_graph(state, env_cfg), state.x, state.goals)
+    c, c_base = _zero_residual_command(cfg, itf, build_graph(state, env_cfg), state)
     brisk = itf.brisk(state.x, state.goals)
     assert torch.allclose(c_base, brisk) and torch.allclose(c, itf.clip(state.x, brisk))
     assert torch.equal(base_command(cfg.model, itf, state.x, state.goals), brisk)
@@ -116,13 +120,8 @@ def test_the_isolated_brisk_base_switches_on_what_an_agent_senses(name):
     env_cfg = EnvConfig.for_robot(name, num_agents=8, num_obstacles=2, num_envs=1, area_size=2.5)
     state = SwarmEnv(env_cfg, dtype=F64).reset(3)
     graph = build_graph(state, env_cfg)
-    pol = PolicyNet(cfg.model).double()
-    with torch.no_grad():
-        for p in pol.parameters():
-            p.zero_()
     itf = make_interface("control", env_cfg.make_robot())
-    with torch.no_grad():
-        c, c_base = policy_command(pol, cfg.model, itf, graph, state.x, state.goals)
+    c, c_base = _zero_residual_command(cfg, itf, graph, state)
     sensed = sensing(graph).view(1, -1)
     assert sensed.any() and (~sensed).any()  # both kinds of agents: the test can fail
     brisk, nominal = itf.brisk(state.x, state.goals), itf.nominal(state.x, state.goals)

@@ -214,26 +214,29 @@ class GraphCBFLearner:
     def reference(self, data: Samples) -> tuple[Tensor, dict]:
         """The reference command ``(S, N, k)`` of every sample (world-frame, normalized), and QP statistics (empty
         for the nominal reference)."""
-        cfg, itf = self.config, self.interface
-        if needs_graph(cfg.model):
-            c_nom = torch.cat([
-                base_command(cfg.model, itf, chunk.x, chunk.goals, chunk.graph(self.env_config))
-                for chunk in (data[k : k + cfg.qp_chunk] for k in range(0, len(data), cfg.qp_chunk))
-            ])  # fmt: skip
+        cfg, itf, env_cfg = self.config, self.interface, self.env_config
+        chunks = [data[k : k + cfg.qp_chunk] for k in range(0, len(data), cfg.qp_chunk)]
+        # a base law that reads what agents sense needs every chunk's graph first; the QPs then reuse them
+        graphs = [chunk.graph(env_cfg) for chunk in chunks] if needs_graph(cfg.model) else None
+
+        def graph_of(i: int) -> SwarmGraph:
+            return graphs[i] if graphs is not None else chunks[i].graph(env_cfg)
+
+        if graphs is not None:
+            c_noms = [base_command(cfg.model, itf, c.x, c.goals, g) for c, g in zip(chunks, graphs, strict=True)]
         else:
-            c_nom = base_command(cfg.model, itf, data.x, data.goals)
+            c_noms = list(torch.split(base_command(cfg.model, itf, data.x, data.goals), cfg.qp_chunk))
         if cfg.reference == "nominal":
-            return c_nom, {}
+            return torch.cat(c_noms), {}
         if cfg.qp_constraints == "edges":
-            return self._edge_reference(data, c_nom)
+            return self._edge_reference(chunks, graph_of, c_noms)
         out, stats = [], defaultdict(float)
         t0 = time.perf_counter()
-        for k in range(0, len(data), cfg.qp_chunk):
-            chunk = data[k : k + cfg.qp_chunk]
+        for i, (chunk, c_nom) in enumerate(zip(chunks, c_noms, strict=True)):
             c_qp, res = solve_command_qp(
-                itf, self.cbf_target, chunk.graph(self.env_config), chunk.x, c_nom[k : k + cfg.qp_chunk],
-                self.env_config, alpha=cfg.qp_alpha, slack_linear=cfg.qp_slack_linear,
-                slack_quadratic=cfg.qp_slack_quadratic, tol=cfg.qp_tol, max_iter=cfg.qp_max_iter, chunk=cfg.qp_chunk,
+                itf, self.cbf_target, graph_of(i), chunk.x, c_nom, env_cfg, alpha=cfg.qp_alpha,
+                slack_linear=cfg.qp_slack_linear, slack_quadratic=cfg.qp_slack_quadratic, tol=cfg.qp_tol,
+                max_iter=cfg.qp_max_iter, chunk=cfg.qp_chunk,
             )  # fmt: skip
             out.append(c_qp.to(self.dtype))
             s = res.stats()
@@ -244,25 +247,23 @@ class GraphCBFLearner:
         stats["ms"] = 1e3 * (time.perf_counter() - t0)
         return torch.cat(out), dict(stats)
 
-    def _edge_reference(self, data: Samples, c_nom: Tensor) -> tuple[Tensor, dict]:
+    def _edge_reference(self, chunks: list[Samples], graph_of, c_noms: list[Tensor]) -> tuple[Tensor, dict]:
         """``qp_constraints = "edges"``: every agent's per-edge QP with the target CBF's edge barriers around its
-        nominal command (:mod:`egcbf.algo.edge_qp`)."""
+        nominal command (:mod:`egcbf.algo.edge_qp`), chunk by chunk (``graph_of(i)``: chunk ``i``'s graph)."""
         cfg, itf, mc = self.config, self.interface, self.config.model
         out, stats = [], defaultdict(float)
         t0 = time.perf_counter()
-        for k in range(0, len(data), cfg.qp_chunk):
-            chunk = data[k : k + cfg.qp_chunk]
-            barrier = dict(
-                alpha=cfg.qp_edge_alpha, margin=0.0, cbf=self.cbf_target, distance=mc.cbf_distance,
-                horizon=mc.closest_approach_horizon,
-            )  # fmt: skip
+        barrier = dict(
+            alpha=cfg.qp_edge_alpha, margin=0.0, cbf=self.cbf_target, distance=mc.cbf_distance,
+            horizon=mc.closest_approach_horizon,
+        )  # fmt: skip
+        for i, (chunk, c_nom) in enumerate(zip(chunks, c_noms, strict=True)):
             if isinstance(itf, ControlInterface):
-                c, info = edge_qp_controls(chunk.graph(self.env_config), chunk.x, itf, c_nom[k : k + cfg.qp_chunk],
-                                           min_authority=cfg.qp_edge_min_authority, **barrier)  # fmt: skip
+                c, info = edge_qp_controls(graph_of(i), chunk.x, itf, c_nom, min_authority=cfg.qp_edge_min_authority,
+                                           **barrier)  # fmt: skip
                 out.append(c.to(self.dtype))
             else:
-                a_nom = itf.accel_unit * c_nom[k : k + cfg.qp_chunk]
-                a, info = edge_qp_commands(chunk.graph(self.env_config), chunk.x, itf, a_nom, **barrier)
+                a, info = edge_qp_commands(graph_of(i), chunk.x, itf, itf.accel_unit * c_nom, **barrier)
                 out.append((a / itf.accel_unit).to(self.dtype))
             for key in ("num_slack", "num_failed", "rows_dropped"):
                 stats[key] += info[key]

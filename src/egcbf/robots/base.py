@@ -215,7 +215,7 @@ class Robot:
     def parked(self, x: Tensor) -> Tensor:
         """The state ``(*batch, S)`` an agent frozen at its goal holds (:attr:`goal_freeze_radius`): ``x`` at rest,
         its velocity zeroed. Robots that freeze their agents must define it."""
-        raise NotImplementedError(f"{self.name} freezes agents at their goals but does not define parked()")
+        raise _not_implemented(self, "parked")
 
     def brisk_control(self, x: Tensor, goals: Tensor) -> Tensor:
         """A goal-seeking law ``(*batch, control_dim)`` that cruises at the robot's speed limits: the base law a

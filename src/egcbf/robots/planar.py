@@ -65,7 +65,7 @@ class HeadingSpeedRobot(Robot):
 
     def parked(self, x: Tensor) -> Tensor:
         """``x`` with its speed zeroed (position and heading kept)."""
-        return torch.cat((x[..., :4], torch.zeros_like(x[..., V])), -1)
+        return torch.cat((x[..., P], x[..., H], torch.zeros_like(x[..., V])), -1)
 
     def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
         h = torch.stack((torch.cos(yaw), torch.sin(yaw)), -1).to(positions.dtype)

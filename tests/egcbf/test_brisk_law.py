@@ -134,12 +134,53 @@ def test_the_isolated_brisk_base_switches_on_what_an_agent_senses(name):
 
 @pytest.mark.parametrize("law", ["brisk", "brisk_isolated"])
 @pytest.mark.parametrize("name", ["double_integrator", "dubins_car"])
+def test_the_brisk_weight_blends_the_base_law_from_the_nominal_towards_the_brisk_one(name, law):
+    """base = nominal + w (brisk - nominal) (where the brisk law applies); w = 1 is the brisk law itself."""
+    env_cfg = EnvConfig.for_robot(name, num_agents=8, num_obstacles=2, num_envs=1, area_size=2.5)
+    state = SwarmEnv(env_cfg, dtype=F64).reset(3)
+    graph = build_graph(state, env_cfg)
+    itf = make_interface("control", env_cfg.make_robot())
+    brisk, nominal = itf.brisk(state.x, state.goals), itf.nominal(state.x, state.goals)
+    model = dict(robot=name, group="trivial", interface="control", base_law=law)
+    full = base_command(ModelConfig(**model), itf, state.x, state.goals, graph)
+    half_cfg = ModelConfig(**model, brisk_weight=0.25)
+    half = base_command(half_cfg, itf, state.x, state.goals, graph)
+    want = torch.where(full == nominal, nominal, nominal + 0.25 * (brisk - nominal))
+    assert torch.allclose(half, want, atol=1e-12) and not torch.allclose(half, full)  # the test can fail
+
+
+def test_a_dubins_car_on_a_blended_base_cruises_between_the_nominal_and_brisk_speeds():
+    """The car's laws are affine in the speed gain: weight w cruises at 0.46 + w (brisk_speed - 0.46) m/s."""
+    car = DubinsCar()
+    cfg = ModelConfig(robot="dubins_car", group="se2", interface="control", base_law="brisk", brisk_weight=0.5)
+    itf = make_interface("control", car)
+    x = car.rest_state(torch.zeros(1, 1, 2, dtype=F64), torch.zeros(1, 1, dtype=F64))
+    g = torch.tensor([[[4.0, 0.0]]], dtype=F64)
+    top = 0.0
+    for _ in range(400):
+        x = car.step(x, itf.apply(x, itf.clip(x, base_command(cfg, itf, x, g))), 0.03)
+        top = max(top, float(car.velocities(x).abs().max()))
+    nominal_speed = car.params.k_v * car.params.max_position_error / car.params.k_a
+    assert top == pytest.approx(nominal_speed + 0.5 * (car.params.brisk_speed - nominal_speed), abs=1e-3)
+
+
+def test_the_brisk_weight_is_checked():
+    with pytest.raises(ValueError, match="brisk_weight must be in"):
+        ModelConfig(robot="dubins_car", group="se2", interface="control", base_law="brisk", brisk_weight=1.5)
+    with pytest.raises(ValueError, match="base_law 'nominal' has none"):
+        ModelConfig(robot="dubins_car", group="se2", interface="control", brisk_weight=0.5)
+
+
+@pytest.mark.parametrize("law, weight", [("brisk", 1.0), ("brisk_isolated", 1.0), ("brisk", 0.6)])
+@pytest.mark.parametrize("name", ["double_integrator", "dubins_car"])
 @given(seed=st.integers(0, 2**16), k=st.integers(0, 3), angle=st.floats(-math.pi, math.pi), t=st.floats(-2, 2))
 @settings(max_examples=8, deadline=None)
-def test_the_whole_egcbf_plus_command_on_the_brisk_base_is_equivariant(name, law, seed, k, angle, t):
-    """clip(base + scale pi) around the brisk law (always, or while isolated) under a group element (a quarter turn
-    for the double integrator, any rotation for the car, and a translation): float64 within 1e-9."""
-    cfg = TrainConfig.preset("egcbf+", "gcbfplus", robot=name, model={"base_law": law})
+def test_the_whole_egcbf_plus_command_on_the_brisk_base_is_equivariant(name, law, weight, seed, k, angle, t):
+    """clip(base + scale pi) around the brisk law (always, or while isolated, or blended with the nominal law) under
+    a group element (a quarter turn for the double integrator, any rotation for the car, and a translation):
+    float64 within 1e-9."""
+    model = {"base_law": law, "brisk_weight": weight}
+    cfg = TrainConfig.preset("egcbf+", "gcbfplus", robot=name, model=model)
     torch.manual_seed(0)
     pol = PolicyNet(cfg.model).double()
     with torch.no_grad():

@@ -191,6 +191,10 @@ class ModelConfig:
             docs/gcbfplus.md, "Brisk base law") or ``"brisk_isolated"`` (``"control"`` interface: the brisk law
             while the agent senses nothing, no neighbour agent and no LiDAR hit, the nominal law otherwise; an
             invariant switch, :func:`sensing`).
+        brisk_weight: how far the base law moves from the nominal law towards the brisk one, ``nominal + w (brisk -
+            nominal)`` in ``(0, 1]`` (1: the brisk law itself). Both laws are equivariant and the group acts
+            linearly on commands, so the blend is too; it stays inside the command box, a convex set. For the Dubins
+            car, whose laws are affine in the speed gain, ``w`` sets the cruise between 0.46 and 0.6 m/s.
     """
 
     group: str = "se2xr"
@@ -220,6 +224,7 @@ class ModelConfig:
     policy_temperature: float = 0.1
     policy_free_distance: float = 1.0
     base_law: str = "nominal"
+    brisk_weight: float = 1.0
 
     def __post_init__(self) -> None:
         make_group(self.group)
@@ -261,6 +266,10 @@ class ModelConfig:
             raise ValueError(
                 f"ModelConfig.base_law = {self.base_law!r} needs interface 'control', not {self.interface!r}"
             )
+        if not 0.0 < self.brisk_weight <= 1.0:
+            raise ValueError(f"ModelConfig.brisk_weight must be in (0, 1], got {self.brisk_weight}")
+        if self.brisk_weight != 1.0 and self.base_law == "nominal":
+            raise ValueError("ModelConfig.brisk_weight blends towards the brisk law; base_law 'nominal' has none")
         if not self.accel_action_scale > 0:
             raise ValueError(f"ModelConfig.accel_action_scale must be > 0, got {self.accel_action_scale}")
 

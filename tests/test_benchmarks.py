@@ -47,3 +47,13 @@ def test_deployment_and_gcbfplus_benchmarks_quick_run():
                               text=True, timeout=600, cwd=ROOT)  # fmt: skip
         assert proc.returncode == 0, f"{args[0]} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
         assert expect in proc.stdout
+
+
+def test_step_floor_benchmark_quick_run():
+    """benchmarks/step_floor.py (the arithmetic floor of the N = 512 step, issue 28) in a smoke run, docs untouched:
+    both shipped policies' FLOPs and a floor above zero."""
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "step_floor.py"), "--repeats", "1", "--threads",
+                           "1", "--no-write"], capture_output=True, text=True, timeout=300, cwd=ROOT)  # fmt: skip
+    assert proc.returncode == 0, f"step_floor.py exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    rows = [line for line in proc.stdout.splitlines() if line.startswith(("| egcbf+ |", "| gcbf+ |"))]
+    assert len(rows) == 2 and all(float(r.split("|")[4]) > 0 for r in rows)

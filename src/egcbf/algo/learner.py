@@ -100,22 +100,21 @@ def base_command(
     ``model_config.brisk_weight`` of the way from the nominal law), or, for
     ``"brisk_isolated"``, the brisk law where an agent senses nothing in ``graph`` (the graph of ``x``; needed
     then) and the nominal law elsewhere."""
-    law = model_config.base_law
+    law, w = model_config.base_law, model_config.brisk_weight
     if law == "nominal":
         return itf.nominal(x, goals)
     if law == "brisk_isolated" and graph is None:
         raise ValueError("base_law 'brisk_isolated' needs the agents' graph (what each agent senses)")
-    nominal, w = itf.nominal(x, goals) if _needs_nominal(model_config) else None, model_config.brisk_weight
-    brisk = itf.brisk(x, goals) if w == 1.0 else nominal + w * (itf.brisk(x, goals) - nominal)
+    brisk = itf.brisk(x, goals)
+    if law == "brisk" and w == 1.0:
+        return brisk
+    nominal = itf.nominal(x, goals)
+    if w != 1.0:
+        brisk = nominal + w * (brisk - nominal)
     if law == "brisk":
         return brisk
     sensed = sensing(graph).view(*x.shape[:2], 1)
     return torch.where(sensed, nominal, brisk)
-
-
-def _needs_nominal(model_config: ModelConfig) -> bool:
-    """Whether :func:`base_command` evaluates the nominal law (the base law is, switches to or blends with it)."""
-    return model_config.base_law != "brisk" or model_config.brisk_weight != 1.0
 
 
 def needs_graph(model_config: ModelConfig) -> bool:

@@ -86,7 +86,7 @@ from egcbf.allocator import keep_freed_memory
 keep_freed_memory()
 torch.set_num_threads(1)
 import egcbf.algo.learner as learner_mod, egcbf.graph as graph_mod
-from groupcanon.features import FieldType
+from groupcanon.field_type import FieldType
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.checkpoint import load_learner
 name, n, area, steps, ckpt = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]), sys.argv[5]

@@ -33,6 +33,7 @@ ORDER = [
     "groups/product.py",
     "groups/trivial.py",
     "features.py",
+    "field_type.py",
     "canonicalize.py",
     "frames.py",
     "testing/__init__.py",

@@ -9,7 +9,8 @@ submodules :mod:`groups`, :mod:`features`, :mod:`frames` and :mod:`testing`.
 from . import features, frames, groups
 from ._version import __version__ as __version__
 from .canonicalize import Canonicalize, CanonicalizedLayer, globalize, localize
-from .features import FeatureType, FieldType
+from .features import FeatureType
+from .field_type import FieldType
 from .group import Group
 
 __all__ = [

@@ -33,7 +33,8 @@ import torch
 from torch import Tensor, nn
 from torch_geometric.utils import scatter
 
-from .features import FeatureType, FieldType, Point
+from .features import FeatureType, Point
+from .field_type import FieldType
 from .group import Group, require_group
 from .groups.trivial import Trivial
 from .input_checks import (

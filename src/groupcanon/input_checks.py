@@ -16,7 +16,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor, nn
 
-from .features import FieldType
+from .field_type import FieldType
 from .group import Group, check_element_shape
 
 

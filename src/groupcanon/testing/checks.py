@@ -13,7 +13,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..features import FeatureType, FieldType
+from ..features import FeatureType
+from ..field_type import FieldType
 from ..group import Group, require_group
 
 __all__ = [

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import torch
 from hypothesis import strategies as st
 
-from ..features import FieldType
+from ..field_type import FieldType
 from ..group import Group, default_dtype
 
 __all__ = ["Graph", "elements", "features", "graphs", "seeds"]

@@ -27,7 +27,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from groupcanon.features import FieldType, Point, Rotation, Scalar, Vector
+from groupcanon.features import Point, Rotation, Scalar, Vector
+from groupcanon.field_type import FieldType
 from groupcanon.groups import SE2xR
 
 from .so3 import dexpinv, exp_apply, hat, orthonormality_error, orthonormalize, rmul_exp

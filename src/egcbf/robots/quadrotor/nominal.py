@@ -34,7 +34,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from groupcanon.features import FieldType, Point
+from groupcanon.features import Point
+from groupcanon.field_type import FieldType
 
 from .dynamics import (
     DEFAULT_PARAMS,

@@ -52,8 +52,19 @@ def test_deployment_and_gcbfplus_benchmarks_quick_run():
 def test_step_floor_benchmark_quick_run():
     """benchmarks/step_floor.py (the arithmetic floor of the N = 512 step, issue 28) in a smoke run, docs untouched:
     both shipped policies' FLOPs and a floor above zero."""
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "step_floor.py"), "--repeats", "1", "--threads",
-                           "1", "--no-write"], capture_output=True, text=True, timeout=300, cwd=ROOT)  # fmt: skip
+    args = ["--repeats", "1", "--threads", "1", "--steps", "2", "--every", "1", "--no-write"]
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "step_floor.py"), *args], capture_output=True,
+                          text=True, timeout=300, cwd=ROOT)  # fmt: skip
     assert proc.returncode == 0, f"step_floor.py exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
     rows = [line for line in proc.stdout.splitlines() if line.startswith(("| egcbf+ |", "| gcbf+ |"))]
     assert len(rows) == 2 and all(float(r.split("|")[4]) > 0 for r in rows)
+
+
+def test_policy_variants_benchmark_quick_run():
+    """benchmarks/policy_variants.py (restructured policy forwards, issue 28) in a smoke run, docs untouched: every
+    variant runs and agrees with the shipped forward (the script exits non-zero otherwise)."""
+    args = ["--steps", "1", "--repeats", "1", "--rounds", "1", "--threads", "1", "--no-write"]
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "policy_variants.py"), *args], capture_output=True,
+                          text=True, timeout=300, cwd=ROOT)  # fmt: skip
+    assert proc.returncode == 0, f"policy_variants.py exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    assert "| eager PyTorch (shipped) |" in proc.stdout and "receivers in two blocks" in proc.stdout

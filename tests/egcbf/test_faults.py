@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from egcbf.algo.learner import LearnedController
-from egcbf.env import EnvConfig, SwarmEnv
+from egcbf.env import EnvConfig, SwarmEnv, SwarmState
 from egcbf.evaluate import evaluate, run_episodes
 from egcbf.faults import DEFAULT_FIELD, FaultConfig, FaultProcess, draws, noncooperative_mask, parse_faults
 from egcbf.faults.sensing import STREAMS
@@ -61,7 +61,12 @@ def test_spec_strings_round_trip_and_bad_specs_name_the_problem(tmp_path):
     held = parse_faults("default,hold=3,predict=1")
     assert (held.msg_hold, held.msg_predict) == (3, 1) and parse_faults(held.spec()) == held
     assert FaultConfig(msg_hold=3, msg_predict=1).is_null and not FaultConfig(msg_hold=3).edge_faults
-    for bad, match in (("predict=2", "0 or 1"), ("hold=-1", "whole number"), ("hold=1.5", "not a number")):
+    # the agents' handling of actuation delay: a spec key, inert on its own
+    ahead = parse_faults("act_delay=2,act_predict=1")
+    assert (ahead.act_delay, ahead.act_predict) == (2, 1) and parse_faults(ahead.spec()) == ahead
+    assert FaultConfig(act_predict=1).is_null and not ahead.is_null
+    for bad, match in (("predict=2", "0 or 1"), ("act_predict=2", "0 or 1"), ("hold=-1", "whole number"),
+                       ("hold=1.5", "not a number")):  # fmt: skip
         with pytest.raises(ValueError, match=match):
             parse_faults(bad)
 
@@ -235,6 +240,29 @@ def test_actuation_errors_noncooperative_agents_and_delay():
     assert torch.equal(delayed.actuate(torch.zeros_like(u1), s), u1)
 
 
+@pytest.mark.parametrize("delay", [1, 3])
+def test_actuation_delay_prediction_sees_the_state_its_command_acts_on(delay):
+    """With ``act_predict`` and no other fault, what the agents see at step t is the true state at step t + delay:
+    the command of step t acts then (the prediction rolls the estimate through the same dynamics and clip with the
+    commands in flight); without it they see the present and the delayed loop differs."""
+    env = SwarmEnv(CFG, dtype=F64)
+    for predict in (1, 0):
+        state = env.reset(3)
+        proc = FaultProcess(FaultConfig(act_delay=delay, act_predict=predict), CFG, ROBOT, [1, 2], dtype=F64)
+        seen, truth = [], [state.x]
+        for _ in range(6):
+            seen.append(proc.observe(state).x)
+            u, _ = _nominal(SwarmState(seen[-1], state.goals, state.obstacles, state.t, state.robot), CFG)
+            state, _ = env.step(state, proc.actuate(u, state))
+            truth.append(state.x)
+        for t in range(len(truth) - delay):
+            if predict:
+                assert torch.allclose(seen[t], truth[t + delay], rtol=0, atol=1e-12)
+            else:
+                assert torch.equal(seen[t], truth[t])
+        assert predict == 0 or not torch.equal(seen[0], truth[0])
+
+
 def test_wind_pushes_with_its_acceleration():
     env = SwarmEnv(CFG, dtype=F64)
     state = env.reset(1)
@@ -298,12 +326,14 @@ _TOL = {F64: 1e-8, torch.float32: 2e-3}
 
 @settings(max_examples=4, deadline=None)
 @given(yaw=st.floats(-math.pi, math.pi), shift=st.tuples(*[st.floats(-2, 2)] * 3),
-       dtype=st.sampled_from([F64, torch.float32]))  # fmt: skip
-def test_closed_loop_under_faults_is_equivariant(yaw, shift, dtype):
-    """The rotated scene with the same draws rotated gives the rotated trajectory (every fault on)."""
+       dtype=st.sampled_from([F64, torch.float32]), act_predict=st.sampled_from([0, 1]))  # fmt: skip
+def test_closed_loop_under_faults_is_equivariant(yaw, shift, dtype, act_predict):
+    """The rotated scene with the same draws rotated gives the rotated trajectory (every fault on; with and without
+    the agents predicting over their actuation delay)."""
     faults = FaultConfig(pos_noise=0.01, vel_noise=0.02, msg_loss=0.2, msg_delay=1, lidar_noise=0.01,
                          lidar_drop=0.2, thrust_gain=0.1, torque_gain=0.05, torque_bias=1e-4, act_delay=1,
-                         wind=(0.3, -0.2, 0.1), gust=0.2, noncoop=0.2, msg_hold=2, msg_predict=1)  # fmt: skip
+                         wind=(0.3, -0.2, 0.1), gust=0.2, noncoop=0.2, msg_hold=2, msg_predict=1,
+                         act_predict=act_predict)  # fmt: skip
     env = SwarmEnv(CFG, dtype=dtype)
     state = env.reset(21)
     c, s = math.cos(yaw), math.sin(yaw)

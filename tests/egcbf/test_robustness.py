@@ -56,6 +56,11 @@ def test_the_plan_runs_the_perfect_world_first_and_message_faults_only_where_the
     assert "msg_hold=5" in held and "msg_predict=1" in held and cfg.cell_spec("egcbf+", held) == held
     assert cfg.cell_spec("ccbf", held) == state_level("default")
     assert axis("loss_receivers").specs()[2] == "msg_loss=0.3,msg_hold=5,msg_predict=1"
+    # the actuation fix acts on the agents' own estimates: every controller runs it, and its level 0 is the perfect
+    # world
+    ahead = axis("act_delay_predict")
+    assert ahead.specs()[0] == "none" and ahead.specs()[2] == "act_delay=2,act_predict=1"
+    assert all(cfg.cell_spec(m, ahead.specs()[2]) == ahead.specs()[2] for m in cfg.controllers)
 
 
 def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
@@ -81,6 +86,12 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     fixes = report.read_text().split("## Fixes")[1].split("## What to choose")[0]
     assert "| dCBF-QP | 4 | 0 | - | - | - |" in fixes and "nominal" not in fixes
     assert (tmp_path / "fig" / "robustness_thrust.png").exists() and "(fig/robustness_thrust.png)" in text
+    # the actuation fix: every controller, the two-step level without and with the prediction
+    r = CliRunner().invoke(app, [*args, "--axes", "act_delay,act_delay_predict", "--controllers", "nominal"])
+    assert r.exit_code == 0, r.output
+    fixes = report.read_text().split("## Fixes: commanding")[1].split("## What to choose")[0]
+    row = next(line for line in fixes.splitlines() if line.startswith("| nominal (no CBF) | 4 | 0 |"))
+    assert "| - |" not in row  # both cells computed, so the paired change is there
     before = (out / "nominal_obs1" / "N4.json").read_text()
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 0 and (out / "nominal_obs1" / "N4.json").read_text() == before  # reused, not rerun

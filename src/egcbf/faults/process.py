@@ -136,6 +136,8 @@ class FaultProcess:
             dp = self._noise("pos", f.pos_noise, state.t)
             dv = self._noise("vel", f.vel_noise, state.t) if f.vel_noise > 0 else None
             seen = robot.perturbed(state.x, dp, dv)
+        if f.act_predict and f.act_delay > 0:
+            seen = self._predicted(seen, state)
         self._seen.appendleft(seen)
         sensing = None
         if f.edge_faults:
@@ -143,6 +145,24 @@ class FaultProcess:
             sensing = Sensing(f, robot, self.seeds, state.t, state.x, seen, sent, state.obstacles,
                               tuple(self._seen), self.config.dt)  # fmt: skip
         return SwarmState(seen, state.goals, state.obstacles, state.t, state.robot, sensing)
+
+    def _in_flight(self, state: SwarmState, dtype: torch.dtype) -> list[Tensor]:
+        """The ``act_delay`` commands sent but not yet applied, oldest first (before the first command: the hover
+        commands the actuators start with, filled in here as :meth:`actuate` would)."""
+        if not self._commands:
+            hover = self.robot.nominal_control(state.x, self.robot.positions(state.x)).to(dtype)
+            self._commands.extend([hover] * self.faults.act_delay)
+        return list(self._commands)
+
+    def _predicted(self, seen: Tensor, state: SwarmState) -> Tensor:
+        """``act_predict``: the estimate ``seen`` rolled ``act_delay`` control periods ahead through the robot's
+        dynamics (the environment's integrator and control clip) with the commands in flight: the state the
+        command of this step will act on, as far as the agent knows (no gain errors, no wind)."""
+        c, robot = self.config, self.robot
+        for u in self._in_flight(state, seen.dtype):
+            u = u.to(seen.dtype)
+            seen = robot.step(seen, robot.clip_control(u) if c.clip_control else u, c.dt, c.substeps, c.integrator)
+        return seen
 
     def actuate(self, u: Tensor, state: SwarmState) -> Tensor:
         """The command the actuators apply at ``state`` (true) for the controller's ``u`` ``(B, N, control_dim)``:
@@ -153,9 +173,7 @@ class FaultProcess:
             own = robot.nominal_control(state.x, target.to(state.x.dtype)).to(u.dtype)
             u = torch.where(self.noncoop[..., None], own, u)
         if f.act_delay > 0:
-            if not self._commands:
-                hover = robot.nominal_control(state.x, robot.positions(state.x)).to(u.dtype)
-                self._commands.extend([hover] * f.act_delay)
+            self._in_flight(state, u.dtype)
             self._commands.append(u)
             u = self._commands.popleft()
         if f.gain > 0 or f.thrust_gain > 0 or f.torque_gain > 0 or f.torque_bias > 0:

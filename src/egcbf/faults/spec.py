@@ -20,7 +20,16 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["ALIASES", "CHANNELS", "DEFAULT_FIELD", "NONCOOP_MODES", "RECEIVER_FIELDS", "FaultConfig", "parse_faults"]
+__all__ = [
+    "ALIASES",
+    "CHANNELS",
+    "DEFAULT_FIELD",
+    "HANDLING_FIELDS",
+    "NONCOOP_MODES",
+    "RECEIVER_FIELDS",
+    "FaultConfig",
+    "parse_faults",
+]
 
 #: the perception channels (:class:`egcbf.faults.Sensing`) with the fault fields that act on each; the other faults
 #: act on the state, the commands or the world, and reach every controller
@@ -29,6 +38,9 @@ CHANNELS = {"messages": ("msg_loss", "msg_delay", "msg_hold", "msg_predict"), "l
 #: the receivers' message handling (not faults: what the agents do about lost and late messages; inert without
 #: them)
 RECEIVER_FIELDS = ("msg_hold", "msg_predict")
+
+#: every field that is the agents' handling of a fault rather than a fault (inert without the fault it handles)
+HANDLING_FIELDS = (*RECEIVER_FIELDS, "act_predict")
 
 #: how a non-cooperative agent flies: ``"hover"`` holds its start position, ``"straight"`` flies the nominal
 #: controller to its goal as if alone (a straight line at the nominal cruise speed)
@@ -67,6 +79,10 @@ class FaultConfig:
             body frame).
         act_delay: control steps between a command and its actuation (the first ``act_delay`` steps apply a
             hover command: the nominal control to the agent's own position).
+        act_predict: not a fault, the agents' handling of ``act_delay`` (inert without it): 1: every agent
+            commands for its state ``act_delay`` steps ahead, its estimate rolled through the robot's dynamics with
+            its own commands still in flight (a Smith predictor; gain errors and wind unknown to it), and
+            broadcasts that prediction; 0: it commands for its current estimate.
 
     Environment:
         wind: constant world acceleration (m/s^2, ``dim`` numbers, or empty for none) from wind force over mass.
@@ -92,6 +108,7 @@ class FaultConfig:
     torque_gain: float = 0.0
     torque_bias: float = 0.0
     act_delay: int = 0
+    act_predict: int = 0
     wind: tuple[float, ...] = ()
     gust: float = 0.0
     gust_tau: float = 1.0
@@ -112,8 +129,10 @@ class FaultConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ValueError(f"faults: {name} must be a whole number of control steps >= 0, got {v!r}")
-        if self.msg_predict not in (0, 1) or isinstance(self.msg_predict, bool):
-            raise ValueError(f"faults: msg_predict must be 0 or 1, got {self.msg_predict!r}")
+        for name in ("msg_predict", "act_predict"):
+            v = getattr(self, name)
+            if v not in (0, 1) or isinstance(v, bool):
+                raise ValueError(f"faults: {name} must be 0 or 1, got {v!r}")
         if not all(math.isfinite(w) for w in self.wind):
             raise ValueError(f"faults: wind must be finite, got {self.wind}")
         if self.noncoop_mode not in NONCOOP_MODES:
@@ -122,10 +141,10 @@ class FaultConfig:
     # ------------------------------------------------------------------------------------------------ queries
     @property
     def is_null(self) -> bool:
-        """Whether every fault is off (the fault-free world; the receivers' message handling then changes
-        nothing)."""
+        """Whether every fault is off (the fault-free world; the agents' handling of faults, :data:`HANDLING_FIELDS`,
+        then changes nothing)."""
         zero = dataclasses.replace(FaultConfig(), noncoop_mode=self.noncoop_mode, gust_tau=self.gust_tau,
-                                   **{name: getattr(self, name) for name in RECEIVER_FIELDS})  # fmt: skip
+                                   **{name: getattr(self, name) for name in HANDLING_FIELDS})  # fmt: skip
         return dataclasses.replace(self, wind=tuple(w for w in self.wind if w != 0.0)) == zero
 
     @property
@@ -179,7 +198,7 @@ ALIASES = {
     "predict": "msg_predict",
 }
 
-_INT_FIELDS = ("msg_delay", "act_delay", "msg_hold", "msg_predict")
+_INT_FIELDS = ("msg_delay", "act_delay", "msg_hold", "msg_predict", "act_predict")
 
 
 def parse_faults(spec: str | Path | FaultConfig | None) -> FaultConfig:

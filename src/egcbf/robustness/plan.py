@@ -71,6 +71,10 @@ AXES: tuple[Axis, ...] = (
          (0, 0.1, 0.3, 0.5, 0.8), lambda x: f"loss={x:g},{RECEIVERS}"),
     Axis("delay_receivers", "message delay, receivers predicting", "control steps", (0, 1, 2, 4, 8),
          lambda x: f"delay={int(x)},predict=1"),
+    # the agents' fix of actuation delay (docs/robustness.md, "Fixes"): each commands for its state predicted over
+    # the delay through the robot's dynamics with its commands in flight (a Smith predictor)
+    Axis("act_delay_predict", "actuation delay, agents predicting over it", "control steps", (0, 1, 2, 3, 4),
+         lambda x: f"act_delay={int(x)},act_predict=1"),
 )  # fmt: skip
 
 assert parse_faults(AXES[0].spec(1)) == DEFAULT_FIELD

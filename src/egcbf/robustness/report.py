@@ -36,6 +36,8 @@ _FAULTS_TABLE = (
     ("torque_gain", "", "+- fraction", "the same on the body torques (quadrotor)"),
     ("torque_bias", "", "N m", "a constant body-torque bias per agent and axis, uniform in +-value"),
     ("act_delay", "", "control steps", "every command acts that many steps late (hover commands before)"),
+    ("act_predict", "", "0 or 1", "not a fault, the agents' handling: each commands for its state predicted over "
+     "the actuation delay (its dynamics, its commands in flight) and broadcasts that prediction"),
     ("wind", "", "m/s^2 (a vector)", "a constant world acceleration on every agent (wind force over mass)"),
     ("gust", "", "m/s^2 (std per axis)", "an Ornstein-Uhlenbeck gust per environment (time constant gust_tau, s)"),
     ("noncoop", "", "fraction", "agents that ignore their controller (noncoop_mode: hover in place or fly straight "
@@ -103,6 +105,24 @@ def _field_table(cfg: RobustnessConfig, cells: dict) -> list[str]:
     return lines
 
 
+def _fix_rows(cfg: RobustnessConfig, cells: dict, before: str, after: str, what: str) -> list[str]:
+    """The table of a fix: every controller the fix reaches, level ``before`` against ``after`` (the same level
+    with the fix; paired over the same scenes), ``what`` naming the level in the header."""
+    lines = [
+        f"| controller | N | obstacles | safe % ({what}) | safe % ({what}, with the fix) | change, points "
+        f"[95 % CI] | success % ({what}) | success % (with the fix) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]  # fmt: skip
+    for m in cfg.controllers:
+        if cfg.cell_spec(m, after) == cfg.cell_spec(m, before):
+            continue  # perceives none of what the fix handles: it changes nothing for it
+        for n in cfg.num_agents:
+            for k in (0, cfg.obstacles):
+                pair = _before_after(cells.get((m, before, n, k)), cells.get((m, after, n, k)))
+                lines.append(f"| {LABELS.get(m, m)} | {n} | {k} | {pair} |")
+    return lines
+
+
 def _receivers_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
     """The fix of the message faults (issue 27, item 4): the default field conditions with the receivers holding a
     lost neighbour's last message and predicting every message over its age, against the same conditions without,
@@ -110,7 +130,7 @@ def _receivers_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
     if "field_receivers" not in cfg.axes or "field" not in cfg.axes:
         return []
     before, after = axis("field").specs()[1], axis("field_receivers").specs()[1]
-    lines = [
+    return [
         "## Fixes: what the receivers do about lost and late messages",
         "",
         "A lost message removes a neighbour from the receiver's graph (and from its QP rows) for that step, and a "
@@ -121,18 +141,31 @@ def _receivers_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
         "`delay_receivers`) repeat the message axes with both; the table is the default field conditions without "
         "and with them (the same scenes; the change is the paired difference, after minus before).",
         "",
-        "| controller | N | obstacles | safe % (default) | safe % (default, receivers' fix) | change, points "
-        "[95 % CI] | success % (default) | success % (with the fix) |",
-        "|---|---|---|---|---|---|---|---|",
+        *_fix_rows(cfg, cells, before, after, "default"),
+        "",
     ]  # fmt: skip
-    for m in cfg.controllers:
-        if cfg.cell_spec(m, after) == cfg.cell_spec(m, before):
-            continue  # reads no messages: the fix changes nothing for it
-        for n in cfg.num_agents:
-            for k in (0, cfg.obstacles):
-                pair = _before_after(cells.get((m, before, n, k)), cells.get((m, after, n, k)))
-                lines.append(f"| {LABELS.get(m, m)} | {n} | {k} | {pair} |")
-    return [*lines, ""]
+
+
+def _actuation_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
+    """The fix of actuation delay (issue 27, item 4): two steps of delay with every agent commanding for its state
+    predicted over the delay, against the same delay without (every controller; paired over the same scenes)."""
+    if "act_delay" not in cfg.axes or "act_delay_predict" not in cfg.axes:
+        return []
+    before, after = axis("act_delay").specs()[2], axis("act_delay_predict").specs()[2]
+    return [
+        "## Fixes: commanding for the state the command will act on",
+        "",
+        "A command that acts `act_delay` control steps late was computed for a state the agent has left: the "
+        "attitude loop then fights its own past commands (the actuation-delay figure below shows where each "
+        "controller breaks). The agent knows its delay and the commands it has sent, so it can roll its estimate "
+        "forward through its own dynamics over them and command for that predicted state (`act_predict`: a Smith "
+        "predictor; it knows neither gain errors nor wind; it broadcasts the prediction, so the whole swarm acts "
+        "on the same future). The `act_delay_predict` axis repeats the actuation-delay axis with it; the table "
+        "is two steps of delay without and with it (the same scenes; after minus before).",
+        "",
+        *_fix_rows(cfg, cells, before, after, f"`{before}`"),
+        "",
+    ]  # fmt: skip
 
 
 def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list[str]:
@@ -160,11 +193,16 @@ def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list
     return lines
 
 
-def _axis_figure(cfg: RobustnessConfig, cells: dict, name: str, n: int, out_png: Path) -> Path | None:
+def _axis_figure(cfg: RobustnessConfig, cells: dict, name: str, out_png: Path) -> Path | None:
+    """Safe and success % against the level (columns: without and with obstacles), one colour per controller, one
+    line style per swarm size (the largest solid), 95 % bands over episodes; ``None`` if nothing is drawable."""
     from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
 
     a = axis(name)
     specs = a.specs()
+    sizes = sorted(cfg.num_agents, reverse=True)
+    styles = ("-", "--", ":", "-.")
     fig = Figure(figsize=(8.4, 5.6))
     panels = fig.subplots(2, 2, squeeze=False)
     drawn = False
@@ -172,28 +210,35 @@ def _axis_figure(cfg: RobustnessConfig, cells: dict, name: str, n: int, out_png:
         for row, key in enumerate(("safe_rate", "success_rate")):
             ax = panels[row][col]
             for m in cfg.controllers:
-                xs, mid, lo, hi = [], [], [], []
-                for level, spec in zip(a.levels, specs):
-                    r = cells.get((m, spec, n, k))
-                    if r is None:
+                for n, style in zip(sizes, styles):
+                    xs, mid, lo, hi = [], [], [], []
+                    for i, spec in enumerate(specs):  # levels equally spaced: they grow by factors
+                        r = cells.get((m, spec, n, k))
+                        if r is None:
+                            continue
+                        values = _episodes(r, key)
+                        ci = mean_ci([values], resamples=2000) if len(values) > 1 else None
+                        xs.append(i)
+                        mid.append(100 * r[key])
+                        lo.append(100 * (ci.low if ci else r[key]))
+                        hi.append(100 * (ci.high if ci else r[key]))
+                    if len(xs) < 2:
                         continue
-                    ci = mean_ci([_episodes(r, key)], resamples=2000) if len(_episodes(r, key)) > 1 else None
-                    xs.append(level)
-                    mid.append(100 * r[key])
-                    lo.append(100 * (ci.low if ci else r[key]))
-                    hi.append(100 * (ci.high if ci else r[key]))
-                if len(xs) < 2:
-                    continue
-                drawn = True
-                ax.plot(xs, mid, "o-", color=COLORS.get(m), label=LABELS.get(m, m), ms=3)
-                ax.fill_between(xs, lo, hi, color=COLORS.get(m), alpha=0.15, lw=0)
-            ax.set_title(f"{'safe' if key == 'safe_rate' else 'success'} %, N = {n}, {k} obstacles", fontsize=9)
+                    drawn = True
+                    ax.plot(xs, mid, marker="o", ls=style, color=COLORS.get(m), ms=3)
+                    ax.fill_between(xs, lo, hi, color=COLORS.get(m), alpha=0.12, lw=0)
+            ax.set_title(f"{'safe' if key == 'safe_rate' else 'success'} %, {k} obstacles", fontsize=9)
+            ax.set_xticks(range(len(a.levels)), [f"{x:g}" for x in a.levels], fontsize=8)
             ax.set_xlabel(a.unit, fontsize=8)
             ax.grid(alpha=0.3)
     if not drawn:
         return None
-    panels[0][0].legend(fontsize=7)
-    fig.suptitle(a.title, fontsize=10)
+    handles = [Line2D([], [], color=COLORS.get(m), marker="o", ms=3, label=LABELS.get(m, m)) for m in cfg.controllers]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=7, frameon=False)
+    fig.subplots_adjust(bottom=0.16, hspace=0.45)
+    sizes_text = ", ".join(f"N = {n} {'solid' if i == 0 else 'dashed' if i == 1 else 'dotted'}"
+                           for i, n in enumerate(sizes[:3]))  # fmt: skip
+    fig.suptitle(f"{a.title} ({sizes_text})", fontsize=10)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=90, bbox_inches="tight")
     return out_png
@@ -270,25 +315,28 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         *_field_table(cfg, cells),
         "",
         *_receivers_section(cfg, cells),
+        *_actuation_section(cfg, cells),
         "## What to choose",
         "",
         *(_recommendation(cfg, cells, n_big) or ["- pending: the default field conditions at the largest N are not "
                                                  "computed yet."]),
         "",
-        f"## Where each controller breaks (N = {n_big})",
+        "## Where each controller breaks",
         "",
         "The first level at which the safe rate drops below 99 % / 95 % ('>x': never up to the last level x; "
-        "'?': not computed yet; 'n/a': the controller does not perceive this fault).",
+        "'?': not computed yet; 'n/a': the controller does not perceive this fault; '0': already below it without "
+        "faults).",
         "",
     ]  # fmt: skip
-    for k in (0, cfg.obstacles):
-        lines += [f"**{k} obstacles**", "", *_breaking_levels(cfg, cells, n_big, k), ""]
+    for n in sorted(cfg.num_agents, reverse=True):
+        for k in (0, cfg.obstacles):
+            lines += [f"**N = {n}, {k} obstacles**", "", *_breaking_levels(cfg, cells, n, k), ""]
     lines += ["## Each fault axis", ""]
     for name in cfg.axes:
         if name.startswith("field"):
             continue
         a = axis(name)
-        png = _axis_figure(cfg, cells, name, n_big, figures / f"robustness_{name}.png")
+        png = _axis_figure(cfg, cells, name, figures / f"robustness_{name}.png")
         lines.append(f"### {a.title}")
         lines.append("")
         lines.append(f"Levels: {', '.join(f'{x:g}' for x in a.levels)} ({a.unit}); specs: "

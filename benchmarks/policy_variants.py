@@ -33,12 +33,10 @@ from datetime import date
 from pathlib import Path
 
 import torch
+from step_floor import episode_states  # the same episode as the step-floor and CLI-step benchmarks
 from torch import Tensor, nn
 
 from egcbf.allocator import keep_freed_memory
-from egcbf.checkpoint import load_controller
-from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.evaluate import episode_seed
 from egcbf.graph import SwarmGraph, build_graph
 from egcbf.nn.attention import EdgeAttention
 from egcbf.nn.layers import SiLU
@@ -48,7 +46,6 @@ from egcbf.threads import busy_cpus, choose_threads
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "benchmarks.md"
 RESULTS = ROOT / "docs" / "results" / "bench" / "policy_variants.json"
-NUM_AGENTS, AREA = 512, 4.0
 LABELS = {
     "eager": "eager PyTorch (shipped)",
     "fused": "bias and SiLU fused into the product (`torch.ops.mkldnn._linear_pointwise`, every MLP)",
@@ -60,19 +57,8 @@ LABELS = {
 
 def capture_graphs(steps: list[int]) -> tuple[list[SwarmGraph], nn.Module]:
     """The graphs the shipped EGCBF+ builds at ``steps`` of the CLI-step benchmark's episode, and its policy."""
-    controller, config = load_controller(ROOT / "checkpoints" / "egcbf+")
-    cfg = EnvConfig.for_robot("quadrotor", num_agents=NUM_AGENTS, area_size=AREA, num_obstacles=0,
-                              **dict(config.env_overrides))  # fmt: skip
-    env = SwarmEnv(cfg)
-    state = env.reset(episode_seed(0, NUM_AGENTS, 0))
-    graphs = []
-    with torch.no_grad():
-        for k in range(max(steps) + 1):
-            if k in steps:
-                graphs.append(build_graph(state, cfg))
-            u, _ = controller(state, cfg)
-            state, _ = env.step(state, u)
-    return graphs, controller.policy.eval()
+    states, cfg, controller = episode_states("egcbf+", steps)
+    return [build_graph(s, cfg) for s in states], controller.policy.eval()
 
 
 def fused_mlp_forward(self: nn.Sequential, x: Tensor) -> Tensor:

@@ -63,20 +63,22 @@ def median_ms(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
-def episode_states(method: str, steps: int, every: int) -> tuple[list, EnvConfig, object]:
-    """The states at steps ``0, every, ...`` (< ``steps``) of the CLI-step benchmark's episode under ``method``'s
-    own closed loop, with the environment config and the controller."""
+def episode_states(method: str, steps: list[int]) -> tuple[list, EnvConfig, object]:
+    """The states at ``steps`` of the CLI-step benchmark's episode (evaluation seed 0, episode 0, N = 512, l = 4,
+    no obstacles) under ``method``'s own closed loop, with the environment config and the controller (also used by
+    ``benchmarks/policy_variants.py``)."""
     controller, config = load_controller(ROOT / "checkpoints" / method)
     cfg = EnvConfig.for_robot("quadrotor", num_agents=NUM_AGENTS, area_size=AREA, num_obstacles=0,
                               **dict(config.env_overrides))  # fmt: skip
     env = SwarmEnv(cfg)
     state = env.reset(episode_seed(0, NUM_AGENTS, 0))
     states = []
-    for k in range(steps):
-        if k % every == 0:
-            states.append(state)
-        u, _ = controller(state, cfg)
-        state, _ = env.step(state, u)
+    with torch.no_grad():
+        for k in range(max(steps) + 1):
+            if k in steps:
+                states.append(state)
+            u, _ = controller(state, cfg)
+            state, _ = env.step(state, u)
     return states, cfg, controller
 
 
@@ -100,7 +102,7 @@ def measure(repeats: int, steps: int, every: int) -> dict:
     per_state, rows_all = {}, []
     with torch.no_grad():
         for method in ("egcbf+", "gcbf+"):
-            states, cfg, controller = episode_states(method, steps, every)
+            states, cfg, controller = episode_states(method, list(range(0, steps, every)))
             env, policy = SwarmEnv(cfg), controller.policy
             out = [measure_state(policy, controller, env, cfg, state, repeats) for state in states]
             per_state[method] = out

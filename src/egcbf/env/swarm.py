@@ -49,6 +49,7 @@ __all__ = [
     "StepInfo",
     "SwarmEnv",
     "SwarmState",
+    "advance",
     "approach_unsafe",
     "cast_lidar",
     "safety_masks",
@@ -286,6 +287,20 @@ def _in_cone(offset: Tensor, direction: Tensor, reach: float) -> Tensor:
     return (dist <= reach) | (cos_angle > torch.sqrt(1 - ratio**2))
 
 
+def advance(robot: Robot, config: EnvConfig, x: Tensor, u: Tensor, goals: Tensor) -> tuple[Tensor, Tensor]:
+    """One control period of the dynamics, as :meth:`SwarmEnv.step` integrates it: ``u`` ``(B, N, k)`` clipped to
+    the actuator box (``config.clip_control``) and held, the robot's integrator, agents at their goals parked
+    (``robot.goal_freeze_radius``). Returns the next states ``(B, N, S)`` and the control applied. No checks (the
+    environment's step makes them); also what :mod:`egcbf.faults` predicts an agent's state with."""
+    if config.clip_control:
+        u = robot.clip_control(u)
+    x_next = robot.step(x, u, config.dt, config.substeps, config.integrator)
+    if robot.goal_freeze_radius > 0:  # agents at their goals park (GCBF+'s Dubins car; Robot.parked)
+        gap = torch.linalg.vector_norm(robot.positions(x) - goals.to(x_next.dtype), dim=-1)
+        x_next = torch.where((gap < robot.goal_freeze_radius)[..., None], robot.parked(x), x_next)
+    return x_next, u
+
+
 def cast_lidar(config: EnvConfig, positions: Tensor, heading: Tensor, obstacles: Obstacles) -> LidarScan:
     """:func:`egcbf.env.lidar.lidar_scan` with the ray pattern, range and hit count of ``config``.
 
@@ -391,13 +406,8 @@ class SwarmEnv:
             raise ValueError(f"control u must be {expected} (num_envs, num_agents, {k}), got {shape}")
         if state.t == 0:
             state.validate()
-        u_in = u = u.to(state.x.dtype)
-        if c.clip_control:
-            u = self.robot.clip_control(u)
-        x = self.robot.step(state.x, u, c.dt, c.substeps, c.integrator)
-        if self.robot.goal_freeze_radius > 0:  # agents at their goals park (GCBF+'s Dubins car; Robot.parked)
-            gap = torch.linalg.vector_norm(self.robot.positions(state.x) - state.goals.to(x.dtype), dim=-1)
-            x = torch.where((gap < self.robot.goal_freeze_radius)[..., None], self.robot.parked(state.x), x)
+        u_in = u.to(state.x.dtype)
+        x, u = advance(self.robot, c, state.x, u_in, state.goals)
         if not bool(torch.isfinite(x).all() & torch.isfinite(u_in).all()):
             if not bool(torch.isfinite(u_in).all()):
                 bad = (~torch.isfinite(u_in)).any(-1).nonzero()[0].tolist()

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from ..env.config import EnvConfig
-from ..env.swarm import SwarmState
+from ..env.swarm import SwarmState, advance
 from ..robots import Robot
 from . import draws
 from .sensing import STREAMS, Sensing
@@ -155,13 +155,11 @@ class FaultProcess:
         return list(self._commands)
 
     def _predicted(self, seen: Tensor, state: SwarmState) -> Tensor:
-        """``act_predict``: the estimate ``seen`` rolled ``act_delay`` control periods ahead through the robot's
-        dynamics (the environment's integrator and control clip) with the commands in flight: the state the
-        command of this step will act on, as far as the agent knows (no gain errors, no wind)."""
-        c, robot = self.config, self.robot
+        """``act_predict``: the estimate ``seen`` rolled ``act_delay`` control periods ahead through the environment's
+        dynamics (:func:`egcbf.env.swarm.advance`) with the commands in flight: the state the command of this step
+        will act on, as far as the agent knows (no gain errors, no wind)."""
         for u in self._in_flight(state, seen.dtype):
-            u = u.to(seen.dtype)
-            seen = robot.step(seen, robot.clip_control(u) if c.clip_control else u, c.dt, c.substeps, c.integrator)
+            seen, _ = advance(self.robot, self.config, seen, u.to(seen.dtype), state.goals)
         return seen
 
     def actuate(self, u: Tensor, state: SwarmState) -> Tensor:

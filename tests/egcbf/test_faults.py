@@ -65,8 +65,11 @@ def test_spec_strings_round_trip_and_bad_specs_name_the_problem(tmp_path):
     ahead = parse_faults("act_delay=2,act_predict=1")
     assert (ahead.act_delay, ahead.act_predict) == (2, 1) and parse_faults(ahead.spec()) == ahead
     assert FaultConfig(act_predict=1).is_null and not ahead.is_null
-    for bad, match in (("predict=2", "0 or 1"), ("act_predict=2", "0 or 1"), ("hold=-1", "whole number"),
-                       ("hold=1.5", "not a number")):  # fmt: skip
+    observed = parse_faults("wind=1/0/0,dist_obs=1")
+    assert observed.dist_obs == 1 and parse_faults(observed.spec()) == observed
+    assert FaultConfig(dist_obs=1).is_null and not observed.is_null
+    for bad, match in (("predict=2", "0 or 1"), ("act_predict=2", "0 or 1"), ("dist_obs=2", "0 or 1"),
+                       ("hold=-1", "whole number"), ("hold=1.5", "not a number")):  # fmt: skip
         with pytest.raises(ValueError, match=match):
             parse_faults(bad)
 
@@ -326,14 +329,15 @@ _TOL = {F64: 1e-8, torch.float32: 2e-3}
 
 @settings(max_examples=6, deadline=None)
 @given(yaw=st.floats(-math.pi, math.pi), shift=st.tuples(*[st.floats(-2, 2)] * 3),
-       dtype=st.sampled_from([F64, torch.float32]), act_predict=st.sampled_from([0, 1]))  # fmt: skip
-def test_closed_loop_under_faults_is_equivariant(yaw, shift, dtype, act_predict):
+       dtype=st.sampled_from([F64, torch.float32]), act_predict=st.sampled_from([0, 1]),
+       dist_obs=st.sampled_from([0, 1]))  # fmt: skip
+def test_closed_loop_under_faults_is_equivariant(yaw, shift, dtype, act_predict, dist_obs):
     """The rotated scene with the same draws rotated gives the rotated trajectory (every fault on; with and without
-    the agents predicting over their actuation delay)."""
+    the agents predicting over their actuation delay, with and without their disturbance observer)."""
     faults = FaultConfig(pos_noise=0.01, vel_noise=0.02, msg_loss=0.2, msg_delay=1, lidar_noise=0.01,
                          lidar_drop=0.2, thrust_gain=0.1, torque_gain=0.05, torque_bias=1e-4, act_delay=1,
                          wind=(0.3, -0.2, 0.1), gust=0.2, noncoop=0.2, msg_hold=2, msg_predict=1,
-                         act_predict=act_predict)  # fmt: skip
+                         act_predict=act_predict, dist_obs=dist_obs)  # fmt: skip
     env = SwarmEnv(CFG, dtype=dtype)
     state = env.reset(21)
     c, s = math.cos(yaw), math.sin(yaw)

@@ -3,13 +3,14 @@ report from computed cells, and the command end to end."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
 from typer.testing import CliRunner
 
 from egcbf.cli import app
-from egcbf.faults import DEFAULT_FIELD
+from egcbf.faults import DEFAULT_FIELD, parse_faults
 from egcbf.reproduce import SweepConfig
 from egcbf.reproduce.plan import cell_key
 from egcbf.robustness import AXES, RobustnessConfig, axis, reads_sensing, state_level
@@ -61,6 +62,13 @@ def test_the_plan_runs_the_perfect_world_first_and_message_faults_only_where_the
     ahead = axis("act_delay_predict")
     assert ahead.specs()[0] == "none" and ahead.specs()[2] == "act_delay=2,act_predict=1"
     assert all(cfg.cell_spec(m, ahead.specs()[2]) == ahead.specs()[2] for m in cfg.controllers)
+    # the disturbance observer likewise: the wind and thrust axes again with it, run by every controller
+    for name in ("wind", "thrust"):
+        plain, observed = axis(name), axis(f"{name}_observer")
+        assert observed.levels == plain.levels and observed.specs()[0] == "none"
+        assert all(parse_faults(o) == dataclasses.replace(parse_faults(p), dist_obs=1)
+                   for p, o in zip(plain.specs()[1:], observed.specs()[1:]))  # fmt: skip
+        assert all(cfg.cell_spec(m, observed.specs()[2]) == observed.specs()[2] for m in cfg.controllers)
 
 
 def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
@@ -92,6 +100,13 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     fixes = report.read_text().split("## Fixes: commanding")[1].split("## What to choose")[0]
     row = next(line for line in fixes.splitlines() if line.startswith("| nominal (no CBF) | 4 | 0 |"))
     assert "| - |" not in row  # both cells computed, so the paired change is there
+    # the disturbance observer's fix: +-30 % thrust without and with it
+    r = CliRunner().invoke(app, [*args, "--axes", "thrust,thrust_observer", "--controllers", "nominal"])
+    assert r.exit_code == 0, r.output
+    fixes = report.read_text().split("## Fixes: cancelling")[1].split("## What to choose")[0]
+    assert "`thrust_gain=0.3`" in fixes
+    row = next(line for line in fixes.splitlines() if line.startswith("| nominal (no CBF) | 4 | 1 |"))
+    assert "| - |" not in row
     before = (out / "nominal_obs1" / "N4.json").read_text()
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 0 and (out / "nominal_obs1" / "N4.json").read_text() == before  # reused, not rerun

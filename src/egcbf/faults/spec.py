@@ -24,6 +24,7 @@ __all__ = [
     "ALIASES",
     "CHANNELS",
     "DEFAULT_FIELD",
+    "DIST_OBS_TAU",
     "HANDLING_FIELDS",
     "NONCOOP_MODES",
     "RECEIVER_FIELDS",
@@ -40,7 +41,12 @@ CHANNELS = {"messages": ("msg_loss", "msg_delay", "msg_hold", "msg_predict"), "l
 RECEIVER_FIELDS = ("msg_hold", "msg_predict")
 
 #: every field that is the agents' handling of a fault rather than a fault (inert without the fault it handles)
-HANDLING_FIELDS = (*RECEIVER_FIELDS, "act_predict")
+HANDLING_FIELDS = (*RECEIVER_FIELDS, "act_predict", "dist_obs")
+
+#: time constant (s) of the agents' disturbance estimate (``dist_obs``): short enough to follow a gust (``gust_tau``
+#: 1 s), long enough to average the velocity-estimate noise it differentiates (its error is about
+#: ``vel_noise / DIST_OBS_TAU``: 0.08 m/s^2 at the default field's 2 cm/s)
+DIST_OBS_TAU = 0.25
 
 #: how a non-cooperative agent flies: ``"hover"`` holds its start position, ``"straight"`` flies the nominal
 #: controller to its goal as if alone (a straight line at the nominal cruise speed)
@@ -83,6 +89,11 @@ class FaultConfig:
             commands for its state ``act_delay`` steps ahead, its estimate rolled through the robot's dynamics with
             its own commands still in flight (a Smith predictor; gain errors and wind unknown to it), and
             broadcasts that prediction; 0: it commands for its current estimate.
+        dist_obs: not a fault, the agents' handling of disturbances (wind, gusts, gain errors): 1: every agent
+            estimates the acceleration acting on it beyond its model (its velocity estimate minus its model's
+            prediction from its previous estimate under the command it knows acted, low-passed with time constant
+            :data:`DIST_OBS_TAU`) and cancels it in its command (:meth:`egcbf.robots.Robot.reject_disturbance`: a
+            disturbance observer); 0: it does not.
 
     Environment:
         wind: constant world acceleration (m/s^2, ``dim`` numbers, or empty for none) from wind force over mass.
@@ -109,6 +120,7 @@ class FaultConfig:
     torque_bias: float = 0.0
     act_delay: int = 0
     act_predict: int = 0
+    dist_obs: int = 0
     wind: tuple[float, ...] = ()
     gust: float = 0.0
     gust_tau: float = 1.0
@@ -129,7 +141,7 @@ class FaultConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ValueError(f"faults: {name} must be a whole number of control steps >= 0, got {v!r}")
-        for name in ("msg_predict", "act_predict"):
+        for name in ("msg_predict", "act_predict", "dist_obs"):
             v = getattr(self, name)
             if v not in (0, 1) or isinstance(v, bool):
                 raise ValueError(f"faults: {name} must be 0 or 1, got {v!r}")
@@ -198,7 +210,7 @@ ALIASES = {
     "predict": "msg_predict",
 }
 
-_INT_FIELDS = ("msg_delay", "act_delay", "msg_hold", "msg_predict", "act_predict")
+_INT_FIELDS = ("msg_delay", "act_delay", "msg_hold", "msg_predict", "act_predict", "dist_obs")
 
 
 def parse_faults(spec: str | Path | FaultConfig | None) -> FaultConfig:

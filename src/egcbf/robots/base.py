@@ -224,6 +224,17 @@ class Robot:
         whose nominal controller already cruises at its limits)."""
         return self.nominal_control(x, goals)
 
+    def reject_disturbance(self, x: Tensor, u: Tensor, accel: Tensor) -> Tensor:
+        """The command ``(*batch, control_dim)`` that, under a world-frame disturbance acceleration ``accel``
+        ``(*batch, dim)`` (wind force over mass, an actuator's gain error), does what ``u`` does without it (as far
+        as the actuators can), clipped to the actuator box (``accel == 0``: ``u`` itself, for a ``u`` in the box).
+        Equivariant: ``accel`` is a world vector. Optional: the agents' disturbance observer (``egcbf.faults``,
+        ``dist_obs``) needs it."""
+        raise NotImplementedError(
+            f"{type(self).__name__} has no disturbance rejection (Robot.reject_disturbance, optional: the agents' "
+            "disturbance observer, egcbf.faults dist_obs, needs it)"
+        )
+
     def command_feature(self, interface: str) -> FeatureType:
         """How the group acts on the normalized command of ``interface`` (one of :attr:`interfaces`): the policy's
         output type (a ``Vector`` for a world-frame command, a ``Scalar`` for an invariant one)."""

@@ -12,6 +12,7 @@ graph and the learner rely on:
 * the nominal controller: ``nominal_control(phi_g x, g goal) == psi_g nominal_control(x, goal)``, and the same for
   the brisk law (``brisk_control``);
 * for a robot that freezes agents at their goals: ``parked(x)`` is at rest, in place, and equivariant.
+* for a robot with a disturbance rejection (optional): none is the command, and it is equivariant.
 
 It returns the largest error of each claim (max abs error over max(1, max abs value): the quadrotor's angular
 accelerations reach 1e4 rad/s^2) and raises ``AssertionError`` naming every claim above ``atol``.
@@ -114,6 +115,16 @@ def check_robot(
             robot.brisk_control(gx, group.transform(g, goals)), act_u(g, robot.brisk_control(x, goals))
         ),
     }
+    if type(robot).reject_disturbance is not Robot.reject_disturbance:  # optional: the disturbance observer's
+        accel = torch.randn(batch, robot.dim, generator=gen, dtype=dtype)
+        boxed = robot.clip_control(u)
+        errors["disturbance rejection: none is the command"] = err(
+            robot.reject_disturbance(x, boxed, torch.zeros_like(accel)), boxed
+        )
+        errors["disturbance rejection equivariant"] = err(
+            robot.reject_disturbance(gx, act_u(g, boxed), vec.act(g, accel)),
+            act_u(g, robot.reject_disturbance(x, boxed, accel)),
+        )
     if robot.goal_freeze_radius > 0:  # the environment parks agents at their goals
         parked = robot.parked(x)
         errors["parked: at rest"] = err(robot.velocities(parked), torch.zeros_like(robot.velocities(x)))

@@ -280,6 +280,10 @@ class DoubleIntegrator(_PointMass):
     def velocities(self, x: Tensor) -> Tensor:
         return x[..., 2:4]
 
+    def reject_disturbance(self, x: Tensor, u: Tensor, accel: Tensor) -> Tensor:
+        """The force less ``m accel`` (a point mass cancels any acceleration within its box)."""
+        return self.clip_control(u - self.params.mass * accel.to(u.dtype))
+
     def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
         return torch.cat((positions, torch.zeros_like(positions)), -1)
 
@@ -348,6 +352,10 @@ class LinearDrone(_PointMass):
 
     def velocities(self, x: Tensor) -> Tensor:
         return x[..., 3:6]
+
+    def reject_disturbance(self, x: Tensor, u: Tensor, accel: Tensor) -> Tensor:
+        """The command less ``accel / gain`` (its acceleration channel is ``gain c``)."""
+        return self.clip_control(u - accel.to(u.dtype) / self.gain)
 
     def rest_state(self, positions: Tensor, yaw: Tensor) -> Tensor:
         return torch.cat((positions, torch.zeros_like(positions)), -1)

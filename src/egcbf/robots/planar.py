@@ -44,6 +44,12 @@ class HeadingSpeedRobot(Robot):
     def velocities(self, x: Tensor) -> Tensor:
         return x[..., V] * x[..., H]
 
+    def reject_disturbance(self, x: Tensor, u: Tensor, accel: Tensor) -> Tensor:
+        """The forward acceleration ``u[..., 1]`` cancels the disturbance along the heading; the lateral part is
+        beyond these robots' actuators (and their state: pushes drop it too, :meth:`perturbed`)."""
+        a = u[..., 1:2] - (accel.to(u.dtype) * x[..., H]).sum(-1, keepdim=True)
+        return self.clip_control(torch.cat((u[..., :1], a), -1))
+
     def perturbed(self, x: Tensor, dp: Tensor, dv: Tensor | None = None) -> Tensor:
         """Position moved by ``dp``; the speed changed by the component of ``dv`` along the heading (the state
         holds no lateral velocity)."""

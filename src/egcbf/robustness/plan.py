@@ -75,6 +75,12 @@ AXES: tuple[Axis, ...] = (
     # the delay through the robot's dynamics with its commands in flight (a Smith predictor)
     Axis("act_delay_predict", "actuation delay, agents predicting over it", "control steps", (0, 1, 2, 3, 4),
          lambda x: f"act_delay={int(x)},act_predict=1"),
+    # the agents' fix of wind and thrust errors (docs/robustness.md, "Fixes"): those axes again, every agent
+    # estimating the acceleration acting on it beyond its model and cancelling it (a disturbance observer)
+    Axis("wind_observer", "wind (x) with gusts, agents observing the disturbance", "m/s^2", (0, 0.5, 1, 2, 4),
+         lambda x: f"wind={x:g}/0/0,gust={x / 2:g},dist_obs=1"),
+    Axis("thrust_observer", "thrust gain error, agents observing the disturbance", "+- fraction",
+         (0, 0.05, 0.1, 0.2, 0.3), lambda x: f"thrust_gain={x:g},dist_obs=1"),
 )  # fmt: skip
 
 assert parse_faults(AXES[0].spec(1)) == DEFAULT_FIELD

@@ -56,6 +56,8 @@ __all__ = [
     "NominalGains",
     "desired_heading",
     "nominal_control",
+    "reject_disturbance",
+    "track_acceleration",
 ]
 
 #: Position error clip (m): GCBF+ clips the nominal controller's position error to the CrazyFlie comm radius, 1 m.
@@ -232,3 +234,38 @@ def nominal_control(
     """
     a = nominal_acceleration(x, goal, gains, max_position_error)
     return track_acceleration(x, a, params, gains, clip)
+
+
+def reject_disturbance(
+    x: Tensor,
+    u: Tensor,
+    accel: Tensor,
+    params: QuadrotorParams = DEFAULT_PARAMS,
+    gains: NominalGains = DEFAULT_GAINS,
+    clip: bool = True,
+) -> Tensor:
+    """The command ``(*batch, 4)`` that, under a world-frame disturbance acceleration ``accel`` ``(*batch, 3)`` (wind
+    force over mass, a thrust error), does what ``u = (tau, F3)`` does in calm air, to first order in ``accel``.
+
+    The thrust vector ``F3 b3`` becomes ``F3 b3 - m accel``: the collective thrust takes its component along the
+    body axis ``b3 = R e3``, ``F3 - m accel . b3``, and the torque gets the attitude loop's pull toward the new
+    direction, ``J k_R R^T (b3 x f) / |f|`` with ``f = F3 b3 / m - accel`` (the term :func:`track_acceleration`
+    adds when its target acceleration drops by ``accel``). For ``u = track_acceleration(x, a)`` at the attitude that
+    command asks for, the result is ``track_acceleration(x, a - accel)`` up to ``O(|accel|^2)`` (before clipping),
+    so in steady wind the attitude settles where the thrust cancels it. ``accel == 0`` returns ``u`` exactly.
+
+    Equivariant under SE(2) x R: ``accel`` is a world vector, the output body-frame and invariant.
+    """
+    _check_last(u, 4, "u")
+    _, R, _, _ = unpack(x)
+    k = _gain_tensors(gains, params, x.dtype, x.device)
+    b3 = R[..., :, 2]
+    thrust = u[..., 3:]
+    f = thrust / params.mass * b3 - accel
+    # b3 x f = -(b3 x accel): written so that accel == 0 gives exactly zero (also at zero thrust, f = 0)
+    size = torch.linalg.vector_norm(f, dim=-1, keepdim=True).clamp_min(1e-6)
+    turn = -torch.linalg.cross(b3, accel.expand_as(b3), dim=-1) / size
+    tau = u[..., :3] + k.KR * (R.transpose(-1, -2) @ turn.unsqueeze(-1)).squeeze(-1)
+    lift = thrust - params.mass * (accel * b3).sum(-1, keepdim=True)
+    out = torch.cat((tau, lift), dim=-1)
+    return clip_control(out, params) if clip else out

@@ -21,7 +21,7 @@ from groupcanon.groups import SE2xR
 
 from ..base import Robot
 from . import dynamics as dyn
-from .nominal import desired_heading, nominal_control
+from .nominal import desired_heading, nominal_control, reject_disturbance
 
 __all__ = ["Quadrotor"]
 
@@ -109,6 +109,9 @@ class Quadrotor(Robot):
     # ------------------------------------------------------------------------------------------- control
     def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:
         return nominal_control(x, goals, self.params)
+
+    def reject_disturbance(self, x: Tensor, u: Tensor, accel: Tensor) -> Tensor:
+        return reject_disturbance(x, u, accel, self.params)
 
     def command_feature(self, interface: str) -> FeatureType:
         if interface == "accel":

@@ -9,6 +9,7 @@ ratio: the error at ``accel`` is below ``0.05 |accel|`` times the change of the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -19,7 +20,7 @@ from hypothesis import strategies as st
 
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
 from egcbf.faults import FaultConfig, FaultProcess
-from egcbf.faults.spec import DIST_OBS_TAU
+from egcbf.onboard import DIST_OBS_TAU, Onboard
 from egcbf.robots import Robot, make_robot
 from egcbf.robots.quadrotor.dynamics import DEFAULT_PARAMS, GROUP, STATE_TYPE
 from egcbf.robots.quadrotor.nominal import desired_heading, reject_disturbance, track_acceleration
@@ -164,6 +165,44 @@ def test_a_robot_without_rejection_is_refused():
     class Stiff(type(ROBOT)):
         reject_disturbance = Robot.reject_disturbance
 
-    with pytest.raises(ValueError, match="dist_obs needs"):
+    with pytest.raises(ValueError, match="dist_obs: the disturbance observer needs"):
         FaultProcess(FaultConfig(wind=(1.0, 0.0, 0.0), dist_obs=1), CFG, Stiff(), [1], dtype=F64)
     FaultProcess(FaultConfig(wind=(1.0, 0.0, 0.0)), CFG, Stiff(), [1], dtype=F64)  # only the observer needs it
+
+
+def test_one_onboard_per_agent_is_what_the_simulator_runs_for_the_swarm():
+    """A robot running its own :class:`egcbf.onboard.Onboard` on its ``(S,)`` state does what the fault process does
+    for it in the swarm: the same trajectories (two periods of actuation delay with the prediction, the observer,
+    wind and thrust errors acting)."""
+    faults = FaultConfig(act_delay=2, act_predict=1, dist_obs=1, wind=(0.5, 0.2, 0.0), thrust_gain=0.2)
+    env = SwarmEnv(CFG, dtype=F64)
+    start = env.reset(7)
+    swarm, physics = (FaultProcess(f, CFG, ROBOT, [1, 2], dtype=F64)
+                      for f in (faults, dataclasses.replace(faults, act_predict=0, dist_obs=0)))  # fmt: skip
+    robots = [[Onboard(ROBOT, CFG, act_delay=2, predict=True, observe_disturbance=True) for _ in range(4)]
+              for _ in range(2)]  # fmt: skip
+    a, b = start, start
+    for _ in range(12):
+        seen = swarm.observe(a)
+        a, _ = env.step(a, swarm.actuate(ROBOT.nominal_control(seen.x, seen.goals), a))
+        a = swarm.push(a)
+        seen = physics.observe(b)  # the physical faults only: each agent handles them itself
+        sent = []
+        for i, row in enumerate(robots):
+            x_for = [agent.estimate(seen.x[i, j], seen.goals[i, j]) for j, agent in enumerate(row)]
+            sent.append([agent.command(ROBOT.nominal_control(x, seen.goals[i, j]))
+                         for j, (agent, x) in enumerate(zip(row, x_for))])  # fmt: skip
+        u = torch.stack([torch.stack(r) for r in sent])
+        b, _ = env.step(b, physics.actuate(u, b))
+        b = physics.push(b)
+        assert torch.allclose(a.x, b.x, rtol=0, atol=1e-10)
+    assert swarm.disturbance.abs().max() > 0.1  # the observer was at work
+
+
+def test_onboard_refuses_bad_settings_and_a_command_before_an_estimate():
+    with pytest.raises(ValueError, match="act_delay"):
+        Onboard(ROBOT, CFG, act_delay=-1)
+    with pytest.raises(ValueError, match="tau"):
+        Onboard(ROBOT, CFG, tau=0.0)
+    with pytest.raises(RuntimeError, match=r"before Onboard\.estimate"):
+        Onboard(ROBOT, CFG, act_delay=1, predict=True).command(torch.zeros(4, dtype=F64))

@@ -26,11 +26,12 @@ import torch
 from torch import Tensor
 
 from ..env.config import EnvConfig
-from ..env.swarm import SwarmState, advance
+from ..env.swarm import SwarmState
+from ..onboard import Onboard
 from ..robots import Robot
 from . import draws
 from .sensing import STREAMS, Sensing
-from .spec import DIST_OBS_TAU, FaultConfig
+from .spec import FaultConfig
 
 __all__ = ["FaultProcess", "noncooperative_mask"]
 
@@ -78,9 +79,6 @@ class FaultProcess:
                     f"faults: {name} needs the robot's {group!r} channels; the {robot.name} has "
                     f"{sorted(groups) or 'no named actuator groups'} (use gain= for every channel)"
                 )
-        if faults.dist_obs and type(robot).reject_disturbance is Robot.reject_disturbance:
-            raise ValueError(f"faults: dist_obs needs the robot's disturbance rejection (Robot.reject_disturbance); "
-                             f"the {robot.name} has none")  # fmt: skip
         self.faults, self.config, self.robot = faults, env_config, robot
         self.device, self.dtype = torch.device(device), dtype
         self.seeds = torch.as_tensor([int(s) for s in seeds], dtype=torch.int64, device=self.device)
@@ -93,10 +91,15 @@ class FaultProcess:
         self._seen: deque[Tensor] = deque(maxlen=faults.msg_delay + faults.msg_hold + 1)  # newest first
         self._commands: deque[Tensor] = deque()
         self._starts: Tensor | None = None
-        # dist_obs: the disturbance estimate (B, N, d), the agents' last estimate and the command they know acted
-        self._disturbance: Tensor | None = None
-        self._estimate: Tensor | None = None
-        self._applied: Tensor | None = None
+        # the agents' own handling of their actuation delay and of disturbances (act_predict, dist_obs)
+        self.onboard: Onboard | None = None
+        if (faults.act_predict and faults.act_delay > 0) or faults.dist_obs:
+            try:
+                self.onboard = Onboard(robot, env_config, act_delay=faults.act_delay,
+                                       predict=bool(faults.act_predict),
+                                       observe_disturbance=bool(faults.dist_obs))  # fmt: skip
+            except ValueError as err:
+                raise ValueError(f"faults: dist_obs: {err}") from None
         self._gust = self._world(faults.gust * draws.normal(STREAMS["gust"], self.seeds.view(b, 1), -1,
                                                             self._axes[0]))  # fmt: skip
         wind = torch.zeros(d, dtype=torch.float64, device=self.device)
@@ -144,10 +147,8 @@ class FaultProcess:
             dp = self._noise("pos", f.pos_noise, state.t)
             dv = self._noise("vel", f.vel_noise, state.t) if f.vel_noise > 0 else None
             seen = robot.perturbed(state.x, dp, dv)
-        if f.dist_obs:
-            self._observe_disturbance(seen, state)
-        if f.act_predict and f.act_delay > 0:
-            seen = self._predicted(seen, state)
+        if self.onboard is not None:  # the agents' own prediction and disturbance estimate (also broadcast)
+            seen = self.onboard.estimate(seen, state.goals)
         self._seen.appendleft(seen)
         sensing = None
         if f.edge_faults:
@@ -156,53 +157,25 @@ class FaultProcess:
                               tuple(self._seen), self.config.dt)  # fmt: skip
         return SwarmState(seen, state.goals, state.obstacles, state.t, state.robot, sensing)
 
-    def _observe_disturbance(self, estimate: Tensor, state: SwarmState) -> None:
-        """``dist_obs``: fold this step's measured disturbance into the estimate, ``d <- d + beta (a - d)`` with
-        ``beta = 1 - exp(-dt / DIST_OBS_TAU)``, where ``a`` is the agent's velocity ``estimate`` minus what its model
-        (:func:`egcbf.env.swarm.advance`) predicts from its previous estimate under the command it knows acted (after
-        its actuation delay, without the gain errors it does not know), over ``dt``: a world-frame acceleration."""
-        robot, dt = self.robot, self.config.dt
-        if self._disturbance is None:
-            self._disturbance = estimate.new_zeros(*estimate.shape[:2], robot.dim)
-        elif self._applied is not None:
-            model, _ = advance(robot, self.config, self._estimate, self._applied.to(estimate.dtype), state.goals)
-            a = (robot.velocities(estimate) - robot.velocities(model)) / dt
-            self._disturbance = self._disturbance + (1.0 - math.exp(-dt / DIST_OBS_TAU)) * (a - self._disturbance)
-        self._estimate = estimate
-
-    def _in_flight(self, state: SwarmState, dtype: torch.dtype) -> list[Tensor]:
-        """The ``act_delay`` commands sent but not yet applied, oldest first (before the first command: the hover
-        commands the actuators start with, filled in here as :meth:`actuate` would)."""
-        if not self._commands:
-            hover = self.robot.nominal_control(state.x, self.robot.positions(state.x)).to(dtype)
-            self._commands.extend([hover] * self.faults.act_delay)
-        return list(self._commands)
-
-    def _predicted(self, seen: Tensor, state: SwarmState) -> Tensor:
-        """``act_predict``: the estimate ``seen`` rolled ``act_delay`` control periods ahead through the environment's
-        dynamics (:func:`egcbf.env.swarm.advance`) with the commands in flight: the state the command of this step
-        will act on, as far as the agent knows (no gain errors, no wind)."""
-        for u in self._in_flight(state, seen.dtype):
-            seen, _ = advance(self.robot, self.config, seen, u.to(seen.dtype), state.goals)
-        return seen
-
     def actuate(self, u: Tensor, state: SwarmState) -> Tensor:
         """The command the actuators apply at ``state`` (true) for the controller's ``u`` ``(B, N, control_dim)``:
         the agents' disturbance rejection (``dist_obs``, for the state they commanded for), non-cooperative agents'
         own commands, then the actuation delay, then the gain and bias errors."""
         f, robot = self.faults, self.robot
-        if f.dist_obs and self._disturbance is not None:
-            u = robot.reject_disturbance(self._seen[0].to(u.dtype), u, self._disturbance.to(u.dtype))
+        if self.onboard is not None:
+            u = self.onboard.reject(u)
         if f.noncoop > 0 and bool(self.noncoop.any()):
             target = self._starts if f.noncoop_mode == "hover" else state.goals
             own = robot.nominal_control(state.x, target.to(state.x.dtype)).to(u.dtype)
             u = torch.where(self.noncoop[..., None], own, u)
-        if f.act_delay > 0:
-            self._in_flight(state, u.dtype)
+        if self.onboard is not None:
+            self.onboard.record(u)  # what each agent sent (a non-cooperative one its own command)
+        if f.act_delay > 0:  # the actuators' delay line, starting from hover commands
+            if not self._commands:
+                hover = robot.nominal_control(state.x, robot.positions(state.x)).to(u.dtype)
+                self._commands.extend([hover] * f.act_delay)
             self._commands.append(u)
             u = self._commands.popleft()
-        if f.dist_obs:
-            self._applied = u
         if f.gain > 0 or f.thrust_gain > 0 or f.torque_gain > 0 or f.torque_bias > 0:
             u = u * self.gains.to(u.dtype) + self.bias.to(u.dtype)
         return u
@@ -211,7 +184,7 @@ class FaultProcess:
     def disturbance(self) -> Tensor | None:
         """``dist_obs``: the agents' current estimate ``(B, N, dim)`` of the acceleration acting on them beyond their
         model (world frame, m/s^2); ``None`` before the first step or without the observer."""
-        return self._disturbance
+        return None if self.onboard is None else self.onboard.disturbance
 
     @property
     def pushes(self) -> bool:

@@ -24,7 +24,6 @@ __all__ = [
     "ALIASES",
     "CHANNELS",
     "DEFAULT_FIELD",
-    "DIST_OBS_TAU",
     "HANDLING_FIELDS",
     "NONCOOP_MODES",
     "RECEIVER_FIELDS",
@@ -43,10 +42,6 @@ RECEIVER_FIELDS = ("msg_hold", "msg_predict")
 #: every field that is the agents' handling of a fault rather than a fault (inert without the fault it handles)
 HANDLING_FIELDS = (*RECEIVER_FIELDS, "act_predict", "dist_obs")
 
-#: time constant (s) of the agents' disturbance estimate (``dist_obs``): short enough to follow a gust (``gust_tau``
-#: 1 s), long enough to average the velocity-estimate noise it differentiates (its error is about
-#: ``vel_noise / DIST_OBS_TAU``: 0.08 m/s^2 at the default field's 2 cm/s)
-DIST_OBS_TAU = 0.25
 
 #: how a non-cooperative agent flies: ``"hover"`` holds its start position, ``"straight"`` flies the nominal
 #: controller to its goal as if alone (a straight line at the nominal cruise speed)
@@ -87,13 +82,14 @@ class FaultConfig:
             hover command: the nominal control to the agent's own position).
         act_predict: not a fault, the agents' handling of ``act_delay`` (inert without it): 1: every agent
             commands for its state ``act_delay`` steps ahead, its estimate rolled through the robot's dynamics with
-            its own commands still in flight (a Smith predictor; gain errors and wind unknown to it), and
-            broadcasts that prediction; 0: it commands for its current estimate.
+            its own commands still in flight (a Smith predictor, :class:`egcbf.onboard.Onboard`; gain errors and
+            wind unknown to it), and broadcasts that prediction; 0: it commands for its current estimate.
         dist_obs: not a fault, the agents' handling of disturbances (wind, gusts, gain errors): 1: every agent
             estimates the acceleration acting on it beyond its model (its velocity estimate minus its model's
             prediction from its previous estimate under the command it knows acted, low-passed with time constant
-            :data:`DIST_OBS_TAU`) and cancels it in its command (:meth:`egcbf.robots.Robot.reject_disturbance`: a
-            disturbance observer); 0: it does not.
+            :data:`egcbf.onboard.DIST_OBS_TAU`) and cancels it in its command
+            (:meth:`egcbf.robots.Robot.reject_disturbance`: a disturbance observer, :class:`egcbf.onboard.Onboard`);
+            0: it does not.
 
     Environment:
         wind: constant world acceleration (m/s^2, ``dim`` numbers, or empty for none) from wind force over mass.

@@ -1,0 +1,140 @@
+"""What an agent's flight stack does around its controller with what it knows of itself (:class:`Onboard`): command
+for the state its command will act on (a Smith predictor over its actuation delay) and cancel the acceleration it
+measures beyond its model (a disturbance observer). Neither changes the controller: the same learned policy or QP
+runs inside::
+
+    onboard = Onboard(robot, env_config, act_delay=2, predict=True, observe_disturbance=True)
+    # each control period:
+    x_for = onboard.estimate(x_est, goal)   # the state to command for (and, predicting, to broadcast)
+    u, _ = controller(x_for, ...)           # unchanged
+    u = onboard.command(u)                  # what to send to the actuators
+
+The simulator's fault process (:mod:`egcbf.faults`, the ``act_predict`` and ``dist_obs`` handling) runs one for
+the whole swarm; a robot runs one for itself around :class:`egcbf.deploy.AgentController` (docs/deploy.md). Shapes:
+any batch of agents ``(*batch,)``; states ``(*batch, S)``, commands ``(*batch, k)``, goals and the disturbance
+``(*batch, d)`` (world frame; the disturbance in m/s^2).
+
+The prediction rolls the estimate through :func:`egcbf.env.swarm.advance` (the simulator's own period: clip,
+integrator, parking) with the commands in flight; the observer compares the velocity estimate with that model's
+prediction from the previous estimate under the command that acted, and low-passes the difference
+(``d <- d + beta (a - d)``, ``beta = 1 - exp(-dt / tau)``); the rejection is
+:meth:`egcbf.robots.Robot.reject_disturbance`. Neither knows gain errors or wind: the observer measures them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+from torch import Tensor
+
+from .env.config import EnvConfig
+from .env.swarm import advance
+from .robots import Robot
+
+__all__ = ["DIST_OBS_TAU", "Onboard"]
+
+#: time constant (s) of the disturbance estimate: short enough to follow a gust (the faults' ``gust_tau``, 1 s),
+#: long enough to average the velocity-estimate noise it differentiates (its error is about ``vel_noise / tau``:
+#: 0.08 m/s^2 at 2 cm/s)
+DIST_OBS_TAU = 0.25
+
+
+class Onboard:
+    """One agent's (or a batch of agents') handling of its actuation delay and of disturbances (module doc).
+
+    Args:
+        robot: the agents' robot (``observe_disturbance`` needs its ``reject_disturbance``).
+        config: the environment of the model (``dt``, the actuator clip, the integrator).
+        act_delay: control periods between a command and its actuation (0: none).
+        predict: command for the estimate rolled ``act_delay`` periods ahead with the commands in flight.
+        observe_disturbance: estimate the disturbance acceleration and cancel it in every command.
+        tau: the disturbance estimate's time constant (s).
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        config: EnvConfig,
+        *,
+        act_delay: int = 0,
+        predict: bool = False,
+        observe_disturbance: bool = False,
+        tau: float = DIST_OBS_TAU,
+    ):
+        if not isinstance(act_delay, int) or isinstance(act_delay, bool) or act_delay < 0:
+            raise ValueError(f"Onboard: act_delay must be a whole number of control periods >= 0, got {act_delay!r}")
+        if not (isinstance(tau, (int, float)) and math.isfinite(tau) and tau > 0):
+            raise ValueError(f"Onboard: tau must be a finite number of seconds > 0, got {tau!r}")
+        if observe_disturbance and type(robot).reject_disturbance is Robot.reject_disturbance:
+            raise ValueError(f"the disturbance observer needs the robot's disturbance rejection "
+                             f"(Robot.reject_disturbance); the {robot.name} has none")  # fmt: skip
+        self.robot, self.config = robot, config
+        self.act_delay, self.predict, self.observe_disturbance = act_delay, bool(predict), bool(observe_disturbance)
+        self.beta = 1.0 - math.exp(-config.dt / tau)
+        self._sent: deque[Tensor] = deque()  # the commands in flight, oldest first
+        self._estimate: Tensor | None = None  # the last estimate (before the prediction)
+        self._goals: Tensor | None = None
+        self._applied: Tensor | None = None  # the command that acted over the last period
+        self._for: Tensor | None = None  # the state the coming command is for
+        self._disturbance: Tensor | None = None
+
+    @property
+    def disturbance(self) -> Tensor | None:
+        """The current disturbance estimate ``(*batch, d)`` (m/s^2, world frame); ``None`` before the first
+        estimate or without the observer."""
+        return self._disturbance
+
+    def estimate(self, x: Tensor, goals: Tensor) -> Tensor:
+        """Take this period's state estimate ``x`` ``(*batch, S)`` (goals ``(*batch, d)``, for the model's parking);
+        return the state to command for: ``x`` itself, or rolled over the commands in flight when predicting."""
+        if self.observe_disturbance:
+            self._observe(x, goals)
+        self._estimate, self._goals = x, goals
+        if self.predict and self.act_delay > 0:
+            for u in self._in_flight(x):
+                x, _ = advance(self.robot, self.config, x, u.to(x.dtype), goals)
+        self._for = x
+        return x
+
+    def reject(self, u: Tensor) -> Tensor:
+        """``u`` ``(*batch, k)`` with the estimated disturbance cancelled (as is without the observer)."""
+        if self._disturbance is None:
+            return u
+        return self.robot.reject_disturbance(self._for.to(u.dtype), u, self._disturbance.to(u.dtype))
+
+    def record(self, u: Tensor) -> None:
+        """Note ``u`` ``(*batch, k)`` as this period's sent command (what the actuators will apply after the
+        delay; the command leaving the delay now is the one that acts over this period)."""
+        if self._estimate is None:
+            raise RuntimeError("Onboard.record before Onboard.estimate: take the period's estimate first")
+        applied = u
+        if self.act_delay > 0:
+            self._in_flight(self._estimate)
+            self._sent.append(u)
+            applied = self._sent.popleft()
+        if self.observe_disturbance:
+            self._applied = applied
+
+    def command(self, u: Tensor) -> Tensor:
+        """The command to send for the controller's ``u`` (:meth:`reject`, then :meth:`record`)."""
+        u = self.reject(u)
+        self.record(u)
+        return u
+
+    def _observe(self, x: Tensor, goals: Tensor) -> None:
+        robot = self.robot
+        if self._disturbance is None:
+            self._disturbance = x.new_zeros(*x.shape[:-1], robot.dim)
+        elif self._applied is not None:
+            model, _ = advance(robot, self.config, self._estimate, self._applied.to(x.dtype), self._goals)
+            a = (robot.velocities(x) - robot.velocities(model)) / self.config.dt
+            self._disturbance = self._disturbance + self.beta * (a - self._disturbance)
+
+    def _in_flight(self, x: Tensor) -> list[Tensor]:
+        """The ``act_delay`` commands sent but not yet applied, oldest first (before the first command: the hover
+        commands at the estimate ``x``, what the actuators start with)."""
+        if not self._sent:
+            hover = self.robot.nominal_control(x, self.robot.positions(x))
+            self._sent.extend([hover] * self.act_delay)
+        return list(self._sent)

@@ -101,10 +101,12 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     row = next(line for line in fixes.splitlines() if line.startswith("| nominal (no CBF) | 4 | 0 |"))
     assert "| - |" not in row  # both cells computed, so the paired change is there
     # the disturbance observer's fix: +-30 % thrust without and with it
-    r = CliRunner().invoke(app, [*args, "--axes", "thrust,thrust_observer", "--controllers", "nominal"])
+    r = CliRunner().invoke(app, [*args, "--axes", "field,thrust,thrust_observer", "--controllers", "nominal"])
     assert r.exit_code == 0, r.output
     fixes = report.read_text().split("## Fixes: cancelling")[1].split("## What to choose")[0]
     assert "`thrust_gain=0.3`" in fixes
+    advice = report.read_text().split("## What to choose")[1].split("## Where")[0]
+    assert "- with uneven motors: turn on `dist_obs=1`." in advice  # computed without and with the fix
     row = next(line for line in fixes.splitlines() if line.startswith("| nominal (no CBF) | 4 | 1 |"))
     assert "| - |" not in row
     before = (out / "nominal_obs1" / "N4.json").read_text()

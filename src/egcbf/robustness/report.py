@@ -298,6 +298,47 @@ def _recommendation(cfg: RobustnessConfig, cells: dict, n: int) -> list[str]:
     return lines
 
 
+#: the agents' fixes the report advises on: (what a user has, the handling to turn on, the axis without it and
+#: with it, the level compared)
+_FIXES = (
+    ("lost and late messages", "`hold=5,predict=1`", "field", "field_receivers", 1),
+    ("actuation latency", "`act_predict=1`", "act_delay", "act_delay_predict", 2),
+    ("wind", "`dist_obs=1`", "wind", "wind_observer", 2),
+    ("uneven motors", "`dist_obs=1`", "thrust", "thrust_observer", 4),
+)
+
+
+def _fix_advice(cfg: RobustnessConfig, cells: dict) -> list[str]:
+    """One line per fix of :data:`_FIXES`: the recommended controller (the largest N's pick without obstacles)
+    without and with it, at the largest N where both cells are computed, or pending."""
+    n_big = max(cfg.num_agents)
+    spec = axis("field").specs()[1]
+    done = [(cells[(m, spec, n_big, 0)]["safe_rate"], cells[(m, spec, n_big, 0)]["success_rate"], m)
+            for m in cfg.controllers if (m, spec, n_big, 0) in cells]  # fmt: skip
+    if len(done) < len(cfg.controllers):
+        return []
+    safe = [d for d in done if d[0] >= 0.99]
+    pick = (max(safe, key=lambda d: (d[1], d[0])) if safe else max(done))[2]
+    lines = []
+    for what, handling, name, fixed, level in _FIXES:
+        if name not in cfg.axes or fixed not in cfg.axes:
+            continue
+        before, after = axis(name).specs()[level], axis(fixed).specs()[level]
+        runs = (cfg.cell_spec(pick, before), cfg.cell_spec(pick, after))
+        pairs = [(n, k) for n in sorted(cfg.num_agents, reverse=True) for k in (0, cfg.obstacles)
+                 if all((pick, r, n, k) in cells for r in runs)]  # fmt: skip
+        if not pairs:
+            lines.append(f"- with {what}: turn on {handling} (measured for {LABELS.get(pick, pick)}: pending).")
+            continue
+        n, k = pairs[0]
+        b, f = cells[(pick, runs[0], n, k)], cells[(pick, runs[1], n, k)]
+        where = "the default field conditions" if name == "field" else f"`{before}`"
+        lines.append(f"- with {what}: turn on {handling}. {LABELS.get(pick, pick)} at {where}, N = {n}, {k} "
+                     f"obstacles: {_pct(b, 'safe_rate')} -> {_pct(f, 'safe_rate')} % safe, "
+                     f"{_pct(b, 'success_rate')} -> {_pct(f, 'success_rate')} % success.")  # fmt: skip
+    return lines
+
+
 def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
                  figures: str | Path = "docs/figures") -> Path:  # fmt: skip
     """Write the report from the cells under ``cfg.out`` (module doc); returns its path."""
@@ -356,6 +397,7 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         "",
         *(_recommendation(cfg, cells, n_big) or ["- pending: the default field conditions at the largest N are not "
                                                  "computed yet."]),
+        *_fix_advice(cfg, cells),
         "",
         "## Where each controller breaks",
         "",

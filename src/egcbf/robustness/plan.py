@@ -81,6 +81,10 @@ AXES: tuple[Axis, ...] = (
          lambda x: f"wind={x:g}/0/0,gust={x / 2:g},dist_obs=1"),
     Axis("thrust_observer", "thrust gain error, agents observing the disturbance", "+- fraction",
          (0, 0.05, 0.1, 0.2, 0.3), lambda x: f"thrust_gain={x:g},dist_obs=1"),
+    # the agent-side fixes of the default field conditions at once (the receivers' and the disturbance observer; it
+    # has no actuation delay to predict over): what a user would turn on
+    Axis("field_fixes", "default field conditions, the receivers' fix and the disturbance observer",
+         "0: none, 1: default", (0, 1), lambda x: f"default,{RECEIVERS},dist_obs=1"),
 )  # fmt: skip
 
 assert parse_faults(AXES[0].spec(1)) == DEFAULT_FIELD

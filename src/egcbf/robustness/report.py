@@ -184,6 +184,16 @@ def _disturbance_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
             tables += [*_fix_rows(cfg, cells, before, after, f"`{before}`"), ""]
     if not tables:
         return []
+    if "field" in cfg.axes and "field_fixes" in cfg.axes:
+        before, after = axis("field").specs()[1], axis("field_fixes").specs()[1]
+        tables += [
+            "The default field conditions' fixes at once (the receivers' hold and prediction, and the disturbance "
+            "observer against their +-10 % thrust), against the same conditions without (`field_fixes`; the "
+            "observer differentiates noisy velocity estimates, so this is where it could cost safety):",
+            "",
+            *_fix_rows(cfg, cells, before, after, "default"),
+            "",
+        ]  # fmt: skip
     return [
         "## Fixes: cancelling the wind and the thrust errors",
         "",

@@ -83,6 +83,8 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     assert "## Default field conditions" in text and "| nominal (no CBF) | 4 | 0 |" in text
     assert "(12 of 12 cells computed" in text
     assert "state-level only" in text  # the nominal controller reads no messages
+    choices = text.split("Under one fault")[1].split("## Where")[0]
+    assert "- thrust gain error" in choices and "nominal (no CBF)" in choices  # every level of the axis computed
     cells = sorted(p.relative_to(out).as_posix() for p in out.rglob("N4.json"))
     assert "nominal_obs0/N4.json" in cells and any("thrust_gain_0.3" in c for c in cells)
     rec = json.loads((out / "nominal_obs1" / "N4.json").read_text())

@@ -318,6 +318,51 @@ _FIXES = (
 )
 
 
+#: the fault axes proper (not the fixes' repeats), in the order the advice names them, with the agents' fix of each
+_FAULT_AXES = {"sensing": None, "loss": "`hold=5,predict=1`", "delay": "`predict=1`", "lidar": None,
+               "thrust": "`dist_obs=1`", "act_delay": "`act_predict=1`", "wind": "`dist_obs=1`", "noncoop": None,
+               "noncoop_straight": None}  # fmt: skip
+
+
+def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
+    """Per fault axis, at the largest N computed for every controller and level: the most severe level some
+    controller keeps >= 99 % safe (the worse of without and with obstacles), and the most successful of those
+    there. Controllers that do not perceive the axis' faults (n/a) are not candidates."""
+    lines = []
+    for a in (axis(x) for x in cfg.axes if x in _FAULT_AXES):
+        specs, obstacles = a.specs(), (0, cfg.obstacles)
+        methods = [m for m in cfg.controllers if all(cfg.cell_spec(m, sp) is not None for sp in specs)]
+        for n in sorted(cfg.num_agents, reverse=True):
+            if not all((m, sp, n, k) in cells for m in methods for sp in specs for k in obstacles):
+                continue
+            worst = {(m, i): tuple(min(cells[(m, sp, n, k)][key] for k in obstacles)
+                                   for key in ("safe_rate", "success_rate"))
+                     for m in methods for i, sp in enumerate(specs)}  # fmt: skip
+            fix = f" The agents' fix: {_FAULT_AXES[a.name]}." if _FAULT_AXES[a.name] else ""
+            kept = [i for i in range(len(specs)) if any(worst[(m, i)][0] >= 0.99 for m in methods)]
+            names = ", ".join(LABELS.get(m, m) for m in methods)
+            if 0 not in kept:
+                lines.append(f"- {a.title}: none of the controllers that perceive it ({names}) is 99 % safe even "
+                             f"without it (N = {n}, the worse of {obstacles[0]} and {obstacles[1]} "
+                             f"obstacles).{fix}")  # fmt: skip
+                break
+            i = max(kept)
+            pick = max((m for m in methods if worst[(m, i)][0] >= 0.99), key=lambda m: worst[(m, i)][::-1])
+            safe, success = worst[(pick, i)]
+            if i == 0:
+                lines.append(
+                    f"- {a.title}: every controller drops below 99 % safe at {a.levels[1]:g} ({a.unit}) "
+                    f"already (N = {n}, the worse of {obstacles[0]} and {obstacles[1]} obstacles).{fix}"
+                )
+                break  # fmt: skip
+            beyond = "" if i == len(specs) - 1 else "; beyond it no controller stays 99 % safe"
+            lines.append(f"- {a.title}, up to {a.levels[i]:g} ({a.unit}): **{LABELS.get(pick, pick)}** "
+                         f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, N = {n}, the worse of "
+                         f"{obstacles[0]} and {obstacles[1]} obstacles{beyond}).{fix}")  # fmt: skip
+            break
+    return lines
+
+
 def _fix_advice(cfg: RobustnessConfig, cells: dict) -> list[str]:
     """One line per fix of :data:`_FIXES`: the recommended controller (the largest N's pick without obstacles)
     without and with it, at the largest N where both cells are computed, or pending."""
@@ -408,6 +453,12 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         *(_recommendation(cfg, cells, n_big) or ["- pending: the default field conditions at the largest N are not "
                                                  "computed yet."]),
         *_fix_advice(cfg, cells),
+        "",
+        "Under one fault, pushed further (from the axes below; controllers that do not perceive a fault, n/a in the "
+        "tables, are not candidates: the centralized QP for messages, the dCBF-QP for LiDAR, whose obstacles come "
+        "from the map):",
+        "",
+        *(_axis_choices(cfg, cells) or ["- pending: no axis is computed for every controller yet."]),
         "",
         "## Where each controller breaks",
         "",

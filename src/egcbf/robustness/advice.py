@@ -1,0 +1,144 @@
+"""The report's advice, "What to choose": the controller for the default field conditions, each agent-side fix
+with the recommended controller's numbers without and with it, and per fault axis the most severe level some
+controller keeps 99 % safe and the one to choose there."""
+
+from __future__ import annotations
+
+from ..reproduce.paper import LABELS
+from .cells import pct
+from .plan import RobustnessConfig, axis
+
+__all__ = ["advice", "recommended"]
+
+
+def recommended(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> tuple[str, dict, bool] | None:
+    """The controller for the default field conditions at ``n`` agents and ``k`` obstacles: the most successful of
+    those >= 99 % safe (``(method, row, True)``), else the safest (``(method, row, False)``); ``None`` while a
+    controller's cell is missing (a choice among some would be no choice)."""
+    spec = axis("field").specs()[1]
+    if any((m, spec, n, k) not in cells for m in cfg.controllers):
+        return None
+    rows = {m: cells[(m, spec, n, k)] for m in cfg.controllers}
+    safe = [m for m in cfg.controllers if rows[m]["safe_rate"] >= 0.99]
+    if safe:
+        pick = max(safe, key=lambda m: (rows[m]["success_rate"], rows[m]["safe_rate"]))
+    else:
+        pick = max(cfg.controllers, key=lambda m: (rows[m]["safe_rate"], rows[m]["success_rate"]))
+    return pick, rows[pick], bool(safe)
+
+
+def _recommendation(cfg: RobustnessConfig, cells: dict, n: int) -> list[str]:
+    spec = axis("field").specs()[1]
+    lines = []
+    for k in (0, cfg.obstacles):
+        choice = recommended(cfg, cells, n, k)
+        if choice is None:
+            missing = [LABELS.get(m, m) for m in cfg.controllers if (m, spec, n, k) not in cells]
+            lines.append(f"- default field conditions, N = {n}, {k} obstacles: pending (not computed yet: "
+                         f"{', '.join(missing)}).")  # fmt: skip
+            continue
+        pick, row, ok = choice
+        why = "the most successful of those >= 99 % safe" if ok else "none reaches 99 % safe; the safest"
+        lines.append(
+            f"- default field conditions, N = {n}, {k} obstacles: **{LABELS.get(pick, pick)}** "
+            f"({100 * row['safe_rate']:.2f} % safe, {100 * row['success_rate']:.2f} % success; {why})."
+        )
+    return lines  # fmt: skip
+
+
+#: the agents' fixes the report advises on: (what a user has, the handling to turn on, the axis without it and
+#: with it, the level compared)
+_FIXES = (
+    ("lost and late messages", "`hold=5,predict=1`", "field", "field_receivers", 1),
+    ("actuation latency", "`act_predict=1`", "act_delay", "act_delay_predict", 2),
+    ("wind", "`dist_obs=1`", "wind", "wind_observer", 2),
+    ("uneven motors", "`dist_obs=1`", "thrust", "thrust_observer", 4),
+)
+
+
+#: the fault axes proper (not the fixes' repeats), in the order the advice names them, with the agents' fix of each
+_FAULT_AXES = {"sensing": None, "loss": "`hold=5,predict=1`", "delay": "`predict=1`", "lidar": None,
+               "thrust": "`dist_obs=1`", "act_delay": "`act_predict=1`", "wind": "`dist_obs=1`", "noncoop": None,
+               "noncoop_straight": None}  # fmt: skip
+
+
+def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
+    """Per fault axis, at the largest N computed for every controller and level: the most severe level some
+    controller keeps >= 99 % safe (the worse of without and with obstacles), and the most successful of those
+    there. Controllers that do not perceive the axis' faults (n/a) are not candidates."""
+    lines = []
+    for a in (axis(x) for x in cfg.axes if x in _FAULT_AXES):
+        specs, obstacles = a.specs(), (0, cfg.obstacles)
+        methods = [m for m in cfg.controllers if all(cfg.cell_spec(m, sp) is not None for sp in specs)]
+        for n in sorted(cfg.num_agents, reverse=True):
+            if not all((m, sp, n, k) in cells for m in methods for sp in specs for k in obstacles):
+                continue
+            worst = {(m, i): tuple(min(cells[(m, sp, n, k)][key] for k in obstacles)
+                                   for key in ("safe_rate", "success_rate"))
+                     for m in methods for i, sp in enumerate(specs)}  # fmt: skip
+            fix = f" The agents' fix: {_FAULT_AXES[a.name]}." if _FAULT_AXES[a.name] else ""
+            kept = [i for i in range(len(specs)) if any(worst[(m, i)][0] >= 0.99 for m in methods)]
+            names = ", ".join(LABELS.get(m, m) for m in methods)
+            if 0 not in kept:
+                lines.append(f"- {a.title}: none of the controllers that perceive it ({names}) is 99 % safe even "
+                             f"without it (N = {n}, the worse of {obstacles[0]} and {obstacles[1]} "
+                             f"obstacles).{fix}")  # fmt: skip
+                break
+            i = max(kept)
+            pick = max((m for m in methods if worst[(m, i)][0] >= 0.99), key=lambda m: worst[(m, i)][::-1])
+            safe, success = worst[(pick, i)]
+            if i == 0:
+                lines.append(
+                    f"- {a.title}: every controller drops below 99 % safe at {a.levels[1]:g} ({a.unit}) "
+                    f"already (N = {n}, the worse of {obstacles[0]} and {obstacles[1]} obstacles).{fix}"
+                )
+                break  # fmt: skip
+            beyond = "" if i == len(specs) - 1 else "; beyond it no controller stays 99 % safe"
+            lines.append(f"- {a.title}, up to {a.levels[i]:g} ({a.unit}): **{LABELS.get(pick, pick)}** "
+                         f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, N = {n}, the worse of "
+                         f"{obstacles[0]} and {obstacles[1]} obstacles{beyond}).{fix}")  # fmt: skip
+            break
+    return lines
+
+
+def _fix_advice(cfg: RobustnessConfig, cells: dict) -> list[str]:
+    """One line per fix of :data:`_FIXES`: the recommended controller (the largest N's pick without obstacles)
+    without and with it, at the largest N where both cells are computed, or pending."""
+    choice = recommended(cfg, cells, max(cfg.num_agents), 0)
+    if choice is None:
+        return []
+    pick = choice[0]
+    lines = []
+    for what, handling, name, fixed, level in _FIXES:
+        if name not in cfg.axes or fixed not in cfg.axes:
+            continue
+        before, after = axis(name).specs()[level], axis(fixed).specs()[level]
+        runs = (cfg.cell_spec(pick, before), cfg.cell_spec(pick, after))
+        pairs = [(n, k) for n in sorted(cfg.num_agents, reverse=True) for k in (0, cfg.obstacles)
+                 if all((pick, r, n, k) in cells for r in runs)]  # fmt: skip
+        if not pairs:
+            lines.append(f"- with {what}: turn on {handling} (measured for {LABELS.get(pick, pick)}: pending).")
+            continue
+        n, k = pairs[0]
+        b, f = cells[(pick, runs[0], n, k)], cells[(pick, runs[1], n, k)]
+        where = "the default field conditions" if name == "field" else f"`{before}`"
+        lines.append(f"- with {what}: turn on {handling}. {LABELS.get(pick, pick)} at {where}, N = {n}, {k} "
+                     f"obstacles: {pct(b, 'safe_rate')} -> {pct(f, 'safe_rate')} % safe, "
+                     f"{pct(b, 'success_rate')} -> {pct(f, 'success_rate')} % success.")  # fmt: skip
+    return lines
+
+
+def advice(cfg: RobustnessConfig, cells: dict) -> list[str]:
+    """The "What to choose" section's lines."""
+    n_big = max(cfg.num_agents)
+    return [
+        *(_recommendation(cfg, cells, n_big) or ["- pending: the default field conditions at the largest N are not "
+                                                 "computed yet."]),
+        *_fix_advice(cfg, cells),
+        "",
+        "Under one fault, pushed further (from the axes below; controllers that do not perceive a fault, n/a in the "
+        "tables, are not candidates: the centralized QP for messages, the dCBF-QP for LiDAR, whose obstacles come "
+        "from the map):",
+        "",
+        *(_axis_choices(cfg, cells) or ["- pending: no axis is computed for every controller yet."]),
+    ]  # fmt: skip

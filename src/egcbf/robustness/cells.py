@@ -1,0 +1,57 @@
+"""The committed cells of ``egcbf robustness`` as the report reads them, and how it writes their numbers: rates in
+percent, a paired change with its 95 % interval, a before-and-after table row."""
+
+from __future__ import annotations
+
+from ..bootstrap import mean_ci
+from ..reproduce.paper import BASELINES, base_method
+from ..reproduce.plan import Cell
+from ..reproduce.store import read_json
+from .plan import RobustnessConfig, axis
+
+__all__ = ["before_after", "episodes", "load_cells", "paired_change", "pct"]
+
+
+def _cell(method: str, spec: str, n: int, obstacles: int) -> Cell:
+    return Cell(method, obstacles, n, None if base_method(method) in BASELINES else 0, None, spec)
+
+
+def load_cells(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]:
+    """``{(method, axis-level spec, N, obstacles): row}`` of every computed cell (the level spec as the axis names it;
+    a controller that does not read messages is looked up under the level's state-level spec)."""
+    out = {}
+    for a in (axis(n) for n in cfg.axes):
+        for spec in a.specs():
+            for m in cfg.controllers:
+                run = cfg.cell_spec(m, spec)
+                if run is None:
+                    continue
+                for n in cfg.num_agents:
+                    for k in (0, cfg.obstacles):
+                        rec = read_json(_cell(m, run, n, k).path(cfg.out))
+                        if isinstance(rec, dict) and "row" in rec:
+                            out[(m, spec, n, k)] = rec["row"]
+    return out
+
+
+def episodes(row: dict, key: str) -> list[float]:
+    return list(row.get("per_episode", {}).get(key, [])) or [row[key]]
+
+
+def pct(row: dict | None, key: str) -> str:
+    return "-" if row is None else f"{100 * row[key]:.2f}"
+
+
+def paired_change(clean: dict, faulty: dict) -> str:
+    """Safe-rate change (points) with its paired 95 % interval (the same scenes, episode by episode)."""
+    a, b = episodes(faulty, "safe_rate"), episodes(clean, "safe_rate")
+    if len(a) != len(b) or len(a) < 2:
+        return f"{100 * (faulty['safe_rate'] - clean['safe_rate']):+.2f}"
+    return mean_ci([[x - y for x, y in zip(a, b)]], resamples=2000).text(100, 2)
+
+
+def before_after(before: dict | None, after: dict | None) -> str:
+    """The table cells ``safe before | safe after | change [95 % CI] | success before | success after``."""
+    change = "-" if before is None or after is None else paired_change(before, after)
+    return (f"{pct(before, 'safe_rate')} | {pct(after, 'safe_rate')} | {change} | {pct(before, 'success_rate')} | "
+            f"{pct(after, 'success_rate')}")  # fmt: skip

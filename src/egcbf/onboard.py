@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from collections import deque
 
+import torch
 from torch import Tensor
 
 from .env.config import EnvConfig
@@ -50,6 +51,10 @@ class Onboard:
         predict: command for the estimate rolled ``act_delay`` periods ahead with the commands in flight.
         observe_disturbance: estimate the disturbance acceleration and cancel it in every command.
         tau: the disturbance estimate's time constant (s).
+        rest_radius: for a robot the environment parks at its goal (``robot.goal_freeze_radius > 0``): within this
+            distance of its goal (m, estimated) the disturbance estimate rests, since the environment parks on the
+            true position and the model on the estimate (the mismatch is no disturbance, and a parked agent needs no
+            rejection). Default ``2 goal_freeze_radius``; under position noise, add a few times its spread.
     """
 
     def __init__(
@@ -61,6 +66,7 @@ class Onboard:
         predict: bool = False,
         observe_disturbance: bool = False,
         tau: float = DIST_OBS_TAU,
+        rest_radius: float | None = None,
     ):
         if not isinstance(act_delay, int) or isinstance(act_delay, bool) or act_delay < 0:
             raise ValueError(f"Onboard: act_delay must be a whole number of control periods >= 0, got {act_delay!r}")
@@ -72,6 +78,7 @@ class Onboard:
         self.robot, self.config = robot, config
         self.act_delay, self.predict, self.observe_disturbance = act_delay, bool(predict), bool(observe_disturbance)
         self.beta = 1.0 - math.exp(-config.dt / tau)
+        self.rest_radius = 2.0 * robot.goal_freeze_radius if rest_radius is None else float(rest_radius)
         self._sent: deque[Tensor] = deque()  # the commands in flight, oldest first
         self._estimate: Tensor | None = None  # the last estimate (before the prediction)
         self._goals: Tensor | None = None
@@ -122,6 +129,14 @@ class Onboard:
         self.record(u)
         return u
 
+    def in_flight(self) -> list[Tensor]:
+        """The ``act_delay`` commands sent but not yet applied, oldest first; before the first command, the hover
+        commands at the first estimate (what the agent takes its actuators to start with: the simulator's fault
+        process seeds its actuators with these)."""
+        if self._estimate is None:
+            raise RuntimeError("Onboard.in_flight before Onboard.estimate: take the period's estimate first")
+        return self._in_flight(self._estimate)
+
     def _observe(self, x: Tensor, goals: Tensor) -> None:
         robot = self.robot
         if self._disturbance is None:
@@ -129,11 +144,14 @@ class Onboard:
         elif self._applied is not None:
             model, _ = advance(robot, self.config, self._estimate, self._applied.to(x.dtype), self._goals)
             a = (robot.velocities(x) - robot.velocities(model)) / self.config.dt
-            self._disturbance = self._disturbance + self.beta * (a - self._disturbance)
+            step = self.beta * (a - self._disturbance)
+            if robot.goal_freeze_radius > 0:  # near its goal the agent may be parked (rest_radius)
+                gap = torch.linalg.vector_norm(robot.positions(self._estimate) - self._goals.to(x.dtype), dim=-1)
+                step = torch.where((gap < self.rest_radius)[..., None], 0.0, step)
+            self._disturbance = self._disturbance + step
+        self._applied = None  # used once: a period without a recorded command skips the next update
 
     def _in_flight(self, x: Tensor) -> list[Tensor]:
-        """The ``act_delay`` commands sent but not yet applied, oldest first (before the first command: the hover
-        commands at the estimate ``x``, what the actuators start with)."""
         if not self._sent:
             hover = self.robot.nominal_control(x, self.robot.positions(x))
             self._sent.extend([hover] * self.act_delay)

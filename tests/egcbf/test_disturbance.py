@@ -64,11 +64,13 @@ def test_rejection_is_equivariant_float32(g, seed):
     assert float(err.max()) < 1e-4
 
 
-def _at_its_attitude(yaw: float, horizontal: float, vertical: float) -> tuple[torch.Tensor, torch.Tensor]:
+def _at_its_attitude(yaw: float, horizontal: float, vertical: float, across: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """An agent (spinning, moving) whose attitude is the one ``track_acceleration`` asks for the acceleration
-    ``a`` (horizontal along its heading, so the heading hold asks nothing more), and ``a``."""
+    ``a`` (horizontal along its heading, a pitch, or ``across`` it, a roll: both leave the heading hold nothing more
+    to ask), and ``a``."""
     c, s = math.cos(yaw), math.sin(yaw)
-    a = torch.tensor([horizontal * c, horizontal * s, vertical], dtype=F64)
+    along = [-horizontal * s, horizontal * c, vertical] if across else [horizontal * c, horizontal * s, vertical]
+    a = torch.tensor(along, dtype=F64)
     b3 = a + torch.tensor([0.0, 0.0, DEFAULT_PARAMS.gravity], dtype=F64)
     b3 = b3 / b3.norm()
     b1c = desired_heading(torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=F64))
@@ -82,12 +84,12 @@ def _at_its_attitude(yaw: float, horizontal: float, vertical: float) -> tuple[to
 @settings(deadline=None)
 @given(yaw=st.floats(-math.pi, math.pi), horizontal=st.floats(-2.0, 2.0), vertical=st.floats(-2.0, 2.0),
        direction=st.tuples(*[st.floats(-1.0, 1.0)] * 3).filter(lambda v: sum(c * c for c in v) > 0.1),
-       size=st.sampled_from([1e-2, 1e-3]))  # fmt: skip
-def test_rejection_is_the_lowered_target_to_first_order(yaw, horizontal, vertical, direction, size):
+       size=st.sampled_from([1e-2, 1e-3]), across=st.booleans())  # fmt: skip
+def test_rejection_is_the_lowered_target_to_first_order(yaw, horizontal, vertical, direction, size, across):
     """``reject_disturbance(x, track_acceleration(x, a), d) = track_acceleration(x, a - d) + O(|d|^2)`` in thrust
     and tilt torques; the yaw torque keeps the command's heading (track_acceleration's heading hold reacts to the
     tilt at first order, which the rejection leaves out by design)."""
-    x, a = _at_its_attitude(yaw, horizontal, vertical)
+    x, a = _at_its_attitude(yaw, horizontal, vertical, across)
     d = size * torch.tensor(direction, dtype=F64)
     u = track_acceleration(x, a, clip=False)
     lowered = track_acceleration(x, a - d, clip=False)
@@ -206,3 +208,34 @@ def test_onboard_refuses_bad_settings_and_a_command_before_an_estimate():
         Onboard(ROBOT, CFG, tau=0.0)
     with pytest.raises(RuntimeError, match=r"before Onboard\.estimate"):
         Onboard(ROBOT, CFG, act_delay=1, predict=True).command(torch.zeros(4, dtype=F64))
+
+
+def test_non_cooperative_agents_and_exact_estimates_leave_the_estimate_at_zero():
+    """Without a physical disturbance the observer measures nothing, whatever the agents send: non-cooperative
+    agents' own commands are what they record (their override comes before the record), delayed and predicted."""
+    faults = FaultConfig(noncoop=0.5, noncoop_mode="straight", act_delay=2, act_predict=1, dist_obs=1)
+    env = SwarmEnv(CFG, dtype=F64)
+    state = env.reset(3)
+    proc = FaultProcess(faults, CFG, ROBOT, [1, 2], dtype=F64)
+    for _ in range(8):
+        seen = proc.observe(state)
+        state, _ = env.step(state, proc.actuate(ROBOT.nominal_control(seen.x, seen.goals), state))
+    assert bool(proc.noncoop.any()) and torch.equal(proc.disturbance, torch.zeros_like(proc.disturbance))
+
+
+def test_parking_near_the_goal_is_not_taken_for_a_disturbance():
+    """A robot that parks at its goal (the Dubins car) parks on its true position, its model on the noisy estimate;
+    near the goal the observer holds its estimate rather than read the mismatch as a push."""
+    robot = make_robot("dubins_car")
+    cfg = EnvConfig.for_robot("dubins_car", num_agents=4, num_envs=2, max_steps=300)
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(4)
+    proc = FaultProcess(FaultConfig(pos_noise=0.01, dist_obs=1), cfg, robot, [1, 2], dtype=F64)
+    largest = 0.0
+    for _ in range(300):
+        seen = proc.observe(state)
+        state, _ = env.step(state, proc.actuate(robot.nominal_control(seen.x, seen.goals), state))
+        largest = max(largest, float(proc.disturbance.norm(dim=-1).max()))
+    gap = torch.linalg.vector_norm(robot.positions(state.x) - state.goals, dim=-1)
+    assert bool((gap < robot.goal_freeze_radius).any())  # agents did park
+    assert largest < 0.1, largest  # 0.6 m/s^2 when the observer read parking as a push

@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from egcbf.cli import app
 from egcbf.faults import DEFAULT_FIELD, parse_faults
+from egcbf.faults.spec import HANDLING_FIELDS
 from egcbf.reproduce import SweepConfig
 from egcbf.reproduce.plan import cell_key
 from egcbf.robustness import AXES, RobustnessConfig, axis, reads_sensing, state_level
@@ -62,13 +63,17 @@ def test_the_plan_runs_the_perfect_world_first_and_message_faults_only_where_the
     ahead = axis("act_delay_predict")
     assert ahead.specs()[0] == "none" and ahead.specs()[2] == "act_delay=2,act_predict=1"
     assert all(cfg.cell_spec(m, ahead.specs()[2]) == ahead.specs()[2] for m in cfg.controllers)
-    # the disturbance observer likewise: the wind and thrust axes again with it, run by every controller
-    for name in ("wind", "thrust"):
-        plain, observed = axis(name), axis(f"{name}_observer")
-        assert observed.levels == plain.levels and observed.specs()[0] == "none"
-        assert all(parse_faults(o) == dataclasses.replace(parse_faults(p), dist_obs=1)
-                   for p, o in zip(plain.specs()[1:], observed.specs()[1:]))  # fmt: skip
-        assert all(cfg.cell_spec(m, observed.specs()[2]) == observed.specs()[2] for m in cfg.controllers)
+    # every fix's axis is its fault axis again with the agents' handling added, level by level
+    for fix in (a for a in AXES if a.fixes is not None):
+        plain, handling = axis(fix.fixes), parse_faults(fix.handling())
+        added = {k: v for k, v in handling.active().items()}
+        assert fix.levels == plain.levels and fix.specs()[0] == "none" and added, fix.name
+        assert all(parse_faults(o) == dataclasses.replace(parse_faults(p), **added)
+                   for p, o in zip(plain.specs()[1:], fix.specs()[1:])), fix.name  # fmt: skip
+        assert set(added) <= set(HANDLING_FIELDS)  # a fix adds handling, never a fault
+    observed = axis("wind_observer")
+    assert observed.handling() == "dist_obs=1" and observed.compared() == (axis("wind").specs()[2], observed.specs()[2])
+    assert all(cfg.cell_spec(m, observed.specs()[2]) == observed.specs()[2] for m in cfg.controllers)
 
 
 def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
@@ -108,7 +113,7 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     fixes = report.read_text().split("## Fixes: cancelling")[1].split("## What to choose")[0]
     assert "`thrust_gain=0.3`" in fixes
     advice = report.read_text().split("## What to choose")[1].split("## Where")[0]
-    assert "- with uneven motors: turn on `dist_obs=1`." in advice  # computed without and with the fix
+    assert "- thrust gain error, agents observing the disturbance: turn on `dist_obs=1`." in advice
     row = next(line for line in fixes.splitlines() if line.startswith("| nominal (no CBF) | 4 | 1 |"))
     assert "| - |" not in row
     before = (out / "nominal_obs1" / "N4.json").read_text()

@@ -95,9 +95,11 @@ class FaultProcess:
         self.onboard: Onboard | None = None
         if (faults.act_predict and faults.act_delay > 0) or faults.dist_obs:
             try:
+                # an agent within 4 spreads of its estimate's distance error of parking may be parked
+                rest = robot.goal_freeze_radius * 2.0 + 4.0 * math.sqrt(robot.dim) * faults.pos_noise
                 self.onboard = Onboard(robot, env_config, act_delay=faults.act_delay,
-                                       predict=bool(faults.act_predict),
-                                       observe_disturbance=bool(faults.dist_obs))  # fmt: skip
+                                       predict=bool(faults.act_predict), observe_disturbance=bool(faults.dist_obs),
+                                       rest_radius=rest)  # fmt: skip
             except ValueError as err:
                 raise ValueError(f"faults: dist_obs: {err}") from None
         self._gust = self._world(faults.gust * draws.normal(STREAMS["gust"], self.seeds.view(b, 1), -1,
@@ -168,12 +170,15 @@ class FaultProcess:
             target = self._starts if f.noncoop_mode == "hover" else state.goals
             own = robot.nominal_control(state.x, target.to(state.x.dtype)).to(u.dtype)
             u = torch.where(self.noncoop[..., None], own, u)
+        if f.act_delay > 0 and not self._commands:  # the actuators' delay line starts from hover commands: the
+            if self.onboard is not None:  # ones the agents take it to hold, else at the true states
+                start = [c.to(u.dtype) for c in self.onboard.in_flight()]
+            else:
+                start = [robot.nominal_control(state.x, robot.positions(state.x)).to(u.dtype)] * f.act_delay
+            self._commands.extend(start)
         if self.onboard is not None:
             self.onboard.record(u)  # what each agent sent (a non-cooperative one its own command)
-        if f.act_delay > 0:  # the actuators' delay line, starting from hover commands
-            if not self._commands:
-                hover = robot.nominal_control(state.x, robot.positions(state.x)).to(u.dtype)
-                self._commands.extend([hover] * f.act_delay)
+        if f.act_delay > 0:
             self._commands.append(u)
             u = self._commands.popleft()
         if f.gain > 0 or f.thrust_gain > 0 or f.torque_gain > 0 or f.torque_bias > 0:

@@ -84,12 +84,14 @@ class FaultConfig:
             commands for its state ``act_delay`` steps ahead, its estimate rolled through the robot's dynamics with
             its own commands still in flight (a Smith predictor, :class:`egcbf.onboard.Onboard`; gain errors and
             wind unknown to it), and broadcasts that prediction; 0: it commands for its current estimate.
-        dist_obs: not a fault, the agents' handling of disturbances (wind, gusts, gain errors): 1: every agent
+        dist_obs: not a fault, the agents' handling of disturbances (wind, gusts, the translational effect of gain
+            and torque errors): 1: every agent
             estimates the acceleration acting on it beyond its model (its velocity estimate minus its model's
             prediction from its previous estimate under the command it knows acted, low-passed with time constant
             :data:`egcbf.onboard.DIST_OBS_TAU`) and cancels it in its command
             (:meth:`egcbf.robots.Robot.reject_disturbance`: a disturbance observer, :class:`egcbf.onboard.Onboard`);
-            0: it does not.
+            0: it does not. With exact estimates and no disturbance its estimate is exactly zero; under sensing noise
+            alone it carries about ``vel_noise / 0.25 s`` of noise.
 
     Environment:
         wind: constant world acceleration (m/s^2, ``dim`` numbers, or empty for none) from wind force over mass.

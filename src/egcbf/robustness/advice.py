@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from ..reproduce.paper import LABELS
 from .cells import pct
-from .plan import RobustnessConfig, axis
+from .plan import AXES, Axis, RobustnessConfig, axis
 
 __all__ = ["advice", "recommended"]
 
@@ -46,28 +46,23 @@ def _recommendation(cfg: RobustnessConfig, cells: dict, n: int) -> list[str]:
     return lines  # fmt: skip
 
 
-#: the agents' fixes the report advises on: (what a user has, the handling to turn on, the axis without it and
-#: with it, the level compared)
-_FIXES = (
-    ("lost and late messages", "`hold=5,predict=1`", "field", "field_receivers", 1),
-    ("actuation latency", "`act_predict=1`", "act_delay", "act_delay_predict", 2),
-    ("wind", "`dist_obs=1`", "wind", "wind_observer", 2),
-    ("uneven motors", "`dist_obs=1`", "thrust", "thrust_observer", 4),
-)
+def _fault_axes(cfg: RobustnessConfig) -> list[Axis]:
+    """The swept fault axes proper: neither the default field conditions nor a fix's repeat."""
+    return [axis(x) for x in cfg.axes if axis(x).fixes is None and not x.startswith("field")]
 
 
-#: the fault axes proper (not the fixes' repeats), in the order the advice names them, with the agents' fix of each
-_FAULT_AXES = {"sensing": None, "loss": "`hold=5,predict=1`", "delay": "`predict=1`", "lidar": None,
-               "thrust": "`dist_obs=1`", "act_delay": "`act_predict=1`", "wind": "`dist_obs=1`", "noncoop": None,
-               "noncoop_straight": None}  # fmt: skip
+def _fix_hint(name: str) -> str:
+    """`` The agents' fix: `...`.`` for a fault axis some fix's axis repeats (its handling), else ``""``."""
+    hints = [a.handling() for a in AXES if a.fixes == name]
+    return f" The agents' fix: `{hints[0]}`." if hints else ""
 
 
 def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
-    """Per fault axis, at the largest N computed for every controller and level: the most severe level some
-    controller keeps >= 99 % safe (the worse of without and with obstacles), and the most successful of those
-    there. Controllers that do not perceive the axis' faults (n/a) are not candidates."""
+    """Per fault axis, at the largest N computed for every controller and level: the last level before the first
+    at which no controller is >= 99 % safe (the worse of without and with obstacles), and the most successful of
+    those 99 % safe there. Controllers that do not perceive the axis' faults (n/a) are not candidates."""
     lines = []
-    for a in (axis(x) for x in cfg.axes if x in _FAULT_AXES):
+    for a in _fault_axes(cfg):
         specs, obstacles = a.specs(), (0, cfg.obstacles)
         methods = [m for m in cfg.controllers if all(cfg.cell_spec(m, sp) is not None for sp in specs)]
         for n in sorted(cfg.num_agents, reverse=True):
@@ -76,15 +71,15 @@ def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
             worst = {(m, i): tuple(min(cells[(m, sp, n, k)][key] for k in obstacles)
                                    for key in ("safe_rate", "success_rate"))
                      for m in methods for i, sp in enumerate(specs)}  # fmt: skip
-            fix = f" The agents' fix: {_FAULT_AXES[a.name]}." if _FAULT_AXES[a.name] else ""
-            kept = [i for i in range(len(specs)) if any(worst[(m, i)][0] >= 0.99 for m in methods)]
+            fix = _fix_hint(a.name)
+            failing = [i for i in range(len(specs)) if not any(worst[(m, i)][0] >= 0.99 for m in methods)]
             names = ", ".join(LABELS.get(m, m) for m in methods)
-            if 0 not in kept:
+            if failing and failing[0] == 0:
                 lines.append(f"- {a.title}: none of the controllers that perceive it ({names}) is 99 % safe even "
                              f"without it (N = {n}, the worse of {obstacles[0]} and {obstacles[1]} "
                              f"obstacles).{fix}")  # fmt: skip
                 break
-            i = max(kept)
+            i = failing[0] - 1 if failing else len(specs) - 1  # the last level before the first failing one
             pick = max((m for m in methods if worst[(m, i)][0] >= 0.99), key=lambda m: worst[(m, i)][::-1])
             safe, success = worst[(pick, i)]
             if i == 0:
@@ -93,7 +88,7 @@ def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
                     f"already (N = {n}, the worse of {obstacles[0]} and {obstacles[1]} obstacles).{fix}"
                 )
                 break  # fmt: skip
-            beyond = "" if i == len(specs) - 1 else "; beyond it no controller stays 99 % safe"
+            beyond = f"; at {a.levels[failing[0]]:g} no controller is 99 % safe" if failing else ""
             lines.append(f"- {a.title}, up to {a.levels[i]:g} ({a.unit}): **{LABELS.get(pick, pick)}** "
                          f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, N = {n}, the worse of "
                          f"{obstacles[0]} and {obstacles[1]} obstacles{beyond}).{fix}")  # fmt: skip
@@ -102,27 +97,28 @@ def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
 
 
 def _fix_advice(cfg: RobustnessConfig, cells: dict) -> list[str]:
-    """One line per fix of :data:`_FIXES`: the recommended controller (the largest N's pick without obstacles)
-    without and with it, at the largest N where both cells are computed, or pending."""
+    """One line per compared fix (:meth:`Axis.compared`): the recommended controller (the largest N's pick without
+    obstacles) without and with it, at the largest N where both cells are computed, or pending."""
     choice = recommended(cfg, cells, max(cfg.num_agents), 0)
     if choice is None:
         return []
     pick = choice[0]
     lines = []
-    for what, handling, name, fixed, level in _FIXES:
-        if name not in cfg.axes or fixed not in cfg.axes:
+    for fix in (axis(x) for x in cfg.axes):
+        if fix.compared() is None or fix.fixes not in cfg.axes:
             continue
-        before, after = axis(name).specs()[level], axis(fixed).specs()[level]
+        name, (before, after) = fix.fixes, fix.compared()
+        what, handling = fix.title, f"`{fix.handling()}`"
         runs = (cfg.cell_spec(pick, before), cfg.cell_spec(pick, after))
         pairs = [(n, k) for n in sorted(cfg.num_agents, reverse=True) for k in (0, cfg.obstacles)
                  if all((pick, r, n, k) in cells for r in runs)]  # fmt: skip
         if not pairs:
-            lines.append(f"- with {what}: turn on {handling} (measured for {LABELS.get(pick, pick)}: pending).")
+            lines.append(f"- {what}: turn on {handling} (measured for {LABELS.get(pick, pick)}: pending).")
             continue
         n, k = pairs[0]
         b, f = cells[(pick, runs[0], n, k)], cells[(pick, runs[1], n, k)]
         where = "the default field conditions" if name == "field" else f"`{before}`"
-        lines.append(f"- with {what}: turn on {handling}. {LABELS.get(pick, pick)} at {where}, N = {n}, {k} "
+        lines.append(f"- {what}: turn on {handling}. {LABELS.get(pick, pick)} at {where}, N = {n}, {k} "
                      f"obstacles: {pct(b, 'safe_rate')} -> {pct(f, 'safe_rate')} % safe, "
                      f"{pct(b, 'success_rate')} -> {pct(f, 'success_rate')} % success.")  # fmt: skip
     return lines

@@ -29,13 +29,20 @@ def fix_rows(cfg: RobustnessConfig, cells: dict, before: str, after: str, what: 
     return lines
 
 
+def _compared(cfg: RobustnessConfig, name: str) -> tuple[str, str] | None:
+    """The fix axis ``name``'s compared pair of specs (:meth:`Axis.compared`) if ``cfg`` sweeps it and its axis."""
+    a = axis(name)
+    return a.compared() if name in cfg.axes and a.fixes in cfg.axes else None
+
+
 def _receivers_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
     """The fix of the message faults (issue 27, item 4): the default field conditions with the receivers holding a
     lost neighbour's last message and predicting every message over its age, against the same conditions without,
     for every controller that reads messages (paired over the same scenes)."""
-    if "field_receivers" not in cfg.axes or "field" not in cfg.axes:
+    pair = _compared(cfg, "field_receivers")
+    if pair is None:
         return []
-    before, after = axis("field").specs()[1], axis("field_receivers").specs()[1]
+    before, after = pair
     return [
         "## Fixes: what the receivers do about lost and late messages",
         "",
@@ -55,9 +62,10 @@ def _receivers_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
 def _actuation_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
     """The fix of actuation delay (issue 27, item 4): two steps of delay with every agent commanding for its state
     predicted over the delay, against the same delay without (every controller; paired over the same scenes)."""
-    if "act_delay" not in cfg.axes or "act_delay_predict" not in cfg.axes:
+    pair = _compared(cfg, "act_delay_predict")
+    if pair is None:
         return []
-    before, after = axis("act_delay").specs()[2], axis("act_delay_predict").specs()[2]
+    before, after = pair
     return [
         "## Fixes: commanding for the state the command will act on",
         "",
@@ -81,14 +89,14 @@ def _disturbance_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
     agent's disturbance observer, against the same faults without (every controller; paired over the same
     scenes)."""
     tables = []
-    for name, level in (("wind", 2), ("thrust", 4)):
-        if name in cfg.axes and f"{name}_observer" in cfg.axes:
-            before, after = axis(name).specs()[level], axis(f"{name}_observer").specs()[level]
-            tables += [*fix_rows(cfg, cells, before, after, f"`{before}`"), ""]
+    for pair in (_compared(cfg, "wind_observer"), _compared(cfg, "thrust_observer")):
+        if pair is not None:
+            tables += [*fix_rows(cfg, cells, pair[0], pair[1], f"`{pair[0]}`"), ""]
     if not tables:
         return []
-    if "field" in cfg.axes and "field_fixes" in cfg.axes:
-        before, after = axis("field").specs()[1], axis("field_fixes").specs()[1]
+    pair = _compared(cfg, "field_fixes")
+    if pair is not None:
+        before, after = pair
         tables += [
             "The default field conditions' fixes at once (the receivers' hold and prediction, and the disturbance "
             "observer against their +-10 % thrust), against the same conditions without (`field_fixes`; the "

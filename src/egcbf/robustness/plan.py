@@ -29,17 +29,37 @@ __all__ = ["AXES", "Axis", "RobustnessConfig", "axis", "perceived", "reads_sensi
 
 @dataclass(frozen=True)
 class Axis:
-    """One fault axis: ``levels`` (numbers in ``unit``, the first 0) and ``spec(level)``, the fault spec of a level."""
+    """One fault axis: ``levels`` (numbers in ``unit``, the first 0) and ``spec(level)``, the fault spec of a level.
+
+    A fix's axis repeats the fault axis ``fixes`` (its levels) with the agents' handling added (:meth:`handling`);
+    the report compares the two at level index ``compare`` (``None``: in the figures only).
+    """
 
     name: str
     title: str
     unit: str
     levels: tuple[float, ...]
     spec: Callable[[float], str]
+    fixes: str | None = None
+    compare: int | None = None
 
     def specs(self) -> list[str]:
         """The canonical spec of each level (``"none"`` for level 0)."""
         return [parse_faults(self.spec(x)).spec() if x else "none" for x in self.levels]
+
+    def handling(self) -> str:
+        """The fields this fix's axis adds to the axis it repeats, as a spec (``""`` for a fault axis)."""
+        if self.fixes is None:
+            return ""
+        x = self.levels[-1]
+        mine, theirs = parse_faults(self.spec(x)).active(), parse_faults(axis(self.fixes).spec(x)).active()
+        return ",".join(f"{k}={v}" for k, v in mine.items() if theirs.get(k) != v)
+
+    def compared(self) -> tuple[str, str] | None:
+        """``(spec without the fix, spec with it)`` at the level the report compares (``None``: none)."""
+        if self.fixes is None or self.compare is None:
+            return None
+        return axis(self.fixes).specs()[self.compare], self.specs()[self.compare]
 
 
 #: steps a receiver holds a lost neighbour's last message in the receivers' axes (0.125 s at dt = 0.025 s: a
@@ -66,25 +86,25 @@ AXES: tuple[Axis, ...] = (
     # the receivers' fix (docs/robustness.md, "Fixes"): the message axes again, every receiver holding a lost
     # neighbour's last message up to RECEIVER_HOLD steps and moving each message on at its velocity over its age
     Axis("field_receivers", "default field conditions, receivers holding and predicting", "0: none, 1: default",
-         (0, 1), lambda x: f"default,{RECEIVERS}"),
+         (0, 1), lambda x: f"default,{RECEIVERS}", fixes="field", compare=1),
     Axis("loss_receivers", "message loss, receivers holding and predicting", "probability",
-         (0, 0.1, 0.3, 0.5, 0.8), lambda x: f"loss={x:g},{RECEIVERS}"),
+         (0, 0.1, 0.3, 0.5, 0.8), lambda x: f"loss={x:g},{RECEIVERS}", fixes="loss"),
     Axis("delay_receivers", "message delay, receivers predicting", "control steps", (0, 1, 2, 4, 8),
-         lambda x: f"delay={int(x)},predict=1"),
+         lambda x: f"delay={int(x)},predict=1", fixes="delay"),
     # the agents' fix of actuation delay (docs/robustness.md, "Fixes"): each commands for its state predicted over
     # the delay through the robot's dynamics with its commands in flight (a Smith predictor)
     Axis("act_delay_predict", "actuation delay, agents predicting over it", "control steps", (0, 1, 2, 3, 4),
-         lambda x: f"act_delay={int(x)},act_predict=1"),
+         lambda x: f"act_delay={int(x)},act_predict=1", fixes="act_delay", compare=2),
     # the agents' fix of wind and thrust errors (docs/robustness.md, "Fixes"): those axes again, every agent
     # estimating the acceleration acting on it beyond its model and cancelling it (a disturbance observer)
     Axis("wind_observer", "wind (x) with gusts, agents observing the disturbance", "m/s^2", (0, 0.5, 1, 2, 4),
-         lambda x: f"wind={x:g}/0/0,gust={x / 2:g},dist_obs=1"),
+         lambda x: f"wind={x:g}/0/0,gust={x / 2:g},dist_obs=1", fixes="wind", compare=2),
     Axis("thrust_observer", "thrust gain error, agents observing the disturbance", "+- fraction",
-         (0, 0.05, 0.1, 0.2, 0.3), lambda x: f"thrust_gain={x:g},dist_obs=1"),
+         (0, 0.05, 0.1, 0.2, 0.3), lambda x: f"thrust_gain={x:g},dist_obs=1", fixes="thrust", compare=4),
     # the agent-side fixes of the default field conditions at once (the receivers' and the disturbance observer; it
     # has no actuation delay to predict over): what a user would turn on
     Axis("field_fixes", "default field conditions, the receivers' fix and the disturbance observer",
-         "0: none, 1: default", (0, 1), lambda x: f"default,{RECEIVERS},dist_obs=1"),
+         "0: none, 1: default", (0, 1), lambda x: f"default,{RECEIVERS},dist_obs=1", fixes="field", compare=1),
 )  # fmt: skip
 
 assert parse_faults(AXES[0].spec(1)) == DEFAULT_FIELD

@@ -251,8 +251,11 @@ def reject_disturbance(
     body axis ``b3 = R e3``, ``F3 - m accel . b3``, and the torque gets the attitude loop's pull toward the new
     direction, ``J k_R R^T (b3 x f) / |f|`` with ``f = F3 b3 / m - accel`` (the term :func:`track_acceleration`
     adds when its target acceleration drops by ``accel``). For ``u = track_acceleration(x, a)`` at the attitude that
-    command asks for, the result is ``track_acceleration(x, a - accel)`` up to ``O(|accel|^2)`` (before clipping),
-    so in steady wind the attitude settles where the thrust cancels it. ``accel == 0`` returns ``u`` exactly.
+    command asks for, away from its ``min_lift`` and ``max_tilt`` limits and before clipping, the thrust is
+    ``track_acceleration(x, a - accel)``'s exactly and the tilt torques up to ``O(|accel|^2)``; the yaw torque keeps
+    the command's (the heading hold's first-order answer to the tilt is left out). So for a command from this
+    attitude loop (the ``accel`` interface, the nominal controller, the QPs), the attitude settles in steady wind
+    where the thrust cancels it. ``accel == 0`` returns ``u`` exactly.
 
     Equivariant under SE(2) x R: ``accel`` is a world vector, the output body-frame and invariant.
     """

@@ -16,40 +16,53 @@ COLORS = {"nominal": "tab:gray", "ccbf": "tab:brown", "dcbf": "tab:purple", "gcb
           "egcbf+": "tab:blue", "egcbf+:dcbf": "tab:green"}  # fmt: skip
 
 
+def _series(cells: dict, specs: list[str], m: str, n: int, k: int, key: str) -> tuple[list, ...]:
+    """``(xs, mid, lo, hi)`` of controller ``m`` at ``n`` agents and ``k`` obstacles along ``specs``: the level
+    index (levels equally spaced: they grow by factors) and the rate in percent with its 95 % band over episodes."""
+    xs, mid, lo, hi = [], [], [], []
+    for i, spec in enumerate(specs):
+        r = cells.get((m, spec, n, k))
+        if r is None:
+            continue
+        values = episodes(r, key)
+        ci = mean_ci([values], resamples=2000) if len(values) > 1 else None
+        xs.append(i)
+        mid.append(100 * r[key])
+        lo.append(100 * (ci.low if ci else r[key]))
+        hi.append(100 * (ci.high if ci else r[key]))
+    return xs, mid, lo, hi
+
+
 def axis_figure(cfg: RobustnessConfig, cells: dict, name: str, out_png: Path) -> Path | None:
     """Safe and success % against the level (columns: without and with obstacles), one colour per controller, one
-    line style per swarm size (the largest solid), 95 % bands over episodes; ``None`` if nothing is drawable."""
+    line style per swarm size (the largest solid), 95 % bands over episodes; a fix's axis also draws the axis it
+    repeats, faint and without bands (before the fix). ``None`` if nothing is drawable."""
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
     a = axis(name)
-    specs = a.specs()
+    before = axis(a.fixes).specs() if a.fixes is not None and a.fixes in cfg.axes else None
     sizes = sorted(cfg.num_agents, reverse=True)
-    styles = ("-", "--", ":", "-.")
+    styles = dict(zip(sizes, ("-", "--", ":", "-.")))
     fig = Figure(figsize=(8.4, 5.6))
     panels = fig.subplots(2, 2, squeeze=False)
-    drawn = False
+    drawn: set[int] = set()
     for col, k in enumerate((0, cfg.obstacles)):
         for row, key in enumerate(("safe_rate", "success_rate")):
             ax = panels[row][col]
             for m in cfg.controllers:
-                for n, style in zip(sizes, styles):
-                    xs, mid, lo, hi = [], [], [], []
-                    for i, spec in enumerate(specs):  # levels equally spaced: they grow by factors
-                        r = cells.get((m, spec, n, k))
-                        if r is None:
-                            continue
-                        values = episodes(r, key)
-                        ci = mean_ci([values], resamples=2000) if len(values) > 1 else None
-                        xs.append(i)
-                        mid.append(100 * r[key])
-                        lo.append(100 * (ci.low if ci else r[key]))
-                        hi.append(100 * (ci.high if ci else r[key]))
+                for n in sizes:
+                    color = COLORS.get(m)
+                    if before is not None:
+                        xs, mid, _, _ = _series(cells, before, m, n, k, key)
+                        if len(xs) >= 2:
+                            ax.plot(xs, mid, ls=styles[n], color=color, lw=0.8, alpha=0.35)
+                    xs, mid, lo, hi = _series(cells, a.specs(), m, n, k, key)
                     if len(xs) < 2:
                         continue
-                    drawn = True
-                    ax.plot(xs, mid, marker="o", ls=style, color=COLORS.get(m), ms=3)
-                    ax.fill_between(xs, lo, hi, color=COLORS.get(m), alpha=0.12, lw=0)
+                    drawn.add(n)
+                    ax.plot(xs, mid, marker="o", ls=styles[n], color=color, ms=3)
+                    ax.fill_between(xs, lo, hi, color=color, alpha=0.12, lw=0)
             ax.set_title(f"{'safe' if key == 'safe_rate' else 'success'} %, {k} obstacles", fontsize=9)
             ax.set_xticks(range(len(a.levels)), [f"{x:g}" for x in a.levels], fontsize=8)
             ax.set_xlabel(a.unit, fontsize=8)
@@ -59,9 +72,10 @@ def axis_figure(cfg: RobustnessConfig, cells: dict, name: str, out_png: Path) ->
     handles = [Line2D([], [], color=COLORS.get(m), marker="o", ms=3, label=LABELS.get(m, m)) for m in cfg.controllers]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=7, frameon=False)
     fig.subplots_adjust(bottom=0.16, hspace=0.45)
-    sizes_text = ", ".join(f"N = {n} {'solid' if i == 0 else 'dashed' if i == 1 else 'dotted'}"
-                           for i, n in enumerate(sizes[:3]))  # fmt: skip
-    fig.suptitle(f"{a.title} ({sizes_text})", fontsize=10)
+    names = {"-": "solid", "--": "dashed", ":": "dotted", "-.": "dash-dotted"}
+    sizes_text = ", ".join(f"N = {n} {names[styles[n]]}" for n in sizes if n in drawn)
+    faint = f"; faint: without the fix ({a.fixes})" if before is not None else ""
+    fig.suptitle(f"{a.title} ({sizes_text}{faint})", fontsize=10)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=90, bbox_inches="tight")
     return out_png

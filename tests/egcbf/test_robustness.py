@@ -141,3 +141,16 @@ def test_a_level_with_failed_cells_does_not_stop_the_others(tmp_path, monkeypatc
     r = CliRunner().invoke(app, args)
     assert r.exit_code == 1 and len(seen) == 5 and "4 level(s) had failed cells" in r.output
     assert (tmp_path / "r.md").exists()
+
+
+def test_the_committed_report_is_generated_from_the_committed_cells(tmp_path, monkeypatch):
+    """docs/robustness.md is what `egcbf robustness --report-only` writes from the cells in docs/results/robustness
+    (regenerate it whenever cells are committed)."""
+    from pathlib import Path
+
+    from egcbf.robustness import write_report
+
+    root = Path(__file__).resolve().parents[2]
+    monkeypatch.chdir(root)
+    path = write_report(RobustnessConfig(), tmp_path / "robustness.md", tmp_path / "figures")
+    assert path.read_text() == (root / "docs" / "robustness.md").read_text()

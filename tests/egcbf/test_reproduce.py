@@ -874,3 +874,28 @@ def test_convergence_draws_the_run_a_fine_tuned_checkpoint_started_from(checkpoi
     cfg_file.write_text(json.dumps({k: v for k, v in json.loads(cfg_file.read_text()).items() if k != "init_from"}))
     text = convergence_section(cfg, tmp_path / "r.md", tmp_path / "figures")
     assert drawn[-1]["EGCBF+"][0] == ckpts / "egcbf+" and "fine-tuned from" not in text
+
+
+def test_several_sweeps_run_as_one_queue_and_each_is_recorded(first, tmp_path):
+    """sweep_many: two sweeps into one directory through one pool give each sweep's records as sweep() would, the
+    cell they share is computed once, each sweep has its own finished entry in sweep.json; sweeps that do not share
+    a directory and backend are refused."""
+    cfg, records = first
+    out = tmp_path / "many"
+    a = SweepConfig(**{**cfg.__dict__, "methods": ("dcbf",), "obstacles": 0, "out": out, "workers": 2})
+    b = SweepConfig(**{**cfg.__dict__, "methods": ("dcbf", "egcbf+"), "obstacles": 0, "num_agents": (3,),
+                       "out": out, "workers": 2})  # fmt: skip
+    messages = []
+    ra, rb = rp.sweep_many([a, b], commands=["first", "second"], progress=False, log=messages.append)
+    serial = {c: _metrics(r["row"]) for c, r in records.items() if c.obstacles == 0}
+    assert {c: _metrics(r["row"]) for c, r in ra.items()} == {c: serial[c] for c in a.cells()}
+    assert {c: _metrics(r["row"]) for c, r in rb.items()} == {c: serial[c] for c in b.cells()}
+    assert len([m for m in messages if "safe" in m]) == len(set(a.cells()) | set(b.cells()))  # the shared one once
+    runs = json.loads((out / "sweep.json").read_text())
+    assert [(r["command"], r["status"], r["computed"]) for r in runs] == [
+        ("first", "finished", 2),
+        ("second", "finished", 2),
+    ]
+    with pytest.raises(ValueError, match="differ in out"):
+        rp.sweep_many([a, SweepConfig(**{**b.__dict__, "out": tmp_path / "elsewhere"})])
+    assert rp.sweep_many([]) == []

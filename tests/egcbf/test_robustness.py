@@ -123,23 +123,24 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     assert bad.exit_code == 2 and "unknown" in bad.output
 
 
-def test_a_level_with_failed_cells_does_not_stop_the_others(tmp_path, monkeypatch):
+def test_failed_cells_do_not_stop_the_others_and_are_named(tmp_path, monkeypatch):
+    """Every level's cells go to one queue (one sweep_many call, a command per level); the cells that raise are
+    named at the end, after the report is written from the others."""
     import egcbf.reproduce as reproduce
     from egcbf.reproduce.runner import CellsFailed
 
     seen = []
 
-    def fake_sweep(cfg, **kw):
-        seen.append(cfg.faults)
-        if cfg.faults != "none":
-            raise CellsFailed({cfg.cells()[0]: "Traceback\nImportError: no solver"})
-        return {}
+    def fake_sweep_many(cfgs, commands=None, **kw):
+        seen.append(([c.faults for c in cfgs], list(commands)))
+        raise CellsFailed({c.cells()[0]: "Traceback\nImportError: no solver" for c in cfgs if c.faults != "none"})
 
-    monkeypatch.setattr(reproduce, "sweep", fake_sweep)
+    monkeypatch.setattr(reproduce, "sweep_many", fake_sweep_many)
     args = ["robustness", "--axes", "thrust", "--controllers", "nominal", "--num-agents", "4", "--out",
             str(tmp_path / "c"), "--report", str(tmp_path / "r.md"), "--figures", str(tmp_path / "f")]  # fmt: skip
     r = CliRunner().invoke(app, args)
-    assert r.exit_code == 1 and len(seen) == 5 and "4 level(s) had failed cells" in r.output
+    assert len(seen) == 1 and len(seen[0][0]) == 5 and seen[0][1] == ["egcbf robustness --axes thrust"] * 5
+    assert r.exit_code == 1 and "4 cell(s) failed" in r.output and "faults thrust_gain=0.3" in r.output
     assert (tmp_path / "r.md").exists()
 
 

@@ -30,7 +30,7 @@ from .paper import BASELINES, DEFAULT_SIZES, FILTERED, LABELS, LEARNED, METHODS,
 from .plan import Cell, SweepConfig, cell_key
 from .provenance import provenance_markdown, regenerate_command
 from .report import write_report
-from .runner import CellsFailed, sweep, validate
+from .runner import CellsFailed, sweep, sweep_many, validate
 from .store import (
     CheckpointInfo,
     checkpoint_dir,
@@ -75,6 +75,7 @@ __all__ = [
     "scalability_figure",
     "summary_markdown",
     "sweep",
+    "sweep_many",
     "table_markdown",
     "unreadable_cells",
     "validate",

@@ -10,6 +10,7 @@ checkpoint changed is recomputed. One sweep at a time may write into a results d
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import signal
 import time
@@ -37,7 +38,7 @@ from .store import (
 )
 from .workers import CellTask, execute, require_ray
 
-__all__ = ["CellsFailed", "sweep", "validate"]
+__all__ = ["CellsFailed", "sweep", "sweep_many", "validate"]
 
 
 # ---------------------------------------------------------------------------------------------------- the sweep
@@ -97,7 +98,8 @@ class CellsFailed(RuntimeError):
 
     def __init__(self, failures: dict[Cell, str]):
         self.failures = failures
-        names = ", ".join(f"{c.run} obstacles {c.obstacles} N {c.num_agents}" for c in failures)
+        names = ", ".join(f"{c.run} obstacles {c.obstacles} N {c.num_agents}"
+                          f"{'' if c.faults == 'none' else f' faults {c.faults}'}" for c in failures)  # fmt: skip
         last = next(reversed(failures.values())).strip().splitlines()[-1]
         super().__init__(f"{len(failures)} cell(s) failed ({names}); the last error: {last}")
 
@@ -109,6 +111,7 @@ def _log_cell(log: Callable[[str], None], rec: dict) -> None:
         f"{m['label']:8s} seed {'-' if m.get('train_seed') is None else m['train_seed']}  obstacles "
         f"{m['obstacles']:2d}  N {m['num_agents']:4d}  l {m['area']:g}: safe {100 * r['safe_rate']:5.1f}%  "
         f"reach {100 * r['reach_rate']:5.1f}%  success {100 * r['success_rate']:5.1f}%  ({how})"
+        + (f"  faults {rec['key']['faults']}" if rec.get("key", {}).get("faults") else "")
     )
 
 
@@ -152,16 +155,13 @@ def sweep(
     ``"running"`` and updated after every cell, then ``"finished"``, ``"failed"`` (some cells raised) or
     ``"interrupted"`` (Ctrl-C, SIGTERM, an error); a process killed with SIGKILL stays ``"running"`` with the wall
     time of its last cell."""
-    log = log or tqdm.write
-    t0 = time.perf_counter()
-    started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-    ckpts = validate(cfg)
-    mismatched = mismatched_cells(cfg, ckpts)
-    if mismatched and not recompute:
-        raise ValueError(
-            describe_mismatch(cfg, mismatched) + ". Use another --out, or pass --recompute to replace them."
-        )
-    records, todo, counts = {}, [], {"reused": 0, "imported": 0, "computed": 0, "failed": 0}
+    return sweep_many([cfg], commands=[command], progress=progress, log=log, recompute=recompute)[0]
+
+
+def _stored(cfg: SweepConfig, ckpts: dict, counts: dict) -> tuple[dict[Cell, dict], list[Cell]]:
+    """The records of ``cfg``'s cells already up to date in ``cfg.out`` (or imported from its baselines), and the
+    cells still to compute; ``counts`` gets the reused and imported ones."""
+    records, todo = {}, []
     for cell in cfg.cells():
         key = wanted_key(cfg, cell, ckpts)
         old = read_json(cell.path(cfg.out))
@@ -175,26 +175,82 @@ def sweep(
             records[cell], counts["imported"] = rec, counts["imported"] + 1
             continue
         todo.append(cell)
-    local = cfg.backend == "process" and (cfg.workers <= 1 or len(todo) <= 1)
-    tasks = [
-        CellTask(
-            cell=c,
-            area=cfg.area_for(c),
-            episodes=cfg.episodes_for(c),
-            seed=cfg.seed,
-            max_steps=cfg.max_steps,
-            device=cfg.device,
-            threads=cfg.threads,
-            checkpoint_files=ckpts[c.base, c.train_seed].files() if (c.base, c.train_seed) in ckpts else None,
-            progress=progress and local,
-        )
-        for c in _schedule(todo)
-    ]
+    return records, todo
+
+
+def sweep_many(
+    cfgs: Sequence[SweepConfig],
+    *,
+    commands: Sequence[str | None] | None = None,
+    progress: bool = True,
+    log: Callable[[str], None] | None = None,
+    recompute: bool = False,
+) -> list[dict[Cell, dict]]:
+    """:func:`sweep` for several sweeps into one results directory, run as one queue of cells: the workers go on
+    to the next sweep's cells instead of waiting for the slowest cell of the one before. Every sweep is checked
+    before any cell runs and recorded in ``OUT/sweep.json`` as its own invocation (``commands[i]``); a cell that
+    several sweeps share is computed once. Returns each sweep's records, in order; raises :class:`CellsFailed` for
+    every failed cell of every sweep at the end.
+
+    Raises ``ValueError`` if the sweeps differ in results directory, backend, workers, threads or device, or want
+    one cell with different settings."""
+    cfgs = list(cfgs)
+    commands = [None] * len(cfgs) if commands is None else list(commands)
+    if len(commands) != len(cfgs):
+        raise ValueError(f"sweep_many: {len(cfgs)} sweeps but {len(commands)} commands")
+    if not cfgs:
+        return []
+    shared = ("out", "backend", "workers", "threads", "device")
+    odd = [f for f in shared if len({str(getattr(c, f)) for c in cfgs}) > 1]
+    if odd:
+        raise ValueError(f"sweep_many: the sweeps must share {', '.join(shared)}; they differ in {', '.join(odd)}")
+    first = cfgs[0]
+    log = log or tqdm.write
+    t0 = time.perf_counter()
+    started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    plans = []  # per sweep: checkpoints, records, counts
+    owners: dict[Path, list[int]] = {}  # a cell's file -> the sweeps that compute it
+    wanted: dict[Path, dict] = {}
+    tasks: list[CellTask] = []
+    for j, cfg in enumerate(cfgs):
+        ckpts = validate(cfg)
+        mismatched = mismatched_cells(cfg, ckpts)
+        if mismatched and not recompute:
+            raise ValueError(
+                describe_mismatch(cfg, mismatched) + ". Use another --out, or pass --recompute to replace them."
+            )
+        counts = {"reused": 0, "imported": 0, "computed": 0, "failed": 0}
+        records, todo = _stored(cfg, ckpts, counts)
+        plans.append((ckpts, records, counts))
+        for c in _schedule(todo):
+            path, key = c.path(cfg.out), wanted_key(cfg, c, ckpts)
+            if path in owners:
+                if wanted[path] != key:
+                    raise ValueError(f"sweep_many: two sweeps want {path} with different settings")
+                owners[path].append(j)
+                continue
+            owners[path], wanted[path] = [j], key
+            tasks.append(
+                CellTask(
+                    cell=c,
+                    area=cfg.area_for(c),
+                    episodes=cfg.episodes_for(c),
+                    seed=cfg.seed,
+                    max_steps=cfg.max_steps,
+                    device=cfg.device,
+                    threads=cfg.threads,
+                    checkpoint_files=ckpts[c.base, c.train_seed].files() if (c.base, c.train_seed) in ckpts else None,
+                    progress=False,
+                )
+            )
+    if first.backend == "process" and (first.workers <= 1 or len(tasks) <= 1):  # one cell at a time, here
+        tasks = [dataclasses.replace(t, progress=progress) for t in tasks]
     code, machine = code_version(), machine_info()
 
-    def entry(status: str) -> dict:
+    def entry(j: int, status: str) -> dict:
+        cfg = cfgs[j]
         return {
-            "command": command,
+            "command": commands[j],
             "started": started,
             "wall_s": round(time.perf_counter() - t0, 1),
             "status": status,
@@ -202,35 +258,45 @@ def sweep(
             "backend": cfg.backend,
             "workers": cfg.workers,
             "threads_per_cell": cfg.threads,
-            **counts,
+            **plans[j][2],
             "machine": machine,
         }
 
     failures: dict[Cell, str] = {}
-    with DirLock(Path(cfg.out), "egcbf reproduce"), _TermAsInterrupt():
-        index = record_invocation(Path(cfg.out), entry("running"))
+    out = Path(first.out)
+    with DirLock(out, "egcbf reproduce"), _TermAsInterrupt():
+        index = [record_invocation(out, entry(j, "running")) for j in range(len(cfgs))]
         bar = tqdm(total=len(tasks), desc="reproduce", unit="cell", disable=not progress)
-        status, outcomes = "interrupted", execute(tasks, cfg.backend, cfg.workers)
+        status, outcomes = "interrupted", execute(tasks, first.backend, first.workers)
         try:
             for task, res, error in outcomes:
                 cell = task.cell
                 bar.update(1)
+                js = owners[cell.path(first.out)]
                 if error is not None:
-                    failures[cell], counts["failed"] = error, counts["failed"] + 1
-                    log(f"FAILED {cell.run} obstacles {cell.obstacles} N {cell.num_agents}:\n{error.rstrip()}")
+                    failures[cell] = error
+                    for j in js:
+                        plans[j][2]["failed"] += 1
+                    log(f"FAILED {cell.run} obstacles {cell.obstacles} N {cell.num_agents}"
+                        f"{'' if cell.faults == 'none' else f' faults {cell.faults}'}:\n{error.rstrip()}")  # fmt: skip
                 else:
                     meta = {k: res[k] for k in ("wall_s", "machine", "code") if k in res}
-                    ckpt = ckpts.get((cell.base, cell.train_seed))
-                    rec = make_record(cfg, cell, wanted_key(cfg, cell, ckpts), ckpt, res["row"], **meta)
-                    write_json(cell.path(cfg.out), rec)
-                    records[cell], counts["computed"] = rec, counts["computed"] + 1
+                    for j in js:
+                        ckpts, records, counts = plans[j]
+                        rec = make_record(cfgs[j], cell, wanted_key(cfgs[j], cell, ckpts),
+                                          ckpts.get((cell.base, cell.train_seed)), res["row"], **meta)  # fmt: skip
+                        records[cell], counts["computed"] = rec, counts["computed"] + 1
+                    write_json(cell.path(first.out), rec)
                     _log_cell(log, rec)
-                record_invocation(Path(cfg.out), entry("running"), index)
-            status = "failed" if failures else "finished"
+                for j in js:
+                    record_invocation(out, entry(j, "running"), index[j])
+            status = "done"
         finally:
             outcomes.close()  # stops the workers now if the loop was left early
             bar.close()
-            record_invocation(Path(cfg.out), entry(status), index)
+            for j in range(len(cfgs)):
+                final = status if status == "interrupted" else "failed" if plans[j][2]["failed"] else "finished"
+                record_invocation(out, entry(j, final), index[j])
     if failures:
         raise CellsFailed(failures)
-    return {c: records[c] for c in cfg.cells() if c in records}
+    return [{c: plans[j][1][c] for c in cfg.cells() if c in plans[j][1]} for j, cfg in enumerate(cfgs)]

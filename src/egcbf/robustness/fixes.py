@@ -118,7 +118,9 @@ def _disturbance_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
         "order). The `wind_observer` and `thrust_observer` axes repeat those axes with it; the tables are 1 m/s^2 "
         "of wind (with gusts of half that) and +-30 % thrust gain, without and with it (the same scenes; after "
         "minus before). It reads velocity estimates, so sensing noise enters it (about `vel_noise / 0.25 s`: "
-        "0.08 m/s^2 at the default field's 2 cm/s).",
+        "0.08 m/s^2 at the default field's 2 cm/s). Both agent-side fixes, this one and the actuation predictor, "
+        "are `egcbf.onboard.Onboard`, which a robot runs around its own controller (docs/deploy.md, \"Latency and "
+        "wind on board\"; `examples/onboard_robot.py`).",
         "",
         *tables,
     ]  # fmt: skip

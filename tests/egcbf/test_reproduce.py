@@ -876,7 +876,7 @@ def test_convergence_draws_the_run_a_fine_tuned_checkpoint_started_from(checkpoi
     assert drawn[-1]["EGCBF+"][0] == ckpts / "egcbf+" and "fine-tuned from" not in text
 
 
-def test_several_sweeps_run_as_one_queue_and_each_is_recorded(first, tmp_path):
+def test_several_sweeps_run_as_one_queue_and_each_is_recorded(first, tmp_path, monkeypatch):
     """sweep_many: two sweeps into one directory through one pool give each sweep's records as sweep() would, the
     cell they share is computed once, each sweep has its own finished entry in sweep.json; sweeps that do not share
     a directory and backend are refused."""
@@ -899,3 +899,7 @@ def test_several_sweeps_run_as_one_queue_and_each_is_recorded(first, tmp_path):
     with pytest.raises(ValueError, match="differ in out"):
         rp.sweep_many([a, SweepConfig(**{**b.__dict__, "out": tmp_path / "elsewhere"})])
     assert rp.sweep_many([]) == []
+    monkeypatch.setitem(sys.modules, "ray", _fake_ray())  # the same queue on Ray
+    remote = [SweepConfig(**{**c.__dict__, "backend": "ray", "out": tmp_path / "ray"}) for c in (a, b)]
+    ra2, rb2 = rp.sweep_many(remote, progress=False, log=lambda s: None)
+    assert {c: _metrics(r["row"]) for c, r in {**ra2, **rb2}.items()} == {c: serial[c] for c in {**ra, **rb}}

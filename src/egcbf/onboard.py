@@ -95,6 +95,13 @@ class Onboard:
     def estimate(self, x: Tensor, goals: Tensor) -> Tensor:
         """Take this period's state estimate ``x`` ``(*batch, S)`` (goals ``(*batch, d)``, for the model's parking);
         return the state to command for: ``x`` itself, or rolled over the commands in flight when predicting."""
+        robot = self.robot
+        if x.shape[-1:] != (robot.state_dim,) or goals.shape != (*x.shape[:-1], robot.dim):
+            raise ValueError(f"Onboard.estimate: the {robot.name} needs x (*batch, {robot.state_dim}) and goals "
+                             f"(*batch, {robot.dim}), got {tuple(x.shape)} and {tuple(goals.shape)}")  # fmt: skip
+        if self._estimate is not None and x.shape != self._estimate.shape:
+            raise ValueError(f"Onboard.estimate: x changed shape from {tuple(self._estimate.shape)} to "
+                             f"{tuple(x.shape)}; one Onboard serves one agent (or one batch) throughout")  # fmt: skip
         if self.observe_disturbance:
             self._observe(x, goals)
         self._estimate, self._goals = x, goals

@@ -208,6 +208,13 @@ def test_onboard_refuses_bad_settings_and_a_command_before_an_estimate():
         Onboard(ROBOT, CFG, tau=0.0)
     with pytest.raises(RuntimeError, match=r"before Onboard\.estimate"):
         Onboard(ROBOT, CFG, act_delay=1, predict=True).command(torch.zeros(4, dtype=F64))
+    agent = Onboard(ROBOT, CFG, observe_disturbance=True)
+    x = SwarmEnv(CFG, dtype=F64).reset(1).x[0, 0]
+    with pytest.raises(ValueError, match="needs x"):
+        agent.estimate(x[:12], torch.zeros(3, dtype=F64))
+    agent.estimate(x, torch.zeros(3, dtype=F64))
+    with pytest.raises(ValueError, match="changed shape"):
+        agent.estimate(x[None], torch.zeros(1, 3, dtype=F64))
 
 
 def test_non_cooperative_agents_and_exact_estimates_leave_the_estimate_at_zero():

@@ -33,7 +33,7 @@ from .env.config import EnvConfig
 from .env.swarm import advance
 from .robots import Robot
 
-__all__ = ["DIST_OBS_TAU", "Onboard"]
+__all__ = ["DIST_OBS_TAU", "Onboard", "hover_commands"]
 
 #: time constant (s) of the disturbance estimate: short enough to follow a gust (the faults' ``gust_tau``, 1 s),
 #: long enough to average the velocity-estimate noise it differentiates (its error is about ``vel_noise / tau``:
@@ -72,7 +72,7 @@ class Onboard:
             raise ValueError(f"Onboard: act_delay must be a whole number of control periods >= 0, got {act_delay!r}")
         if not (isinstance(tau, (int, float)) and math.isfinite(tau) and tau > 0):
             raise ValueError(f"Onboard: tau must be a finite number of seconds > 0, got {tau!r}")
-        if observe_disturbance and type(robot).reject_disturbance is Robot.reject_disturbance:
+        if observe_disturbance and not robot.rejects_disturbances:
             raise ValueError(f"the disturbance observer needs the robot's disturbance rejection "
                              f"(Robot.reject_disturbance); the {robot.name} has none")  # fmt: skip
         self.robot, self.config = robot, config
@@ -160,6 +160,11 @@ class Onboard:
 
     def _in_flight(self, x: Tensor) -> list[Tensor]:
         if not self._sent:
-            hover = self.robot.nominal_control(x, self.robot.positions(x))
-            self._sent.extend([hover] * self.act_delay)
+            self._sent.extend(hover_commands(self.robot, x, self.act_delay))
         return list(self._sent)
+
+
+def hover_commands(robot: Robot, x: Tensor, n: int) -> list[Tensor]:
+    """The ``n`` commands an agent's actuators start with before its first command (the delay line's contents):
+    the nominal control holding its position ``x`` ``(*batch, S)``, each ``(*batch, k)``."""
+    return [robot.nominal_control(x, robot.positions(x))] * n

@@ -27,7 +27,7 @@ from torch import Tensor
 
 from ..env.config import EnvConfig
 from ..env.swarm import SwarmState
-from ..onboard import Onboard
+from ..onboard import Onboard, hover_commands
 from ..robots import Robot
 from . import draws
 from .sensing import STREAMS, Sensing
@@ -174,7 +174,7 @@ class FaultProcess:
             if self.onboard is not None:  # ones the agents take it to hold, else at the true states
                 start = [c.to(u.dtype) for c in self.onboard.in_flight()]
             else:
-                start = [robot.nominal_control(state.x, robot.positions(state.x)).to(u.dtype)] * f.act_delay
+                start = [c.to(u.dtype) for c in hover_commands(robot, state.x, f.act_delay)]
             self._commands.extend(start)
         if self.onboard is not None:
             self.onboard.record(u)  # what each agent sent (a non-cooperative one its own command)

@@ -93,13 +93,18 @@ def validate(cfg: SweepConfig) -> dict[tuple[str, int], CheckpointInfo]:
     return ckpts
 
 
+def _cell_name(cell: Cell) -> str:
+    """How errors name a cell: its run, obstacles, N and faults (when any)."""
+    faults = "" if cell.faults == "none" else f" faults {cell.faults}"
+    return f"{cell.run} obstacles {cell.obstacles} N {cell.num_agents}{faults}"
+
+
 class CellsFailed(RuntimeError):
     """Some cells raised; every other cell finished and was written. ``failures``: ``{cell: traceback text}``."""
 
     def __init__(self, failures: dict[Cell, str]):
         self.failures = failures
-        names = ", ".join(f"{c.run} obstacles {c.obstacles} N {c.num_agents}"
-                          f"{'' if c.faults == 'none' else f' faults {c.faults}'}" for c in failures)  # fmt: skip
+        names = ", ".join(_cell_name(c) for c in failures)
         last = next(reversed(failures.values())).strip().splitlines()[-1]
         super().__init__(f"{len(failures)} cell(s) failed ({names}); the last error: {last}")
 
@@ -277,8 +282,7 @@ def sweep_many(
                     failures[cell] = error
                     for j in js:
                         plans[j][2]["failed"] += 1
-                    log(f"FAILED {cell.run} obstacles {cell.obstacles} N {cell.num_agents}"
-                        f"{'' if cell.faults == 'none' else f' faults {cell.faults}'}:\n{error.rstrip()}")  # fmt: skip
+                    log(f"FAILED {_cell_name(cell)}:\n{error.rstrip()}")
                 else:
                     meta = {k: res[k] for k in ("wall_s", "machine", "code") if k in res}
                     for j in js:

@@ -224,6 +224,11 @@ class Robot:
         whose nominal controller already cruises at its limits)."""
         return self.nominal_control(x, goals)
 
+    @property
+    def rejects_disturbances(self) -> bool:
+        """Whether this robot implements the optional :meth:`reject_disturbance`."""
+        return type(self).reject_disturbance is not Robot.reject_disturbance
+
     def reject_disturbance(self, x: Tensor, u: Tensor, accel: Tensor) -> Tensor:
         """The command ``(*batch, control_dim)`` that, under a world-frame disturbance acceleration ``accel``
         ``(*batch, dim)`` (wind force over mass, an actuator's gain error), does what ``u`` does without it (as far

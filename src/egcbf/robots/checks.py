@@ -115,7 +115,7 @@ def check_robot(
             robot.brisk_control(gx, group.transform(g, goals)), act_u(g, robot.brisk_control(x, goals))
         ),
     }
-    if type(robot).reject_disturbance is not Robot.reject_disturbance:  # optional: the disturbance observer's
+    if robot.rejects_disturbances:  # optional: the disturbance observer's
         accel = torch.randn(batch, robot.dim, generator=gen, dtype=dtype)
         boxed = robot.clip_control(u)
         errors["disturbance rejection: none is the command"] = err(

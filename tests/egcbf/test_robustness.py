@@ -7,13 +7,16 @@ import dataclasses
 import json
 
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from egcbf.cli import app
 from egcbf.faults import DEFAULT_FIELD, parse_faults
 from egcbf.faults.spec import HANDLING_FIELDS
+from egcbf.report import machine_info
 from egcbf.reproduce import SweepConfig
 from egcbf.reproduce.plan import cell_key
+from egcbf.reproduce.provenance import machine_text
 from egcbf.robustness import AXES, RobustnessConfig, axis, reads_sensing, state_level
 
 
@@ -87,6 +90,8 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     text = report.read_text()
     assert "## Default field conditions" in text and "| nominal (no CBF) | 4 | 0 |" in text
     assert "(12 of 12 cells computed" in text
+    where = text.split("## Where the cells were computed")[1]  # each stored cell counted once, with its machine
+    assert f"| 12 | {machine_text(machine_info())}, torch {torch.__version__}, device cpu |" in where
     assert "state-level only" in text  # the nominal controller reads no messages
     choices = text.split("Under one fault")[1].split("## Where")[0]
     assert "- thrust gain error" in choices and "nominal (no CBF)" in choices  # every level of the axis computed

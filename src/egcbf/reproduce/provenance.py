@@ -25,7 +25,7 @@ from .plan import Cell, SweepConfig
 from .stats import episodes_text, scale_text
 from .store import find_method_checkpoint, read_invocations
 
-__all__ = ["cell_invocations", "provenance_markdown", "regenerate_command", "timing_text"]
+__all__ = ["cell_invocations", "machine_text", "provenance_markdown", "regenerate_command", "timing_text"]
 
 #: slack (s) on an invocation's recorded span: ``finished`` and ``started`` are whole seconds
 _SLACK_S = 2.0
@@ -80,7 +80,8 @@ def _at_a_time(inv: dict | None) -> str:
     return "one cell at a time" if workers == 1 else f"up to {workers} cells at a time"
 
 
-def _machine(machine: dict | None) -> str:
+def machine_text(machine: dict | None) -> str:
+    """A cell's recorded machine in words: ``CPU model (K cores)``."""
     machine = machine or {}
     cores = f" ({machine['cores']} cores)" if machine.get("cores") else ""
     return f"{machine.get('cpu') or 'an unrecorded machine'}{cores}"
@@ -106,11 +107,11 @@ def timing_text(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
         meta = rec.get("meta", {})
         machine = meta.get("machine")
         if _imported(rec):
-            imported[f"{_machine(machine)}, {_threads(machine)}"] += 1
+            imported[f"{machine_text(machine)}, {_threads(machine)}"] += 1
             continue
         owner = owners.get(cell)
         device = meta.get("device") or "cpu"
-        where = _machine(machine) + ("" if device == "cpu" else f", device {device}")
+        where = machine_text(machine) + ("" if device == "cpu" else f", device {device}")
         computed[f"{where}, {_threads(machine, ' per cell')}, "
                  f"{_at_a_time(None if owner is None else invocations[owner])}"] += 1  # fmt: skip
     parts = []

@@ -3,22 +3,26 @@ percent, a paired change with its 95 % interval, a before-and-after table row.""
 
 from __future__ import annotations
 
+from collections import Counter
+
 from ..bootstrap import mean_ci
 from ..reproduce.paper import BASELINES, base_method
 from ..reproduce.plan import Cell
+from ..reproduce.provenance import machine_text
 from ..reproduce.store import read_json
 from .plan import RobustnessConfig, axis
 
-__all__ = ["before_after", "episodes", "load_cells", "paired_change", "pct"]
+__all__ = ["before_after", "computed_where", "episodes", "load_cells", "load_records", "paired_change", "pct"]
 
 
 def _cell(method: str, spec: str, n: int, obstacles: int) -> Cell:
     return Cell(method, obstacles, n, None if base_method(method) in BASELINES else 0, None, spec)
 
 
-def load_cells(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]:
-    """``{(method, axis-level spec, N, obstacles): row}`` of every computed cell (the level spec as the axis names it;
-    a controller that does not read messages is looked up under the level's state-level spec)."""
+def load_records(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]:
+    """``{(method, axis-level spec, N, obstacles): record}`` of every computed cell, the whole stored record (``row``
+    and ``meta``); the level spec as the axis names it, a controller that does not read messages looked up under
+    the level's state-level spec (so one stored cell can stand under several keys)."""
     out = {}
     for a in (axis(n) for n in cfg.axes):
         for spec in a.specs():
@@ -30,8 +34,30 @@ def load_cells(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]:
                     for k in (0, cfg.obstacles):
                         rec = read_json(_cell(m, run, n, k).path(cfg.out))
                         if isinstance(rec, dict) and "row" in rec:
-                            out[(m, spec, n, k)] = rec["row"]
+                            out[(m, spec, n, k)] = rec
     return out
+
+
+def load_cells(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]:
+    """``{(method, axis-level spec, N, obstacles): row}`` of every computed cell (:func:`load_records`' rows)."""
+    return {key: rec["row"] for key, rec in load_records(cfg).items()}
+
+
+def computed_where(cfg: RobustnessConfig) -> list[tuple[str, int]]:
+    """``[(where, cells)]``, most cells first: the stored cells counted once each by the machine, torch build and
+    device their meta records (cells of equal settings from different machines agree in distribution, not bit for
+    bit, where the torch build or CPU differs)."""
+    seen, where = set(), Counter()
+    for (m, spec, n, k), rec in load_records(cfg).items():
+        stored = (m, cfg.cell_spec(m, spec), n, k)
+        if stored in seen:
+            continue
+        seen.add(stored)
+        meta = rec.get("meta", {})
+        machine = meta.get("machine") or {}
+        device = meta.get("device") or "cpu"
+        where[f"{machine_text(machine)}, torch {machine.get('torch', 'not recorded')}, device {device}"] += 1
+    return sorted(where.items(), key=lambda p: (-p[1], p[0]))
 
 
 def episodes(row: dict, key: str) -> list[float]:

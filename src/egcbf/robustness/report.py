@@ -1,8 +1,8 @@
 """docs/robustness.md from the committed cells of ``egcbf robustness``: the faults and their units, the default
 field conditions against the perfect world (with paired 95 % intervals), the agent-side fixes
 (:mod:`~egcbf.robustness.fixes`), which controller to choose (:mod:`~egcbf.robustness.advice`), the level where
-each controller drops below 99 % and 95 % safe, and one figure per fault axis (:mod:`~egcbf.robustness.figures`).
-Only what is computed is drawn or written; missing cells are named."""
+each controller drops below 99 % and 95 % safe, one figure per fault axis (:mod:`~egcbf.robustness.figures`),
+and where the cells were computed. Only what is computed is drawn or written; missing cells are named."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ..reproduce.paper import LABELS
 from .advice import advice
-from .cells import before_after, load_cells
+from .cells import before_after, computed_where, load_cells
 from .figures import axis_figure
 from .fixes import fix_sections
 from .plan import RobustnessConfig, axis
@@ -86,6 +86,22 @@ def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list
             row.append(" / ".join(parts))
         lines.append("| " + " | ".join(row) + " |")
     return lines
+
+
+def _provenance(cfg: RobustnessConfig) -> list[str]:
+    where = computed_where(cfg)
+    if not where:
+        return ["No cell computed yet."]
+    return [
+        f"Each cell's file records the machine, torch build, device and code version that computed it (`meta`), and "
+        f"`{cfg.out / 'sweep.json'}` every invocation of the sweep. Cells computed with different torch builds or "
+        "CPUs agree in distribution, not necessarily bit for bit; to recompute a cell on your machine, delete its "
+        "file and rerun `egcbf robustness`.",
+        "",
+        "| cells | computed on |",
+        "|---|---|",
+        *(f"| {count} | {text} |" for text, count in where),
+    ]
 
 
 def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
@@ -170,6 +186,7 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
             rel = png.relative_to(path.parent) if png.is_relative_to(path.parent) else png
             lines.append(f"![{a.title}]({rel})")
         lines.append("")
+    lines += ["## Where the cells were computed", "", *_provenance(cfg), ""]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path

@@ -12,7 +12,16 @@ from ..reproduce.provenance import machine_text
 from ..reproduce.store import read_json
 from .plan import RobustnessConfig, axis
 
-__all__ = ["before_after", "computed_where", "episodes", "load_cells", "load_records", "paired_change", "pct"]
+__all__ = [
+    "before_after",
+    "computed_where",
+    "episodes",
+    "load_cells",
+    "load_records",
+    "paired_change",
+    "pct",
+    "stored_cell",
+]
 
 
 def _cell(method: str, spec: str, n: int, obstacles: int) -> Cell:
@@ -43,16 +52,20 @@ def load_cells(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]:
     return {key: rec["row"] for key, rec in load_records(cfg).items()}
 
 
-def computed_where(cfg: RobustnessConfig) -> list[tuple[str, int]]:
-    """``[(where, cells)]``, most cells first: the stored cells counted once each by the machine, torch build and
-    device their meta records (cells of equal settings from different machines agree in distribution, not bit for
-    bit, where the torch build or CPU differs)."""
-    seen, where = set(), Counter()
-    for (m, spec, n, k), rec in load_records(cfg).items():
-        stored = (m, cfg.cell_spec(m, spec), n, k)
-        if stored in seen:
-            continue
-        seen.add(stored)
+def stored_cell(cfg: RobustnessConfig, key: tuple[str, str, int, int]) -> tuple[str, str, int, int]:
+    """The stored cell behind a :func:`load_records` key ``(method, axis-level spec, N, obstacles)``: the spec
+    replaced by the one the method runs (:meth:`RobustnessConfig.cell_spec`), so keys sharing a file compare equal."""
+    m, spec, n, k = key
+    return m, cfg.cell_spec(m, spec), n, k
+
+
+def computed_where(cfg: RobustnessConfig, records: dict[tuple[str, str, int, int], dict]) -> list[tuple[str, int]]:
+    """``[(where, cells)]``, most cells first: the stored cells of ``records`` (:func:`load_records`) counted once
+    each by the machine, torch build and device their meta records (cells of equal settings from different
+    machines agree in distribution, not necessarily bit for bit, where the torch build or CPU differs)."""
+    stored = {stored_cell(cfg, key): rec for key, rec in records.items()}
+    where = Counter()
+    for rec in stored.values():
         meta = rec.get("meta", {})
         machine = meta.get("machine") or {}
         device = meta.get("device") or "cpu"

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ..reproduce.paper import LABELS
 from .advice import advice
-from .cells import before_after, computed_where, load_cells
+from .cells import before_after, computed_where, load_records, stored_cell
 from .figures import axis_figure
 from .fixes import fix_sections
 from .plan import RobustnessConfig, axis
@@ -88,8 +88,8 @@ def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list
     return lines
 
 
-def _provenance(cfg: RobustnessConfig) -> list[str]:
-    where = computed_where(cfg)
+def _provenance(cfg: RobustnessConfig, records: dict) -> list[str]:
+    where = computed_where(cfg, records)
     if not where:
         return ["No cell computed yet."]
     return [
@@ -107,11 +107,12 @@ def _provenance(cfg: RobustnessConfig) -> list[str]:
 def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
                  figures: str | Path = "docs/figures") -> Path:  # fmt: skip
     """Write the report from the cells under ``cfg.out`` (module doc); returns its path."""
-    cells = load_cells(cfg)
+    records = load_records(cfg)
+    cells = {key: rec["row"] for key, rec in records.items()}
     path, figures = Path(path), Path(figures)
     runs = {(m, cfg.cell_spec(m, s)) for a in (axis(x) for x in cfg.axes) for s in a.specs() for m in cfg.controllers}
     planned = len([r for r in runs if r[1] is not None]) * len(cfg.num_agents) * 2
-    computed = len({(m, cfg.cell_spec(m, s), n, k) for (m, s, n, k) in cells})
+    computed = len({stored_cell(cfg, key) for key in records})
     lines = [
         "# Robustness to real-world faults",
         "",
@@ -186,7 +187,7 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
             rel = png.relative_to(path.parent) if png.is_relative_to(path.parent) else png
             lines.append(f"![{a.title}]({rel})")
         lines.append("")
-    lines += ["## Where the cells were computed", "", *_provenance(cfg), ""]
+    lines += ["## Where the cells were computed", "", *_provenance(cfg, records), ""]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path

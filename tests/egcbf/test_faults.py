@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from egcbf.algo.learner import LearnedController
-from egcbf.env import EnvConfig, SwarmEnv, SwarmState
+from egcbf.env import EnvConfig, SwarmEnv, SwarmState, cast_lidar
 from egcbf.evaluate import evaluate, run_episodes
 from egcbf.faults import DEFAULT_FIELD, FaultConfig, FaultProcess, draws, noncooperative_mask, parse_faults
 from egcbf.faults.sensing import STREAMS
@@ -171,7 +171,7 @@ def test_receivers_hold_the_last_message_within_hold_steps_and_predict_it_over_i
     f = FaultConfig(msg_loss=0.5, msg_delay=1, msg_hold=2)
     cfg, xs, seen, (src, dst) = _held_run(f)
     sens, n, t = seen.sensing, cfg.num_agents, len(xs) - 1
-    keep, states = sens.received(dst, src, cfg.comm_radius)
+    keep, states, _ = sens.received(dst, src, cfg.comm_radius)
     seeds = sens.seeds[dst // n]
     arrived = torch.stack([draws.uniform(STREAMS["loss"], seeds, t - k, dst % n, src % n) >= 0.5 for k in range(3)])
     newest = arrived.to(torch.int64).argmax(0)  # the first step back whose message arrived
@@ -188,7 +188,7 @@ def test_receivers_hold_the_last_message_within_hold_steps_and_predict_it_over_i
     torch.testing.assert_close(graph.pos_src[g_src], ROBOT.positions(expected[keep]), rtol=0, atol=0)
     # prediction: the same messages moved on at their velocity over their age (steps since sent + delay)
     _, _, seen_p, _ = _held_run(dataclasses.replace(f, msg_predict=1))
-    keep_p, states_p = seen_p.sensing.received(dst, src, cfg.comm_radius)
+    keep_p, states_p, _ = seen_p.sensing.received(dst, src, cfg.comm_radius)
     age = (newest + 1).to(F64)[:, None] * cfg.dt
     moved = ROBOT.positions(expected) + age * ROBOT.velocities(expected)
     assert torch.equal(keep_p, keep)  # nothing crossed the comm radius
@@ -196,20 +196,84 @@ def test_receivers_hold_the_last_message_within_hold_steps_and_predict_it_over_i
     torch.testing.assert_close(ROBOT.velocities(states_p), ROBOT.velocities(expected), rtol=0, atol=0)
 
 
-def test_lidar_faults_move_and_drop_returns_around_the_estimate():
+def test_lidar_faults_act_on_every_ray_with_their_statistics():
+    """Each ray's return: range error of std ``lidar_noise``, lost with probability ``lidar_drop`` (draws keyed by
+    the ray, not by its rank among the kept hits)."""
     cfg = dataclasses.replace(CFG, num_agents=30, num_obstacles=6, n_rays=16, lidar_max_hits=8)
     state = SwarmEnv(cfg, dtype=F64).reset(4)
-    clean = build_graph(state, cfg)
-    proc = FaultProcess(FaultConfig(lidar_drop=0.4), cfg, ROBOT, [1, 2], dtype=F64)
-    dropped = build_graph(proc.observe(state), cfg)
-    kept = dropped.hit_owner.numel() / clean.hit_owner.numel()
-    assert clean.hit_owner.numel() > 50 and abs(kept - 0.6) < 0.12
-    proc = FaultProcess(FaultConfig(lidar_noise=0.05), cfg, ROBOT, [1, 2], dtype=F64)
-    scan = proc.observe(state).sensing.scan(cfg)
+    sensing = FaultProcess(FaultConfig(lidar_noise=0.05, lidar_drop=0.4), cfg, ROBOT, [1, 2],
+                           dtype=F64).observe(state).sensing  # fmt: skip
+    m, rays = 2 * 30, 130
+    agent = torch.arange(m).repeat_interleave(rays)
+    ray = torch.arange(rays).repeat(m)
+    true = torch.full((m * rays,), 0.5, dtype=F64)
+    measured, arrived = sensing.ray_faults(agent, ray, true)
+    assert abs(float(arrived.double().mean()) - 0.6) < 0.03
+    assert abs(float((measured - true).std()) / 0.05 - 1) < 0.05 and abs(float((measured - true).mean())) < 0.003
+    again, arrived2 = sensing.ray_faults(agent.flip(0), ray.flip(0), true)  # a pure function of the address
+    assert torch.equal(again.flip(0), measured) and torch.equal(arrived2.flip(0), arrived)
+
+
+def test_lidar_drops_rays_before_keeping_the_closest_returns():
+    """A lost ray leaves room for the next closest one: with many rays on the obstacles, the scan stays full, and
+    it equals the clean scan of every ray with the lost ones taken out."""
+    cfg = dataclasses.replace(CFG, num_agents=30, num_obstacles=6, n_rays=32, lidar_max_hits=8)
+    state = SwarmEnv(cfg, dtype=F64).reset(4)
     truth = SwarmEnv(cfg, dtype=F64).lidar(state)
-    assert torch.equal(scan.valid, truth.valid)
-    err = (scan.distance - truth.distance)[truth.valid]
-    assert abs(float(err.std()) / 0.05 - 1) < 0.2
+    sensing = FaultProcess(FaultConfig(lidar_drop=0.5), cfg, ROBOT, [1, 2], dtype=F64).observe(state).sensing
+    scan = sensing.scan(cfg)
+    every = cast_lidar(dataclasses.replace(cfg, lidar_max_hits=32 * 16 + 2), ROBOT.positions(state.x),
+                       ROBOT.heading(state.x), state.obstacles)  # fmt: skip
+    rays = every.valid.sum(-1)
+    assert (rays > 2 * 8).any()  # some agents see many returns: a per-slot drop would empty half their slots
+    dropped = cast_lidar(cfg, ROBOT.positions(state.x), ROBOT.heading(state.x), state.obstacles,
+                         sensing.ray_faults)  # fmt: skip
+    torch.testing.assert_close(scan.points, dropped.points, rtol=0, atol=1e-12)
+    assert torch.equal(scan.valid, dropped.valid)
+    kept = scan.valid.sum(-1)
+    assert (kept <= truth.valid.sum(-1)).all() and float(kept[rays > 2 * 8].double().mean()) > 7.0
+    # every kept return is one of the agent's true returns
+    d = scan.distance[..., :, None] - every.distance[..., None, :]
+    assert (d.abs().amin(-1)[scan.valid] < 1e-12).all()
+
+
+def test_lidar_measures_from_the_true_pose_under_estimate_noise_alone():
+    """Position noise moves where an agent places its scan, not what the sensor measures: the vectors from the
+    estimate to the hits are the true ones (a LiDAR on the robot sees the world from where the robot is)."""
+    cfg = dataclasses.replace(CFG, num_agents=30, num_obstacles=6, n_rays=16, lidar_max_hits=8)
+    state = SwarmEnv(cfg, dtype=F64).reset(4)
+    truth = SwarmEnv(cfg, dtype=F64).lidar(state)
+    seen = FaultProcess(FaultConfig(pos_noise=0.1), cfg, ROBOT, [1, 2], dtype=F64).observe(state)
+    assert seen.sensing is not None
+    scan = seen.sensing.scan(cfg)
+    assert torch.equal(scan.valid, truth.valid) and truth.valid.sum() > 50
+    rel_seen = scan.points - ROBOT.positions(seen.x)[:, :, None]
+    rel_true = truth.points - ROBOT.positions(state.x)[:, :, None]
+    torch.testing.assert_close(rel_seen[scan.valid], rel_true[truth.valid], rtol=0, atol=1e-12)
+    graph = build_graph(seen, cfg)  # the graph reads that scan
+    clean = build_graph(state, cfg)
+    assert graph.hit_owner.numel() == clean.hit_owner.numel()
+
+
+def test_lidar_under_prediction_keeps_static_obstacles_where_they_are():
+    """With ``act_predict`` the agents command for their predicted state but place their scan at their current
+    estimate: the hits stay where the obstacles are (with exact estimates: the true hits)."""
+    cfg = dataclasses.replace(CFG, num_agents=30, num_obstacles=6, n_rays=16, lidar_max_hits=8)
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(4)
+    for loss in (0.0, 0.2):  # with and without message faults
+        proc = FaultProcess(FaultConfig(act_delay=2, act_predict=1, msg_loss=loss), cfg, ROBOT, [1, 2], dtype=F64)
+        s = state
+        for _ in range(3):
+            seen = proc.observe(s)
+            u, _ = _nominal(seen, cfg)
+            s, _ = env.step(s, proc.actuate(u, s))
+        seen = proc.observe(s)
+        truth = env.lidar(s)
+        assert not torch.equal(seen.x, s.x)  # the predicted state
+        scan = seen.sensing.scan(cfg)
+        assert torch.equal(scan.valid, truth.valid)
+        torch.testing.assert_close(scan.points, truth.points, rtol=0, atol=1e-12)
 
 
 def test_actuation_errors_noncooperative_agents_and_delay():
@@ -348,3 +412,16 @@ def test_closed_loop_under_faults_is_equivariant(yaw, shift, dtype, act_predict,
     b = _rollout(ctrl, env, state.transform(g), FaultProcess(faults, CFG, ROBOT, [1, 2], dtype=dtype, rotation=rot), 4)
     for xa, xb in zip(a, b):
         assert torch.allclose(dataclasses.replace(state, x=xa).transform(g).x, xb, atol=_TOL[dtype])
+
+
+def test_noncooperative_count_rounds_half_up_and_leaves_someone_to_measure():
+    seeds = torch.tensor([1, 2])
+    assert noncooperative_mask(FaultConfig(noncoop=0.05), seeds, 10).sum(1).tolist() == [1, 1]  # 0.5 -> 1
+    assert noncooperative_mask(FaultConfig(noncoop=0.05), seeds, 30).sum(1).tolist() == [2, 2]  # 1.5 -> 2
+    with pytest.raises(ValueError, match="no cooperative agent"):
+        noncooperative_mask(FaultConfig(noncoop=1.0), seeds, 8)
+
+
+def test_spec_strings_keep_every_digit_of_a_vector():
+    f = FaultConfig(wind=(0.1234567891, 1.0, 0.5))
+    assert parse_faults(f.spec()) == f and "wind=0.1234567891/1/0.5" in f.spec()

@@ -191,17 +191,20 @@ def test_a_delayed_neighbour_out_of_range_is_dropped():
 
 
 @settings(max_examples=4, deadline=None)
-@given(seed=st.integers(0, 1000))
-def test_the_lookahead_predicts_a_delayed_neighbour_from_its_message(seed):
-    """The dcbf filter's look-ahead under delayed messages: agent ``i`` predicts itself from its estimate with
-    ``accel`` and its neighbour from the message with ``accel_sent``: exactly the fault-free filter of that view."""
+@given(seed=st.integers(0, 1000), hold=st.booleans())
+def test_the_lookahead_predicts_a_neighbour_from_its_message(seed, hold):
+    """The dcbf filter's look-ahead under message faults: agent ``i`` predicts itself from its estimate with
+    ``accel`` and its neighbour from the message with the acceleration the message carries (the sender's over the
+    step before it sent it, from its own estimates): exactly the fault-free filter of that view. Delayed messages
+    (one step), or held ones (lost in this step, the last step's kept), two steps old either way."""
     state, cfg = _pair(0.9)
     gen = torch.Generator().manual_seed(seed)
-    old = state.x.clone()
-    old[0, :, 0:3] += 0.05 * torch.randn(2, 3, generator=gen, dtype=F64)
-    old[0, :, 12:15] += 0.3 * torch.randn(2, 3, generator=gen, dtype=F64)
+    old, older = state.x.clone(), state.x.clone()
+    for x in (old, older):
+        x[0, :, 0:3] += 0.05 * torch.randn(2, 3, generator=gen, dtype=F64)
+        x[0, :, 12:15] += 0.3 * torch.randn(2, 3, generator=gen, dtype=F64)
     a_ref = torch.randn(1, 2, 3, generator=gen, dtype=F64).numpy()
-    acc, acc_sent = (torch.randn(1, 2, 3, generator=gen, dtype=F64) for _ in range(2))
+    acc = torch.randn(1, 2, 3, generator=gen, dtype=F64)
     T = 0.05
 
     def ahead(x, a):
@@ -210,15 +213,34 @@ def test_the_lookahead_predicts_a_delayed_neighbour_from_its_message(seed):
         x[..., 12:15] += T * a
         return x
 
+    if hold:  # step 7 of seeds chosen so that both links lost their message of step 7 and kept the one of step 6
+        faults, t, seeds = FaultConfig(msg_loss=0.5, msg_hold=1), 7, [_seed_losing_both(7)]
+    else:
+        faults, t, seeds = FaultConfig(msg_delay=1), 7, [100]
+    sensing = Sensing(faults, ROBOT, torch.tensor(seeds), t, state.x, state.x, old, state.obstacles,
+                      (state.x, old, older), cfg.dt)  # fmt: skip
     qp = DecentralizedCBFQP()
-    seen = _with_sensing(state, FaultConfig(msg_delay=1), x_sent=old)
-    _, info = qp.filter(seen, cfg, a_ref, lookahead=T, accel=acc.numpy(), accel_sent=acc_sent.numpy())
+    _, info = qp.filter(dataclasses.replace(state, t=t, sensing=sensing), cfg, a_ref, lookahead=T, accel=acc.numpy())
     assert info["links"].shape[1] == 2
+    carried = (ROBOT.velocities(old) - ROBOT.velocities(older)) / cfg.dt
     for i, j in ((0, 1), (1, 0)):
         x = ahead(state.x, acc)
-        x[0, j] = ahead(old, acc_sent)[0, j]
+        x[0, j] = ahead(old, carried)[0, j]
         _, view = qp.filter(dataclasses.replace(state, x=x), cfg, a_ref)
         np.testing.assert_allclose(info["a_safe"][0, i], view["a_safe"][0, i], rtol=0, atol=ATOL)
+
+
+def _seed_losing_both(t: int) -> int:
+    """An episode seed whose two links (0 <- 1, 1 <- 0) lose their message of step ``t`` at loss 0.5 and keep
+    the one of step ``t - 1``."""
+    for seed in range(10_000):
+        s = torch.tensor([seed, seed])
+        i, j = torch.tensor([0, 1]), torch.tensor([1, 0])
+        now = draws.uniform(STREAMS["loss"], s, t, i, j) >= 0.5
+        before = draws.uniform(STREAMS["loss"], s, t - 1, i, j) >= 0.5
+        if not now.any() and before.all():
+            return seed
+    raise AssertionError("no such seed")
 
 
 # ------------------------------------------------------------------------------- (e) the graph and the QP agree
@@ -239,11 +261,13 @@ def test_the_graph_and_the_qp_lose_the_same_messages(seed, loss, delay, hold, pr
         x[..., 0:3] += 0.1 * t * x[..., 12:15] + 0.05 * t
         seen = proc.observe(dataclasses.replace(state, x=x, t=t))
         graph = build_graph(seen, cfg)
+        assert graph.src_kind.shape[0] == graph.src_batch.shape[0] == graph.x_src.shape[0] == graph.pos_src.shape[0]
+        assert torch.equal(graph.src_batch[graph.edge_index[0]], graph.batch[graph.edge_index[1]])
         src, dst = graph.edge_index[:, graph.edge_kind == KIND_AGENT]
         from_graph = sorted(zip(dst.tolist(), graph.pos_src[src].round(decimals=9).tolist()))
         info = ctrl(seen, cfg)[1]
         recv, send = torch.from_numpy(info["links"])
-        _, states = seen.sensing.received(recv, send, cfg.comm_radius)  # the same draws: what each link carried
+        _, states, _ = seen.sensing.received(recv, send, cfg.comm_radius)  # the same draws: what each link carried
         from_qp = sorted(zip(recv.tolist(), ROBOT.positions(states).round(decimals=9).tolist()))
         assert from_qp == from_graph
     assert 0 < len(from_graph)

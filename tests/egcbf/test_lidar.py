@@ -171,3 +171,27 @@ def test_many_obstacles_matches_dense_reference(scene):
     assert torch.equal(torch.isinf(scan.distance), torch.isinf(ref))
     fin = torch.isfinite(ref)
     assert torch.allclose(scan.distance[fin], ref[fin], atol=1e-12)
+
+
+@given(scene=scenes(), cut=st.floats(0.0, 0.8))
+def test_ray_faults_act_before_the_closest_hits_are_kept(scene, cut):
+    """``ray_faults`` sees every ray that hits (agent rows, ray indices, distances) before the selection: losing
+    the returns closer than ``cut`` gives the clean scan of all rays without them, its first ``max_hits``."""
+    pos, yaw, obs = scene
+    b, n = pos.shape[:2]
+    seen = []
+
+    def lose_close(agent, ray, t):
+        seen.append((agent, ray))
+        assert agent.shape == ray.shape == t.shape and (agent < b * n).all() and (ray < 16 * 8 + 2).all()
+        return t, t >= cut
+
+    scan = lidar_scan(pos, _heading(yaw), obs, n_rays=16, max_range=0.8, max_hits=4, ray_faults=lose_close)
+    every = lidar_scan(pos, _heading(yaw), obs, n_rays=16, max_range=0.8, max_hits=16 * 8 + 2)
+    far = torch.where(every.distance >= cut, every.distance, torch.full_like(every.distance, math.inf))
+    ref = far.sort(-1).values[..., :4]
+    assert torch.equal(torch.isinf(scan.distance), torch.isinf(ref))
+    assert torch.equal(scan.distance[torch.isfinite(ref)], ref[torch.isfinite(ref)])
+    if seen:  # each (agent, ray) at most once
+        agent, ray = seen[0]
+        assert torch.unique(agent * 1000 + ray).numel() == agent.numel()

@@ -28,7 +28,8 @@ brakes. Three filters (``FILTERS``):
   et al.'s braking-distance barrier, :class:`~.dcbf_qp.DecentralizedCBFQP`) with the policy's command
   as the reference instead of the nominal one, its own settings (``DCBF_FILTER_BARRIER``), its QP box, and a
   look-ahead (``DCBF_FILTER_LOOKAHEAD``): the rows read every agent ``T`` seconds ahead under the acceleration it
-  realized over the last step, a predictor for the attitude loop's lag. Learned liveness, hand-crafted safety.
+  realized over the last step (under message faults a neighbour's as its message carries it), a predictor for the
+  attitude loop's lag. Learned liveness, hand-crafted safety.
 
 ``FilteredController(None, None, config)`` filters the nominal controller's command instead (``dcbf``, ``prior``):
 the ablation that shows what the policy adds. docs/safety_filters.md has the measurements behind every default.
@@ -189,7 +190,6 @@ class FilteredController:
         self.policy, self.model_config, self.config, self.cbf = policy, model_config, config, cbf
         self._dcbf = None
         self._last: tuple[int, np.ndarray] | None = None  # (step, velocities) of the previous call: lookahead only
-        self._last_sent: tuple[int, np.ndarray] | None = None  # the same of the broadcast estimates (delayed messages)
         self.reads_sensing = READS_SENSING[config.kind]
         if config.kind == "dcbf":
             self._dcbf = DecentralizedCBFQP(
@@ -215,10 +215,8 @@ class FilteredController:
         u_nom = robot.nominal_control(s.x, s.goals)
         t1 = time.perf_counter()
         if self._dcbf is not None:
-            accel, accel_sent = self._realized_acceleration(s, env_config), self._sent_acceleration(s, env_config)
-            u, qinfo = self._dcbf.filter(
-                state, env_config, a_pi.cpu().numpy(), self.config.lookahead, accel, accel_sent
-            )
+            accel = self._realized_acceleration(s, env_config)
+            u, qinfo = self._dcbf.filter(state, env_config, a_pi.cpu().numpy(), self.config.lookahead, accel)
             a = torch.as_tensor(qinfo["a_safe"], dtype=torch.float64, device=a_pi.device)
             info = {k: qinfo[k] for k in ("num_slack", "num_failed", "max_slack")}
         else:
@@ -238,29 +236,15 @@ class FilteredController:
 
     def _realized_acceleration(self, s: SwarmState, env_config: EnvConfig) -> np.ndarray | None:
         """Every agent's acceleration over the last control step, ``(v_t - v_{t-1}) / dt`` ``(B, N, 3)``, from the
-        velocities seen at the previous call (each agent senses its neighbours' velocities every step); ``None``
-        at an episode's first step or when the previous call was another swarm. Only with ``lookahead``."""
+        velocities seen at the previous call (each agent senses its neighbours' velocities every step; under message
+        faults a neighbour's comes with its message instead, :meth:`egcbf.faults.Sensing.received`); ``None`` at an
+        episode's first step or when the previous call was another swarm. Only with ``lookahead``."""
         if not self.config.lookahead:
             return None
         v = s.x[..., 12:15].detach().to(torch.float64).cpu().numpy()
         prev, self._last = self._last, (s.t, v)
         if prev is None or prev[0] != s.t - 1 or prev[1].shape != v.shape:
             return None
-        return (v - prev[1]) / env_config.dt
-
-    def _sent_acceleration(self, s: SwarmState, env_config: EnvConfig) -> np.ndarray | None:
-        """Under delayed messages (:mod:`egcbf.faults`): every agent's acceleration as two consecutive messages of
-        it imply, ``(v_sent_t - v_sent_{t-1}) / dt`` ``(B, N, 3)`` (zero at an episode's first step or when the
-        previous call was another swarm); ``None`` without delayed messages (a message then carries the current
-        estimate: :meth:`_realized_acceleration` holds it) or without ``lookahead``."""
-        sensing = s.sensing
-        if not self.config.lookahead or sensing is None or sensing.faults.msg_delay == 0:
-            self._last_sent = None
-            return None
-        v = sensing.robot.velocities(sensing.x_sent).detach().to(torch.float64).cpu().numpy()
-        prev, self._last_sent = self._last_sent, (s.t, v)
-        if prev is None or prev[0] != s.t - 1 or prev[1].shape != v.shape:
-            return np.zeros_like(v)
         return (v - prev[1]) / env_config.dt
 
     def _filter(self, graph: SwarmGraph, s: SwarmState, itf: AccelInterface, a_pi: Tensor) -> tuple[Tensor, dict]:

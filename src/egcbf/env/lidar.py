@@ -33,6 +33,7 @@ of agents and obstacles at fixed densities.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -43,7 +44,11 @@ from groupcanon.frames import planar_frame
 from .obstacles import Obstacles
 from .rectangles import ray_distances
 
-__all__ = ["LidarScan", "lidar_scan", "ray_directions"]
+__all__ = ["LidarScan", "RayFaults", "lidar_scan", "ray_directions"]
+
+#: ``(agent, ray, distance) -> (measured distance, arrived)``, each ``(R,)``: a sensor's faults on the returns of
+#: single rays (:func:`lidar_scan`'s ``ray_faults``)
+RayFaults = Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]
 
 
 @dataclass
@@ -104,6 +109,7 @@ def lidar_scan(
     n_rays: int = 32,
     max_range: float = 1.0,
     max_hits: int = 16,
+    ray_faults: RayFaults | None = None,
 ) -> LidarScan:
     """Cast the LiDAR of every agent.
 
@@ -116,6 +122,10 @@ def lidar_scan(
             unit vector ``(cos theta, sin theta)`` or any nonzero vector along it.
         obstacles: ``K`` obstacles per environment of the same dimension (centres ``(B, K, d)``).
         n_rays, max_range, max_hits: the pattern (see module doc), the ray length, the hits kept per agent.
+        ray_faults: what the sensor does to each ray's return before the closest ``max_hits`` are kept (a faulty
+            sensor, :meth:`egcbf.faults.Sensing.scan`): called with ``agent`` ``(R,)`` (flat rows ``b * N + i``),
+            ``ray`` ``(R,)`` (indices into :func:`ray_directions`) and ``distance`` ``(R,)`` of every ray that
+            hits, it returns the measured distances ``(R,)`` and which returns arrive ``(R,)`` bool.
 
     Returns:
         :class:`LidarScan` with ``H = max_hits`` slots per agent, closest first, points ``(B, N, H, d)``.
@@ -181,6 +191,9 @@ def lidar_scan(
             first[1:] = key[1:] != key[:-1]
             perm = perm[first]
             agent, ri, t = agent[perm], ri[perm], t[perm]
+            if ray_faults is not None:
+                t, arrived = ray_faults(agent, ri, t)
+                agent, ri, t = agent[arrived], ri[arrived], t[arrived]
             # the max_hits closest rays per agent: sort by (agent, t), rank within the agent's run
             perm = _sort_by(agent, t)
             agent, ri, t = agent[perm], ri[perm], t[perm]

@@ -38,7 +38,7 @@ from ..neighbors import radius_neighbors
 from ..robots import Robot, make_robot
 from ..robots.quadrotor import dynamics as dyn
 from .config import EnvConfig, _is_int
-from .lidar import LidarScan, lidar_scan
+from .lidar import LidarScan, RayFaults, lidar_scan
 from .obstacles import Obstacles, sample_obstacles, sample_rectangle_obstacles
 from .sampling import sample_separated_points
 from .scenes import cos_sin_degrees, rotate_about_center, scene_boxes, wrap_angle
@@ -301,11 +301,14 @@ def advance(robot: Robot, config: EnvConfig, x: Tensor, u: Tensor, goals: Tensor
     return x_next, u
 
 
-def cast_lidar(config: EnvConfig, positions: Tensor, heading: Tensor, obstacles: Obstacles) -> LidarScan:
+def cast_lidar(
+    config: EnvConfig, positions: Tensor, heading: Tensor, obstacles: Obstacles, ray_faults: RayFaults | None = None
+) -> LidarScan:
     """:func:`egcbf.env.lidar.lidar_scan` with the ray pattern, range and hit count of ``config``.
 
     ``positions`` and ``heading`` (``Robot.heading``: the body x axes of quadrotors, whose horizontal part turns the
-    pattern; the unit headings of planar robots) are ``(B, N, d)``; ``obstacles`` has ``B`` environments.
+    pattern; the unit headings of planar robots) are ``(B, N, d)``; ``obstacles`` has ``B`` environments;
+    ``ray_faults``: the sensor's faults on single rays (:func:`~egcbf.env.lidar.lidar_scan`).
     """
     return lidar_scan(
         positions,
@@ -314,6 +317,7 @@ def cast_lidar(config: EnvConfig, positions: Tensor, heading: Tensor, obstacles:
         n_rays=config.n_rays,
         max_range=config.resolved_lidar_range,
         max_hits=config.lidar_max_hits,
+        ray_faults=ray_faults,
     )
 
 

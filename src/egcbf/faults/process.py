@@ -37,10 +37,14 @@ __all__ = ["FaultProcess", "noncooperative_mask"]
 
 
 def noncooperative_mask(faults: FaultConfig, seeds: Tensor, num_agents: int) -> Tensor:
-    """``(B, N)`` bool: the ``round(noncoop * N)`` agents of each episode that ignore their controller (the ones
-    with the smallest draws of their episode; a pure function of the episode seed)."""
+    """``(B, N)`` bool: the ``noncoop * N`` agents (rounded half up) of each episode that ignore their controller
+    (the ones with the smallest draws of their episode; a pure function of the episode seed). Raises
+    ``ValueError`` when that leaves no cooperative agent (there would be nothing to measure)."""
     b = seeds.shape[0]
-    k = round(faults.noncoop * num_agents)
+    k = math.floor(faults.noncoop * num_agents + 0.5)
+    if num_agents > 0 and k >= num_agents:
+        raise ValueError(f"faults: noncoop={faults.noncoop:g} of {num_agents} agents leaves no cooperative agent "
+                         f"to measure; use a smaller fraction")  # fmt: skip
     mask = torch.zeros(b, num_agents, dtype=torch.bool, device=seeds.device)
     if k > 0:
         u = draws.uniform(STREAMS["noncoop"], seeds.view(b, 1), torch.arange(num_agents, device=seeds.device))
@@ -88,7 +92,7 @@ class FaultProcess:
         self._axes = torch.arange(d, device=self.device).view(1, 1, d)
         self.noncoop = noncooperative_mask(faults, self.seeds, n)
         self.gains, self.bias = self._actuator_errors(b, n)
-        self._seen: deque[Tensor] = deque(maxlen=faults.msg_delay + faults.msg_hold + 1)  # newest first
+        self._seen: deque[Tensor] = deque(maxlen=faults.msg_delay + faults.msg_hold + 2)  # newest first
         self._commands: deque[Tensor] = deque()
         self._starts: Tensor | None = None
         # the agents' own handling of their actuation delay and of disturbances (act_predict, dist_obs)
@@ -140,23 +144,27 @@ class FaultProcess:
     # -------------------------------------------------------------------------------------------------- steps
     def observe(self, state: SwarmState) -> SwarmState:
         """What the agents perceive of ``state``: their noisy estimates (broadcast to their neighbours as well),
-        with a :class:`~egcbf.faults.sensing.Sensing` for LiDAR and messages when such faults are on."""
+        with a :class:`~egcbf.faults.sensing.Sensing` for LiDAR and messages when such faults are on or the agents'
+        state is not the true one (position noise, prediction over an actuation delay: the LiDAR still measures
+        from the true pose)."""
         f, robot = self.faults, self.robot
         if self._starts is None:
             self._starts = robot.positions(state.x).clone()
-        seen = state.x
+        estimate = state.x
         if f.pos_noise > 0 or f.vel_noise > 0:
             dp = self._noise("pos", f.pos_noise, state.t)
             dv = self._noise("vel", f.vel_noise, state.t) if f.vel_noise > 0 else None
-            seen = robot.perturbed(state.x, dp, dv)
+            estimate = robot.perturbed(state.x, dp, dv)
+        seen = estimate
         if self.onboard is not None:  # the agents' own prediction and disturbance estimate (also broadcast)
-            seen = self.onboard.estimate(seen, state.goals)
+            seen = self.onboard.estimate(estimate, state.goals)
         self._seen.appendleft(seen)
         sensing = None
-        if f.edge_faults:
+        # the LiDAR measures from the true pose whenever the agents' state differs from it (noise, prediction)
+        if f.edge_faults or f.pos_noise > 0 or seen is not estimate:
             sent = self._seen[min(f.msg_delay, len(self._seen) - 1)]
             sensing = Sensing(f, robot, self.seeds, state.t, state.x, seen, sent, state.obstacles,
-                              tuple(self._seen), self.config.dt)  # fmt: skip
+                              tuple(self._seen), self.config.dt, x_placed=estimate)  # fmt: skip
         return SwarmState(seen, state.goals, state.obstacles, state.t, state.robot, sensing)
 
     def actuate(self, u: Tensor, state: SwarmState) -> Tensor:

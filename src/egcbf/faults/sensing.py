@@ -6,8 +6,10 @@ passes the graph it built through :meth:`Sensing.messages`. So every controller 
 (the learned policies and the filters around them) perceives the faults, with no change to the controller.
 
 * **LiDAR**: the rays are cast from the agents' *true* positions and headings (a sensor measures the world as it
-  is) and placed around the agents' *estimated* positions (where the agent believes it is); each range gets its
-  Gaussian error (``lidar_noise``) and each return is lost with probability ``lidar_drop``.
+  is) and placed around the agents' *estimated* positions (where the agent believes it is), so under state-estimate
+  noise alone the scan's vectors to the obstacles stay exact; each ray's range gets its Gaussian error
+  (``lidar_noise``) and each ray's return is lost with probability ``lidar_drop``, before the closest
+  ``lidar_max_hits`` returns are kept (a sensor's returns, then the scan's processing).
 * **Messages**: an agent-to-agent edge carries the sender's broadcast estimate; with ``msg_delay = k`` it is the
   estimate of ``k`` steps ago (sender features and position), and the edge vector is that position minus the
   receiver's current estimate; an edge whose delayed neighbour lies outside the communication radius is dropped, and
@@ -88,9 +90,13 @@ class Sensing:
         x_sent: ``(B, N, S)`` the estimates the messages of this step carry (``x_seen`` of ``msg_delay`` steps ago).
         obstacles: the true obstacles.
         history: the estimates of the steps before, newest first (``history[k]``: ``x_seen`` of step ``t - k``,
-            ``history[0] = x_seen``), as many as ``msg_delay + msg_hold + 1`` once the episode is that old; empty:
-            ``(x_seen,)`` (no hold).
+            ``history[0] = x_seen``), as many as ``msg_delay + msg_hold + 2`` once the episode is that old (the
+            oldest message's state and the one before, for the acceleration it carries); empty: ``(x_seen,)`` (no
+            hold, no acceleration known).
         dt: the control period (s), for ``msg_predict``.
+        x_placed: ``(B, N, S)`` where the agents place their scans: their current estimates, before any prediction
+            over an actuation delay (``act_predict``: ``x_seen`` is then the predicted state, and a static obstacle
+            stays where it is in the world); ``None``: ``x_seen``.
     """
 
     faults: FaultConfig
@@ -103,33 +109,41 @@ class Sensing:
     obstacles: Obstacles
     history: tuple[Tensor, ...] = ()
     dt: float = 0.0
+    x_placed: Tensor | None = None
 
     # -------------------------------------------------------------------------------------------------- LiDAR
     def scan(self, config: EnvConfig) -> LidarScan:
-        """The scan the agents get: cast from the true poses, placed around the estimates, with range errors and
-        lost returns (dtype of the estimates)."""
+        """The scan the agents get (dtype of the estimates): cast from the true poses, every ray's return with its
+        range error and lost with probability ``lidar_drop`` before the closest ``lidar_max_hits`` are kept (a
+        sensor's returns, :meth:`ray_faults`), the hits then placed around the agents' estimates
+        (:attr:`x_placed`)."""
         robot, f = self.robot, self.faults
-        truth = cast_lidar(config, robot.positions(self.x_true), robot.heading(self.x_true), self.obstacles)
-        p_true = robot.positions(self.x_true)[:, :, None]
-        p_seen = robot.positions(self.x_seen)[:, :, None].to(truth.points.dtype)
-        rel = truth.points - p_true
-        distance = truth.distance
-        valid = truth.valid
-        if f.lidar_noise > 0 or f.lidar_drop > 0:
-            b, n, h = valid.shape
-            address = (self.seeds.view(b, 1, 1), self.t, _arange(n, valid).view(1, n, 1), _arange(h, valid))
-        if f.lidar_noise > 0:
-            r = torch.linalg.vector_norm(rel, dim=-1, keepdim=True)
-            err = f.lidar_noise * draws.normal(STREAMS["lidar"], *address, dtype=r.dtype)[..., None]
-            noisy = (r + err).clamp_min(0)
-            rel = torch.where(r > 0, rel * noisy / r.clamp_min(1e-12), rel)
-            distance = torch.where(valid, noisy[..., 0], distance)
-        if f.lidar_drop > 0:
-            valid = valid & (draws.uniform(STREAMS["lidar_drop"], *address) >= f.lidar_drop)
-            distance = torch.where(valid, distance, torch.full_like(distance, float("inf")))
-        points = torch.where(valid[..., None], p_seen + rel, p_seen.expand_as(rel))
+        p_true = robot.positions(self.x_true)
+        faulty = f.lidar_noise > 0 or f.lidar_drop > 0
+        truth = cast_lidar(config, p_true, robot.heading(self.x_true), self.obstacles,
+                           self.ray_faults if faulty else None)  # fmt: skip
+        rel = truth.points - p_true[:, :, None]
+        placed = self.x_seen if self.x_placed is None else self.x_placed
+        p_seen = robot.positions(placed)[:, :, None].to(truth.points.dtype)
+        points = torch.where(truth.valid[..., None], p_seen + rel, p_seen.expand_as(rel))
         dtype = self.x_seen.dtype
-        return LidarScan(points.to(dtype), valid, distance.to(dtype))
+        return LidarScan(points.to(dtype), truth.valid, truth.distance.to(dtype))
+
+    def ray_faults(self, agent: Tensor, ray: Tensor, distance: Tensor) -> tuple[Tensor, Tensor]:
+        """The LiDAR's faults on single returns (:data:`egcbf.env.lidar.RayFaults`): ``agent`` ``(R,)`` flat rows
+        ``b * N + i``, ``ray`` ``(R,)`` the ray indices, ``distance`` ``(R,)`` the true ranges (m). Returns the
+        measured ranges (Gaussian error of std ``lidar_noise``, clamped at 0; draw ``(seed, "lidar", t, i, ray)``)
+        and which returns arrive (draw ``(seed, "lidar_drop", t, i, ray) >= lidar_drop``)."""
+        f = self.faults
+        n = self.x_true.shape[1]
+        address = (self.seeds.to(agent.device)[agent // n], self.t, agent % n, ray)
+        if f.lidar_noise > 0:
+            err = f.lidar_noise * draws.normal(STREAMS["lidar"], *address, dtype=distance.dtype)
+            distance = (distance + err).clamp_min(0)
+        arrived = torch.ones_like(agent, dtype=torch.bool)
+        if f.lidar_drop > 0:
+            arrived = draws.uniform(STREAMS["lidar_drop"], *address) >= f.lidar_drop
+        return distance, arrived
 
     # ----------------------------------------------------------------------------------------------- messages
     @property
@@ -165,7 +179,7 @@ class Sensing:
 
     def received(
         self, receivers: Tensor, senders: Tensor, comm_radius: float, like: Tensor | None = None
-    ) -> tuple[Tensor, Tensor]:
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """Which candidate directed links carry a message in this step, and what each message tells its receiver.
 
         Args:
@@ -178,12 +192,17 @@ class Sensing:
 
         Returns:
             ``keep`` ``(E,)`` bool on the device of ``receivers``: the link has a message, i.e. the one of this step
-            is not lost (draw ``(seed, "loss", t, i, j) < msg_loss`` with ``i, j`` the local indices of receiver
-            and sender) or, with ``msg_hold = H``, one of the ``H`` steps before was not (the newest is used);
-            and, with a delay or a held message, the sender's position it carries lies within ``comm_radius`` of
-            the receiver's current estimate. ``states`` ``(E, S)``: the sender's state as the receiver uses it,
-            world frame: its estimate of ``msg_delay`` steps before the message was sent (``x_sent`` for a message
-            of this step), moved to the present at its velocity with ``msg_predict``.
+            is not lost (its draw at address ``("loss", seed, t, i, j)`` is ``>= msg_loss``, ``i, j`` the local
+            indices of receiver and sender) or, with ``msg_hold = H``, one of the ``H`` steps before was not (the
+            newest is used); and, with a delay or a held message, the sender's position it carries lies within
+            ``comm_radius`` of the receiver's current estimate.
+            ``states`` ``(E, S)``: the sender's state as the receiver uses it, world frame: its estimate of
+            ``msg_delay`` steps before the message was sent (``x_sent`` for a message of this step), moved to the
+            present at its velocity with ``msg_predict``.
+            ``accel`` ``(E, d)`` float64: the acceleration the message carries, its sender's over the step before
+            that estimate (``(v_{t-a} - v_{t-a-1}) / dt`` of the sender's estimates, ``a`` the message's age; world
+            frame, m/s^2), zero where that earlier estimate is not in :attr:`history` (an episode's first step): what
+            a receiver knows of a neighbour's acceleration (the look-ahead of the ``dcbf`` filter).
         """
         f, robot = self.faults, self.robot
         b, n = self.x_seen.shape[:2]
@@ -205,13 +224,31 @@ class Sensing:
             stacked = torch.stack(history).reshape(len(history) * b * n, -1)
             states = self._moved_on(stacked[age * (b * n) + src].to(dtype=like.dtype), age)
         else:
+            age = torch.full_like(src, self.delay_age)
             states = self.sent_states(like)[src]
+        accel = self._carried_acceleration(history, src, age)
         if f.msg_delay > 0 or self.per_link:
             seen = self.x_seen.reshape(b * n, -1).to(device=like.device, dtype=like.dtype)
             gap = torch.linalg.vector_norm(robot.positions(states) - robot.positions(seen)[receivers.to(like.device)],
                                            dim=-1)  # fmt: skip
             keep &= (gap < comm_radius).to(receivers.device)
-        return keep, states
+        return keep, states, accel
+
+    def _carried_acceleration(self, history: tuple[Tensor, ...], src: Tensor, age: Tensor) -> Tensor:
+        """``(E, d)`` float64: the acceleration of sender rows ``src`` over the step before their estimate of
+        ``age`` steps ago (``(E,)`` each), from ``history``; zero where the step before is not in it."""
+        robot, k = self.robot, len(history)
+        if k < 2:
+            return torch.zeros(src.shape[0], robot.dim, dtype=torch.float64, device=src.device)
+        if not self.dt > 0:
+            raise ValueError(f"Sensing.dt must be the control period (s) > 0 to tell accelerations, got {self.dt!r}")
+        rows = src.to(history[0].device)
+        vel = torch.stack([robot.velocities(h.reshape(-1, h.shape[-1])) for h in history])  # (K, B N, d)
+        before = (age + 1).to(rows.device)
+        now_v = vel[age.to(rows.device), rows].to(torch.float64)
+        before_v = vel[before.clamp_max(k - 1), rows].to(torch.float64)
+        accel = torch.where((before < k)[:, None], (now_v - before_v) / self.dt, torch.zeros_like(now_v))
+        return accel.to(src.device)
 
     def messages(self, graph: SwarmGraph) -> SwarmGraph:
         """``graph`` (built from the estimates) with its agent-to-agent edges as the messages arrive
@@ -223,16 +260,19 @@ class Sensing:
         m = graph.num_dst
         src, dst = graph.edge_index
         agent_edge = graph.edge_kind == KIND_AGENT
-        arrived, states = self.received(dst[agent_edge], src[agent_edge], graph.comm_radius, like=graph.x_src)
+        arrived, states, _ = self.received(dst[agent_edge], src[agent_edge], graph.comm_radius, like=graph.x_src)
         keep = ~agent_edge
         keep[agent_edge] = arrived
         x_src, pos_src, edge_index = graph.x_src, graph.pos_src, graph.edge_index
+        src_kind, src_batch = graph.src_kind, graph.src_batch
         if self.per_link:
             rows = torch.arange(x_src.shape[0], x_src.shape[0] + states.shape[0], device=edge_index.device)
             edge_index = edge_index.clone()
             edge_index[0, agent_edge] = rows
             x_src = torch.cat((x_src, agent_features(self.robot, states)))
             pos_src = torch.cat((pos_src, self.robot.positions(states)))
+            src_kind = torch.cat((src_kind, src_kind[src[agent_edge]]))
+            src_batch = torch.cat((src_batch, src_batch[src[agent_edge]]))
         elif self.faults.msg_delay > 0 or self.faults.msg_predict:
             sent = self.sent_states(x_src)
             x_src = torch.cat((agent_features(self.robot, sent), x_src[m:]))
@@ -241,8 +281,4 @@ class Sensing:
         edge_kind = graph.edge_kind[keep]
         edge_attr = edge_vectors(pos_src, graph.pos_dst, edge_index, edge_kind, graph.comm_radius)
         return replace(graph, x_src=x_src, pos_src=pos_src, edge_index=edge_index, edge_kind=edge_kind,
-                       edge_attr=edge_attr)  # fmt: skip
-
-
-def _arange(n: int, like: Tensor) -> Tensor:
-    return torch.arange(n, device=like.device)
+                       edge_attr=edge_attr, src_kind=src_kind, src_batch=src_batch)  # fmt: skip

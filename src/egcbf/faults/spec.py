@@ -55,8 +55,9 @@ class FaultConfig:
     Sensing (each agent's own estimate, which it also broadcasts to its neighbours):
         pos_noise: std (m) of the Gaussian error of each position coordinate, drawn fresh every step.
         vel_noise: std (m/s) of each velocity coordinate's error, drawn fresh every step.
-        lidar_noise: std (m) of each LiDAR range's error.
-        lidar_drop: probability that a LiDAR return is lost (each ray, each step).
+        lidar_noise: std (m) of each LiDAR ray's range error.
+        lidar_drop: probability that a LiDAR ray's return is lost (each ray, each step; the scan keeps the closest
+            of the returns that arrive).
 
     Communication (each agent-to-agent edge of the graph carries the sender's broadcast state):
         msg_loss: probability that the message of an edge is lost in a step (the receiver does not see that
@@ -180,11 +181,17 @@ class FaultConfig:
         """The spec string of this config (:func:`parse_faults` reads it back); ``"none"`` when fault-free."""
         parts = []
         for k, v in self.active().items():
-            parts.append(f"{k}={'/'.join(f'{w:g}' for w in v) if isinstance(v, tuple) else v}")
+            parts.append(f"{k}={'/'.join(_number(w) for w in v) if isinstance(v, tuple) else v}")
         return ",".join(parts) or "none"
 
     def to_dict(self) -> dict:
         return {**dataclasses.asdict(self), "wind": list(self.wind)}
+
+
+def _number(v: float) -> str:
+    """``v`` short (``1``, ``0.5``) where that reads back exactly, else every digit it needs."""
+    short = f"{v:g}"
+    return short if float(short) == v else repr(float(v))
 
 
 def _check(name: str, v, ok, what: str) -> None:

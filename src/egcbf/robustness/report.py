@@ -23,8 +23,8 @@ THRESHOLDS = (0.99, 0.95)
 _FAULTS_TABLE = (
     ("pos_noise", "pos", "m (std per axis)", "each agent's position estimate, fresh every step (also broadcast)"),
     ("vel_noise", "vel", "m/s (std per axis)", "each agent's velocity estimate, likewise"),
-    ("lidar_noise", "lidar", "m (std)", "each LiDAR range (rays cast from the true pose, placed around the estimate)"),
-    ("lidar_drop", "", "probability", "each LiDAR return lost, each step"),
+    ("lidar_noise", "lidar", "m (std)", "each LiDAR ray's range (cast from the true pose, placed around the estimate)"),
+    ("lidar_drop", "", "probability", "each LiDAR ray's return lost, each step, before the closest are kept"),
     ("msg_loss", "loss", "probability", "each directed message (receiver <- sender) lost, each step"),
     ("msg_delay", "delay", "control steps", "every message carries the sender's estimate of that many steps ago"),
     ("msg_hold", "hold", "control steps", "not a fault, the receivers' handling: a lost message is replaced by the "

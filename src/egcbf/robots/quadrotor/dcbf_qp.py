@@ -56,7 +56,6 @@ class DecentralizedCBFQP(_CBFQPBase):
         a_ref: np.ndarray | None = None,
         lookahead: float = 0.0,
         accel: np.ndarray | None = None,
-        accel_sent: np.ndarray | None = None,
     ) -> tuple[Tensor, dict]:
         """The dCBF-QP around a reference acceleration: each agent's QP keeps ``a_i`` closest to ``a_ref[b, i]``
         ``(B, N, 3)`` (world frame, m/s^2; ``None``: the nominal acceleration, the dCBF-QP baseline). Used as the
@@ -65,9 +64,9 @@ class DecentralizedCBFQP(_CBFQPBase):
         ``lookahead`` (s): the barriers read every agent at its state ``lookahead`` seconds ahead under its
         current acceleration ``accel`` ``(B, N, 3)`` (m/s^2, world frame; ``None``: zero), ``p + T v + T^2 a / 2``
         and ``v + T a``: a new command acts only after the attitude loop has turned the thrust (~0.1 s), and until
-        then the agents keep the acceleration they have (a predictor for the loop's lag). Under message faults a
-        neighbour is read as its message carries it, predicted with ``accel_sent`` ``(B, N, 3)``: the acceleration
-        its messages imply (``None``: ``accel``)."""
+        then the agents keep the acceleration they have (a predictor for the loop's lag). Under message faults an
+        agent knows a neighbour only as its message carries it: its state and the acceleration it had then
+        (:meth:`egcbf.faults.Sensing.received`), and predicts it with that acceleration."""
         t0, c0 = time.perf_counter(), time.process_time()
         cfg = self.config
         prep = self._prepare(state, env_config, a_ref)
@@ -89,10 +88,7 @@ class DecentralizedCBFQP(_CBFQPBase):
             )
             owner, normal, rhs = split_for_agents(cons)
         else:
-            links, sent_p, sent_v = self._perceived(
-                prep, sensing, env_config, p_now.reshape(m, 3), batch, lookahead,
-                accel if accel_sent is None else accel_sent,
-            )  # fmt: skip
+            links, sent_p, sent_v = self._perceived(prep, sensing, env_config, p_now.reshape(m, 3), batch, lookahead)
             cons = perceived_constraints(
                 prep.p.reshape(m, 3), prep.v.reshape(m, 3), links, sent_p, sent_v, prep.barrier, *obstacles,
                 batch=batch, bounds=prep.bounds,
@@ -138,7 +134,7 @@ class DecentralizedCBFQP(_CBFQPBase):
 
     @staticmethod
     def _perceived(
-        prep: _Prepared, sensing, env_config, p_now: np.ndarray, batch: np.ndarray, lookahead: float, accel
+        prep: _Prepared, sensing, env_config, p_now: np.ndarray, batch: np.ndarray, lookahead: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What the agents know of their neighbours under message faults (:meth:`egcbf.faults.Sensing.received`).
 
@@ -146,24 +142,24 @@ class DecentralizedCBFQP(_CBFQPBase):
         barrier's cull radius and the communication radius (a neighbour is known only from its messages), in both
         directions. Returns the directed links ``(receiver, sender)`` ``(2, L)`` whose messages arrived (flat agent
         rows ``b N + i``, sorted), and the sender's position and velocity as each link's message tells its receiver
-        ``(L, 3)`` each (world frame, float64), ``lookahead`` seconds ahead under the sender's ``accel``
-        ``(B, N, 3)`` (``None``: zero).
+        ``(L, 3)`` each (world frame, float64), ``lookahead`` seconds ahead under the acceleration the message
+        carries.
         """
         comm = float(env_config.comm_radius)
         near = replace(prep.barrier, cull_radius=min(prep.barrier.cull_radius, comm))
         pairs = agent_pairs(p_now, near, batch)
         recv = np.concatenate((pairs[0], pairs[1]))
         send = np.concatenate((pairs[1], pairs[0]))
-        keep, states = sensing.received(torch.from_numpy(recv), torch.from_numpy(send), comm, like=prep.x)
+        keep, states, carried = sensing.received(torch.from_numpy(recv), torch.from_numpy(send), comm, like=prep.x)
         keep = keep.cpu().numpy()
         p = sensing.robot.positions(states).cpu().numpy()[keep]
         v = sensing.robot.velocities(states).cpu().numpy()[keep]
+        acc = carried.cpu().numpy()[keep]
         recv, send = recv[keep], send[keep]
         order = np.lexsort((send, recv))
         links = np.stack((recv[order], send[order]))
-        p, v = p[order], v[order]
+        p, v, acc = p[order], v[order], acc[order]
         if lookahead:
-            acc = _accel_or_zero(accel, prep.v).reshape(-1, 3)[links[1]]
             p = p + lookahead * v + 0.5 * lookahead**2 * acc
             v = v + lookahead * acc
         return links, p, v

@@ -42,7 +42,7 @@ class Interval(NamedTuple):
 
     def text(self, scale: float = 1.0, digits: int = 1) -> str:
         """``"+1.2 [-0.3, +2.8]"`` (values times ``scale``, e.g. 100 for rate points)."""
-        e, lo, hi = (scale * v for v in (self.estimate, self.low, self.high))
+        e, lo, hi = (round(scale * v, digits) + 0.0 for v in (self.estimate, self.low, self.high))  # no "-0.00"
         return f"{e:+.{digits}f} [{lo:+.{digits}f}, {hi:+.{digits}f}]"
 
 

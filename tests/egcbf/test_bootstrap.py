@@ -103,3 +103,9 @@ def test_bad_options_are_named():
     with pytest.raises(ValueError, match="resamples must be an integer >= 100"):
         mean_ci([[0.5]], resamples=10)
     assert isinstance(mean_ci([[0.5, 0.6]]), Interval)
+
+
+def test_text_never_writes_a_negative_zero():
+    iv = Interval(-4e-7, -0.0049, 0.0053, 0.95, 2000, 1, 20)
+    assert iv.text(100, 2) == "+0.00 [-0.49, +0.53]"
+    assert Interval(-0.012, -0.02, -0.001, 0.95, 2000, 1, 20).text(100, 1) == "-1.2 [-2.0, -0.1]"

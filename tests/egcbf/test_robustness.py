@@ -49,12 +49,17 @@ def test_the_plan_runs_the_perfect_world_first_and_message_faults_only_where_the
     assert cfg.cell_spec("ccbf", "msg_loss=0.3") is None and cfg.cell_spec("egcbf+", "msg_loss=0.3") == "msg_loss=0.3"
     ray = RobustnessConfig(axes=("field",), backend="ray", workers=3, device="cuda")
     assert {(s.backend, s.workers, s.device, s.episodes) for _, _, s in ray.sweeps()} == {("ray", 3, "cuda", 20)}
-    # per channel: the dCBF-QP reads messages but not the LiDAR (its obstacle rows come from the map)
+    # per channel: the dCBF-QP reads messages but not the LiDAR (its obstacle rows come from the map), and so does
+    # its filter of the nominal command; a policy behind the filter reads the LiDAR through its graph
     lidar = axis("lidar").specs()[2]
     assert cfg.cell_spec("dcbf", lidar) is None and cfg.cell_spec("egcbf+", lidar) == lidar
-    for m in ("dcbf", "egcbf+:dcbf"):
+    assert cfg.cell_spec("egcbf+:dcbf", lidar) == lidar and cfg.cell_spec("nominal:dcbf", lidar) is None
+    assert reads_sensing("egcbf+:dcbf") is True and reads_sensing("nominal:dcbf") == {"messages"}
+    for m in ("dcbf", "nominal:dcbf"):
         assert cfg.cell_spec(m, DEFAULT_FIELD.spec()) == DEFAULT_FIELD.spec()
         assert cfg.cell_spec(m, "msg_loss=0.1,lidar_noise=0.1") == "msg_loss=0.1"
+    both = parse_faults("msg_loss=0.1,lidar_noise=0.1").spec()
+    assert cfg.cell_spec("egcbf+:dcbf", both) == both
     # the receivers' axes: the message handling goes with the messages (a controller without them runs the
     # state-level part, the very cell of the plain axis)
     held = axis("field_receivers").specs()[1]
@@ -160,3 +165,37 @@ def test_the_committed_report_is_generated_from_the_committed_cells(tmp_path, mo
     monkeypatch.chdir(root)
     path = write_report(RobustnessConfig(), tmp_path / "robustness.md", tmp_path / "figures")
     assert path.read_text() == (root / "docs" / "robustness.md").read_text()
+
+
+def _rows(safe: float, success: float | None = None) -> dict:
+    return {"safe_rate": safe, "success_rate": safe if success is None else success}
+
+
+def test_the_advice_holds_a_level_only_with_every_milder_one():
+    """A controller that drops below 99 % safe at a mild level and recovers at a harsher one does not hold the
+    harsher one; the advice picks the controller that held every level up to it."""
+    from egcbf.robustness.advice import advice
+
+    cfg = RobustnessConfig(axes=("thrust",), controllers=("nominal", "ccbf"), num_agents=(4,), obstacles=1)
+    safe = {"nominal": (1.0, 0.98, 0.995, 0.995, 0.995), "ccbf": (1.0, 0.995, 0.995, 0.98, 0.97)}
+    cells = {(m, spec, 4, k): _rows(safe[m][i]) for m in safe for i, spec in enumerate(axis("thrust").specs())
+             for k in (0, 1)}  # fmt: skip
+    line = next(x for x in advice(cfg, cells) if x.startswith("- thrust gain error"))
+    assert "up to 0.1 (" in line and "**cCBF-QP**" in line and "none stays 99 % safe up to 0.2" in line, line
+
+
+def test_a_fix_the_recommended_controller_does_not_perceive_is_said_so_and_n_a_wins_over_0():
+    from egcbf.robustness.advice import advice
+    from egcbf.robustness.report import _breaking_levels
+
+    cfg = RobustnessConfig(axes=("field", "field_receivers", "loss"), controllers=("nominal", "ccbf"),
+                           num_agents=(4,), obstacles=1)  # fmt: skip
+    cells = {(m, spec, 4, k): _rows(0.995 if m == "ccbf" else 0.5) for m in cfg.controllers
+             for spec in axis("field").specs() for k in (0, 1)}  # fmt: skip
+    lines = advice(cfg, cells)
+    assert any("**cCBF-QP**" in x for x in lines)
+    fix = next(x for x in lines if x.startswith("- default field conditions, receivers"))
+    assert "does not change cCBF-QP" in fix and "pending" not in fix
+    table = _breaking_levels(cfg, {(m, "none", 4, 0): _rows(0.5) for m in cfg.controllers}, 4, 0)
+    row = next(x for x in table if x.startswith("| message loss"))
+    assert row.endswith("| n/a | n/a |"), row  # nominal is below 99 % without faults, but reads no messages

@@ -36,8 +36,9 @@ the ablation that shows what the policy adds. docs/safety_filters.md has the mea
 
 Under faults (:mod:`egcbf.faults`) the policy and the ``cbf`` / ``prior`` rows read the agent's graph, which carries
 the messages and the LiDAR scan as the agent receives them; the ``dcbf`` rows read the same messages
-(:class:`~.dcbf_qp.DecentralizedCBFQP`) but the obstacle map, not the scan. ``reads_sensing`` says so:
-every channel for ``cbf`` and ``prior``, the messages for ``dcbf`` (``READS_SENSING``).
+(:class:`~.dcbf_qp.DecentralizedCBFQP`) but the obstacle map, not the scan. ``reads_sensing`` says what the whole
+controller perceives (:func:`filter_reads_sensing`): every channel with a policy (its graph) and for ``cbf`` and
+``prior``; the messages for the ``dcbf`` filter of the nominal command (``READS_SENSING``).
 
 Every piece is an invariant or an equivariant of the agent's frame (edge vectors rotate with the scene, the box
 turns with the agent, the policy is equivariant for EGCBF+), so the filtered controller of EGCBF+ stays SE2xR
@@ -73,6 +74,7 @@ __all__ = [
     "FilterConfig",
     "FilteredController",
     "edge_rows",
+    "filter_reads_sensing",
     "load_filtered_controller",
 ]
 
@@ -84,9 +86,18 @@ __all__ = [
 DCBF_FILTER_BARRIER = BarrierConfig(margin=0.02, gamma=50.0, brake_accel=3.0)
 #: the ``dcbf`` filter's look-ahead (s) under the realized acceleration: the attitude loop's lag (docs)
 DCBF_FILTER_LOOKAHEAD = 0.05
-#: per filter kind, the channels of ``state.sensing`` (:data:`egcbf.faults.sensing.CHANNELS`) that both the policy's
-#: graph and the filter's rows perceive: ``FilteredController.reads_sensing`` (module doc)
+#: per filter kind, the channels of ``state.sensing`` (:data:`egcbf.faults.sensing.CHANNELS`) that the filter's rows
+#: perceive (module doc)
 READS_SENSING = {"cbf": True, "prior": True, "dcbf": DecentralizedCBFQP.reads_sensing}
+
+
+def filter_reads_sensing(kind: str, has_policy: bool):
+    """A filtered controller's ``reads_sensing`` (:func:`egcbf.faults.sensing.unread_faults`): every channel with a
+    policy (it builds its graph from what the agents perceive, LiDAR included), else its filter rows' channels
+    (:data:`READS_SENSING`)."""
+    if kind not in READS_SENSING:
+        raise ValueError(f"unknown filter kind {kind!r}; choose from {sorted(READS_SENSING)}")
+    return True if has_policy else READS_SENSING[kind]
 
 
 @dataclass(frozen=True)
@@ -190,7 +201,7 @@ class FilteredController:
         self.policy, self.model_config, self.config, self.cbf = policy, model_config, config, cbf
         self._dcbf = None
         self._last: tuple[int, np.ndarray] | None = None  # (step, velocities) of the previous call: lookahead only
-        self.reads_sensing = READS_SENSING[config.kind]
+        self.reads_sensing = filter_reads_sensing(config.kind, policy is not None)
         if config.kind == "dcbf":
             self._dcbf = DecentralizedCBFQP(
                 barrier=config.barrier, penalty=config.penalty, brake_gain=config.brake_gain

@@ -65,33 +65,37 @@ def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
     for a in _fault_axes(cfg):
         specs, obstacles = a.specs(), (0, cfg.obstacles)
         methods = [m for m in cfg.controllers if all(cfg.cell_spec(m, sp) is not None for sp in specs)]
+        if not methods:  # no controller perceives this axis' faults
+            continue
         for n in sorted(cfg.num_agents, reverse=True):
             if not all((m, sp, n, k) in cells for m in methods for sp in specs for k in obstacles):
                 continue
             worst = {(m, i): tuple(min(cells[(m, sp, n, k)][key] for k in obstacles)
                                    for key in ("safe_rate", "success_rate"))
                      for m in methods for i, sp in enumerate(specs)}  # fmt: skip
+            # each controller's first level below 99 % safe: a controller holds a level only if it held every milder one
+            first_fail = {m: next((i for i in range(len(specs)) if worst[(m, i)][0] < 0.99), len(specs))
+                          for m in methods}  # fmt: skip
+            held = max(first_fail.values())
             fix = _fix_hint(a.name)
-            failing = [i for i in range(len(specs)) if not any(worst[(m, i)][0] >= 0.99 for m in methods)]
             names = ", ".join(LABELS.get(m, m) for m in methods)
-            if failing and failing[0] == 0:
+            where = f"N = {n}, each rate the worse of {obstacles[0]} and {obstacles[1]} obstacles"
+            if held == 0:
                 lines.append(f"- {a.title}: none of the controllers that perceive it ({names}) is 99 % safe even "
-                             f"without it (N = {n}, the worse of {obstacles[0]} and {obstacles[1]} "
-                             f"obstacles).{fix}")  # fmt: skip
+                             f"without it ({where}).{fix}")  # fmt: skip
                 break
-            i = failing[0] - 1 if failing else len(specs) - 1  # the last level before the first failing one
-            pick = max((m for m in methods if worst[(m, i)][0] >= 0.99), key=lambda m: worst[(m, i)][::-1])
-            safe, success = worst[(pick, i)]
+            i = held - 1  # the most severe level some controller holds, with every milder one
             if i == 0:
-                lines.append(
-                    f"- {a.title}: every controller drops below 99 % safe at {a.levels[1]:g} ({a.unit}) "
-                    f"already (N = {n}, the worse of {obstacles[0]} and {obstacles[1]} obstacles).{fix}"
-                )
-                break  # fmt: skip
-            beyond = f"; at {a.levels[failing[0]]:g} no controller is 99 % safe" if failing else ""
-            lines.append(f"- {a.title}, up to {a.levels[i]:g} ({a.unit}): **{LABELS.get(pick, pick)}** "
-                         f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, N = {n}, the worse of "
-                         f"{obstacles[0]} and {obstacles[1]} obstacles{beyond}).{fix}")  # fmt: skip
+                lines.append(f"- {a.title}: every controller drops below 99 % safe at {a.levels[1]:g} ({a.unit}) "
+                             f"already ({where}).{fix}")  # fmt: skip
+                break
+            pick = max((m for m in methods if first_fail[m] > i), key=lambda m: worst[(m, i)][::-1])
+            safe, success = worst[(pick, i)]
+            beyond = f"; none stays 99 % safe up to {a.levels[held]:g}" if held < len(specs) else ""
+            lines.append(
+                f"- {a.title}, up to {a.levels[i]:g} ({a.unit}): **{LABELS.get(pick, pick)}** "
+                f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, {where}{beyond}).{fix}"
+            )
             break
     return lines
 
@@ -109,14 +113,17 @@ def _fix_advice(cfg: RobustnessConfig, cells: dict) -> list[str]:
             continue
         name, (before, after) = fix.fixes, fix.compared()
         what, handling = fix.title, f"`{fix.handling()}`"
-        runs = (cfg.cell_spec(pick, before), cfg.cell_spec(pick, after))
+        if cfg.cell_spec(pick, before) == cfg.cell_spec(pick, after):
+            lines.append(f"- {what}: {handling} does not change {LABELS.get(pick, pick)}, which does not perceive "
+                         f"what it handles.")  # fmt: skip
+            continue
         pairs = [(n, k) for n in sorted(cfg.num_agents, reverse=True) for k in (0, cfg.obstacles)
-                 if all((pick, r, n, k) in cells for r in runs)]  # fmt: skip
+                 if all((pick, spec, n, k) in cells for spec in (before, after))]  # fmt: skip
         if not pairs:
             lines.append(f"- {what}: turn on {handling} (measured for {LABELS.get(pick, pick)}: pending).")
             continue
         n, k = pairs[0]
-        b, f = cells[(pick, runs[0], n, k)], cells[(pick, runs[1], n, k)]
+        b, f = cells[(pick, before, n, k)], cells[(pick, after, n, k)]
         where = "the default field conditions" if name == "field" else f"`{before}`"
         lines.append(f"- {what}: turn on {handling}. {LABELS.get(pick, pick)} at {where}, N = {n}, {k} "
                      f"obstacles: {pct(b, 'safe_rate')} -> {pct(f, 'safe_rate')} % safe, "
@@ -134,7 +141,7 @@ def advice(cfg: RobustnessConfig, cells: dict) -> list[str]:
         "",
         "Under one fault, pushed further (from the axes below; controllers that do not perceive a fault, n/a in the "
         "tables, are not candidates: the centralized QP for messages, the dCBF-QP for LiDAR, whose obstacles come "
-        "from the map):",
+        "from the map; a controller holds a level when it is 99 % safe there and at every milder level):",
         "",
         *(_axis_choices(cfg, cells) or ["- pending: no axis is computed for every controller yet."]),
     ]  # fmt: skip

@@ -120,16 +120,15 @@ def axis(name: str) -> Axis:
 
 def reads_sensing(method: str):
     """``method``'s controller's ``reads_sensing`` declaration (:func:`egcbf.faults.sensing.unread_faults`): ``True``
-    (a learned policy alone: its whole graph from what the agents perceive), a set of channel names (the dCBF-QP and
-    the filters: :data:`egcbf.algo.filtered.READS_SENSING`), or ``False``."""
+    (a learned policy, alone or filtered: its whole graph from what the agents perceive), a set of channel names (the
+    dCBF-QP, a filter of a hand-crafted command: :func:`egcbf.algo.filtered.filter_reads_sensing`), or ``False``."""
     from ..control.controllers import CONTROLLERS
 
-    kind = method_filter(method)
+    base, kind = base_method(method), method_filter(method)
     if kind != "none":
-        from ..algo.filtered import READS_SENSING
+        from ..algo.filtered import filter_reads_sensing
 
-        return READS_SENSING.get(kind, False)
-    base = base_method(method)
+        return filter_reads_sensing(kind, has_policy=base not in CONTROLLERS)
     if base in CONTROLLERS:
         return getattr(CONTROLLERS[base], "reads_sensing", False)
     return True  # a learned policy alone (egcbf.algo.learner.LearnedController)

@@ -71,6 +71,9 @@ def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list
     for a in (axis(x) for x in cfg.axes if not x.startswith("field")):
         row = [f"{a.title} ({a.unit})"]
         for m in cfg.controllers:
+            if all(cfg.cell_spec(m, spec) is None for spec in a.specs()[1:]):
+                row.append("n/a")  # it perceives none of the axis' faults
+                continue
             parts = []
             for thr in THRESHOLDS:
                 found = None
@@ -124,10 +127,11 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         "(`egcbf eval --faults`); the controller sees corrupted perception and sends corrupted commands, the "
         "metrics read the true states and count the cooperative agents only.",
         "",
-        "A controller runs the faults of a level it perceives: the learned policies all of them, the dCBF-QP (alone "
-        "or as a filter) the messages but not the LiDAR (its obstacle rows come from the map), the centralized "
-        "CBF-QP and the nominal controller neither (state-level faults only); a level it perceives nothing of is "
-        "n/a for it (`egcbf.faults.sensing.unread_faults`).",
+        "A controller runs the faults of a level it perceives: the learned policies all of them (filtered or not: "
+        "the policy reads the messages and the LiDAR through its graph), the dCBF-QP the messages but not the "
+        "LiDAR (its obstacle rows come from the map, as do the dCBF filter's), the centralized CBF-QP and the "
+        "nominal controller neither (state-level faults only); a level it perceives nothing of is n/a for it "
+        "(`egcbf.faults.sensing.unread_faults`).",
         "",
         "## The faults",
         "",

@@ -329,3 +329,10 @@ def test_eval_runs_a_policy_behind_the_dcbf_filter_under_message_faults(tiny_che
     res = CliRunner().invoke(app, [*base, "--faults", "lidar=0.05", "--out", str(tmp_path / "l")],
                              env={"COLUMNS": "200"})  # fmt: skip
     assert res.exit_code == 0, res.output
+
+
+def test_held_messages_without_history_are_refused_not_read_from_the_present():
+    state, cfg = _pair(0.5)
+    seen = _with_sensing(state, FaultConfig(msg_loss=0.3, msg_hold=1, msg_delay=1))
+    with pytest.raises(ValueError, match="history"):
+        seen.sensing.received(torch.tensor([0, 1]), torch.tensor([1, 0]), cfg.comm_radius)

@@ -208,6 +208,9 @@ class Sensing:
         b, n = self.x_seen.shape[:2]
         like = self.x_sent if like is None else like
         history = self.history or (self.x_seen,)
+        if self.per_link and not self.history:
+            raise ValueError("Sensing.received: held messages (msg_hold with msg_loss) need the estimates of the steps "
+                             "before (history); FaultProcess.observe passes them")  # fmt: skip
         keep = torch.ones(receivers.shape, dtype=torch.bool, device=receivers.device)
         held = torch.zeros(receivers.shape, dtype=torch.long, device=receivers.device)  # steps since it was sent
         if f.msg_loss > 0:

@@ -18,8 +18,8 @@ Hierarchical "thrust-vector" design (derivation and guarantees in ``docs/baselin
 Under message faults (``state.sensing`` of :mod:`egcbf.faults` with ``msg_loss`` or ``msg_delay``) the dCBF-QP's
 agents know their neighbours only from the messages they received (:meth:`egcbf.faults.Sensing.received`, the
 messages the learned policies' graphs receive too): agent ``i``'s half of a pair row reads its own estimate and the
-neighbour's broadcast estimate, and a lost message removes the pair from ``i``'s QP only. The centralized QP has no
-messages and refuses these faults.
+neighbour's broadcast estimate, and a lost message removes the pair from ``i``'s QP only (so the two halves no
+longer guarantee the pair: :mod:`~.dcbf_qp`). The centralized QP has no messages and refuses these faults.
 
 Every step of the pipeline commutes with the symmetry (rotations about world z, translations), so the
 body-frame controls are invariant: the baselines are SE(2) x R equivariant (tested).

@@ -5,7 +5,10 @@ two loops around the filter and the centralized QP; ``docs/baselines.md`` the de
 Under message faults (``state.sensing`` of :mod:`egcbf.faults` with ``msg_loss`` or ``msg_delay``) the agents know
 their neighbours only from the messages they received (:meth:`egcbf.faults.Sensing.received`): agent ``i``'s half of
 a pair row reads its own estimate and the neighbour's broadcast estimate, and a lost message removes the pair from
-``i``'s QP only.
+``i``'s QP only. The halves then no longer add up to the pair's condition: where only ``j`` heard ``i``, ``j`` keeps
+its half and ``i`` none (and ``j`` cannot tell), and under delay the two halves read two different views of the pair;
+so message faults cost the dCBF-QP its guarantee, not just its accuracy (docs/robustness.md measures how much; the
+receivers' hold restores most one-way links).
 """
 
 from __future__ import annotations
@@ -38,7 +41,8 @@ class DecentralizedCBFQP(_CBFQPBase):
 
     ``info`` as :class:`CentralizedCBFQP`, counting per-agent QPs: ``num_slack`` agents whose slack exceeds
     ``slack_tol``, ``num_failed`` agents given the fallback; ``max_rows`` the padded row count; under message faults
-    ``links`` ``(2, L)``, the directed links ``(receiver, sender)`` (flat agent rows ``b N + i``) whose rows it read.
+    ``links`` ``(2, L)``, the directed links ``(receiver, sender)`` (flat agent rows ``b N + i``) whose messages
+    arrived (their rows may then be pruned as unreachable).
     """
 
     name = "dcbf"
@@ -139,11 +143,12 @@ class DecentralizedCBFQP(_CBFQPBase):
         """What the agents know of their neighbours under message faults (:meth:`egcbf.faults.Sensing.received`).
 
         Candidates are the neighbour pairs of the agents' current estimates ``p_now`` ``(M, 3)`` within the
-        barrier's cull radius and the communication radius (a neighbour is known only from its messages), in both
-        directions. Returns the directed links ``(receiver, sender)`` ``(2, L)`` whose messages arrived (flat agent
-        rows ``b N + i``, sorted), and the sender's position and velocity as each link's message tells its receiver
-        ``(L, 3)`` each (world frame, float64), ``lookahead`` seconds ahead under the acceleration the message
-        carries.
+        barrier's cull radius and the communication radius, in both directions: the radio's range, decided on the
+        current estimates as the graph decides it (so graph and QP lose the same messages); what a receiver then
+        knows of the sender is its message alone. Returns the directed links ``(receiver, sender)`` ``(2, L)`` whose
+        messages arrived (flat agent rows ``b N + i``, sorted), and the sender's position and velocity as each
+        link's message tells its receiver ``(L, 3)`` each (world frame, float64), ``lookahead`` seconds ahead under
+        the acceleration the message carries.
         """
         comm = float(env_config.comm_radius)
         near = replace(prep.barrier, cull_radius=min(prep.barrier.cull_radius, comm))

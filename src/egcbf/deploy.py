@@ -208,9 +208,11 @@ class AgentFilteredController:
     ``u, info = ctrl(state, goal, neighbours, hits, obstacles=(centers (O, 3), radii (O,)), accelerations=None)``.
     The policy reads ``neighbours`` and ``hits`` as :class:`AgentController` does. The filter reads the neighbours'
     states (pass every neighbour heard: it keeps those within its range at the look-ahead positions, as the swarm
-    filter does), the sphere obstacles the agent senses, and, for the look-ahead, ``accelerations`` ``(1 + K, 3)``:
-    the agent's own and each neighbour's realized acceleration over the last control step, ``(v_t - v_{t-1}) / dt``
-    from two consecutive broadcasts (``None``: zero, as at an episode's first step). It solves the agent's own QP
+    filter does; in simulation without message faults that filter also counts a neighbour not yet within radio
+    range but within range at the look-ahead positions, :mod:`egcbf.algo.filtered`), the sphere obstacles the agent
+    senses, and, for the look-ahead, ``accelerations`` ``(1 + K, 3)``: the agent's own and each neighbour's realized
+    acceleration over the last control step, ``(v_t - v_{t-1}) / dt`` from two consecutive broadcasts (``None``:
+    zero, as at an episode's first step). It solves the agent's own QP
     only in effect (the rows of a pair are split in halves; no command is exchanged).
 
     ``info``: ``command`` (the filtered command, interface units), ``policy_command``, ``failed`` (the QP failed

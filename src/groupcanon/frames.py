@@ -59,16 +59,23 @@ def se2xr_frame(heading: Tensor, position: Tensor, eps: float = 1e-12) -> Tensor
 def rotation_from_vectors(a: Tensor, b: Tensor, eps: float = 1e-12) -> Tensor:
     """SO(3) matrices ``(*batch, 3, 3)`` by Gram-Schmidt: first axis along ``a``, second in the ``a, b`` plane.
 
-    The third axis is the cross product, so ``det = +1`` always (never a reflection).
+    The third axis is the cross product, so ``det = +1`` always (never a reflection); the projection is done twice,
+    so the result is orthonormal to rounding even when ``b`` is nearly parallel to ``a``. Where the part of ``b``
+    orthogonal to ``a`` is at most ``eps`` times ``|b|`` (parallel, or ``b = 0``) the second axis falls back to a
+    fixed unit vector orthogonal to ``a``: that configuration is a measure-zero set where the frame cannot be
+    equivariant, and near it (``b`` within a small angle of ``a``) the frame turns fast with the inputs (its
+    equivariance error in float32 grows like the rounding error over that angle).
     """
     _check_vectors("rotation_from_vectors", "a", a, 3)
     _check_vectors("rotation_from_vectors", "b", b, 3)
     e1 = _safe_normalize(a, a.new_tensor([1.0, 0.0, 0.0]), eps)
     b_perp = b - (b * e1).sum(-1, keepdim=True) * e1
+    b_perp = b_perp - (b_perp * e1).sum(-1, keepdim=True) * e1  # again: one pass leaves rounding along e1
     # fallback second axis: any unit vector orthogonal to e1
     helper = torch.where(e1[..., :1].abs() < 0.9, a.new_tensor([1.0, 0.0, 0.0]), a.new_tensor([0.0, 1.0, 0.0]))
-    alt = torch.linalg.cross(e1, helper)
-    e2 = _safe_normalize(b_perp, _safe_normalize(alt, a.new_tensor([0.0, 1.0, 0.0]), eps), eps)
+    alt = _safe_normalize(torch.linalg.cross(e1, helper), a.new_tensor([0.0, 1.0, 0.0]), eps)
+    parallel = b_perp.norm(dim=-1, keepdim=True) <= eps * b.norm(dim=-1, keepdim=True).clamp_min(1.0)
+    e2 = torch.where(parallel, alt, _safe_normalize(b_perp, alt, eps))
     e3 = torch.linalg.cross(e1, e2)
     return torch.stack((e1, e2, e3), dim=-1)
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import abc
 import functools
 import math
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -245,8 +246,15 @@ class Group(abc.ABC):
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
 
+    #: attributes that only tune :meth:`sample` (e.g. ``translation_scale``): not part of the group's identity, so
+    #: ``SE2(1.0) == SE2()`` and a FieldType over one serves the other
+    sampling_attributes: ClassVar[tuple[str, ...]] = ("translation_scale",)
+
+    def _identity_items(self) -> tuple:
+        return tuple(sorted((k, v) for k, v in self.__dict__.items() if k not in self.sampling_attributes))
+
     def __eq__(self, other: object) -> bool:
-        return type(self) is type(other) and self.__dict__ == other.__dict__
+        return type(self) is type(other) and self._identity_items() == other._identity_items()
 
     def __hash__(self) -> int:
-        return hash((type(self).__name__, repr(self)))
+        return hash((type(self).__name__, repr(self._identity_items())))

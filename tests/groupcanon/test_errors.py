@@ -154,9 +154,10 @@ def test_fieldtypes_of_different_groups():
         Canonicalize(G, T_IN, T_OUT, edge_type=FieldType(gg.SE3(), [Vector(3)]))
     with pytest.raises(ValueError, match="different groups"):
         T_IN + other
-    # SE2xR() with another translation scale is a different Group object as far as equality goes
-    with pytest.raises(ValueError, match="FieldType of SE2xR"):
-        Canonicalize(gg.SE2xR(translation_scale=1.0), T_IN, T_OUT)
+    # the translation scale only tunes sampling: SE2xR(1) is the same group as SE2xR(), so its FieldTypes serve
+    other_scale = gg.SE2xR(translation_scale=1.0)
+    assert other_scale == gg.SE2xR() and hash(other_scale) == hash(gg.SE2xR()) and other_scale != gg.SE2()
+    Canonicalize(other_scale, T_IN, T_OUT)
 
 
 def test_bad_canonicalize_arguments():

@@ -357,7 +357,8 @@ def test_product_needs_two_groups():
 
 def test_group_equality_and_hash():
     assert gg.SE2() == gg.SE2() and hash(gg.SE2()) == hash(gg.SE2())
-    assert gg.SE2(translation_scale=1.0) != gg.SE2()
+    assert gg.SE2(translation_scale=1.0) == gg.SE2()  # the scale only tunes sampling
+    assert hash(gg.SE2(translation_scale=1.0)) == hash(gg.SE2()) and gg.CyclicSE2(4, 1.0) == gg.CyclicSE2(4)
     assert gg.Cyclic(5) != gg.Cyclic(6) and gg.Cyclic(5) != gg.SO2()
     assert gg.Product(gg.SO2(), gg.SO3()) == gg.Product(gg.SO2(), gg.SO3())
     assert gg.Product(gg.SO2(), gg.SO3()) != gg.Product(gg.SO3(), gg.SO2())
@@ -371,3 +372,20 @@ def test_matrix_is_faithful_homomorphism(G):
     assert torch.allclose(G.matrix(G.compose(a, b)), ma @ mb, atol=1e-11)
     assert torch.allclose(G.matrix(G.inverse(a)), torch.linalg.inv(ma), atol=1e-11)
     assert not torch.allclose(ma, mb)
+
+
+@pytest.mark.parametrize("G", [gg.SE2(), gg.SE3()], ids=_key)
+@pytest.mark.parametrize("angle", [3e-6, 2.7e-4, 1e-3, 3e-2, 0.4, 0.6, 2.0])
+def test_exp_and_log_keep_float32_precision_at_small_angles(G, angle):
+    """The left Jacobian's coefficients without cancellation: float32 exp/log agree with float64 to float32
+    rounding (relative to the translation) at every angle, just above the series' thresholds included."""
+    gen = torch.Generator().manual_seed(0)
+    d = G.space_dim
+    rot_dim = 1 if d == 2 else 3
+    axis = torch.randn(64, rot_dim, generator=gen, dtype=F64)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    xi = torch.cat((angle * axis, 10.0 * torch.randn(64, d, generator=gen, dtype=F64)), dim=-1)
+    g64, g32 = G.exp(xi), G.exp(xi.float())
+    assert float((g32.double() - g64).abs().max()) < 1e-5 * 10
+    back = G.log(g64.float()).double()
+    assert float((back - xi).abs().max()) < 2e-5 * 10

@@ -54,10 +54,28 @@ class OppositeSO3(gg.SO3):
 
 
 class WrongTransformSE3(gg.SE3):
-    """p -> R^T p + t is not an action (p -> R p - t, or R p + 2 t, would be: the kit rightly accepts those)."""
+    """p -> R^T p + t is not an action."""
 
     def transform(self, g, p):
         return (g[..., :3].transpose(-1, -2) @ p.unsqueeze(-1)).squeeze(-1) + g[..., 3]
+
+
+class MinusTranslationSE2(gg.SE2):
+    """p -> R p - t is an action of the group, but not the one its translation() and matrix() describe."""
+
+    def transform(self, g, p):
+        return self.rotate(g, p) - self.translation(g)
+
+
+class TransposedRotateSO2(gg.SO2):
+    """Vectors turned the opposite way from what matrix() says (and from points)."""
+
+    def rotate(self, g, v):
+        c, s = g[..., :1], g[..., 1:]
+        return torch.cat((c * v[..., :1] + s * v[..., 1:], -s * v[..., :1] + c * v[..., 1:]), dim=-1)
+
+    def rotation(self, g):
+        return super().rotation(g).transpose(-1, -2)
 
 
 @pytest.mark.parametrize(
@@ -68,6 +86,8 @@ class WrongTransformSE3(gg.SE3):
         (NonAssociativeSO2(), "associativity"),
         (OppositeSO3(), "matrix"),
         (WrongTransformSE3(), "transform"),
+        (MinusTranslationSE2(), "translation"),
+        (TransposedRotateSO2(), "rotate"),
     ],
     ids=lambda v: type(v).__name__ if not isinstance(v, str) else v,
 )
@@ -389,3 +409,15 @@ def test_frames_degenerate_inputs_are_finite():
         assert torch.isfinite(r).all()
         assert (r @ r.transpose(-1, -2) - torch.eye(3, dtype=F64)).abs().max() < 1e-12
         assert (torch.linalg.det(r) - 1).abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("angle", [1e-2, 1e-3, 1e-5, 1e-7])
+def test_rotation_from_nearly_parallel_vectors_is_a_rotation_in_float32(angle):
+    """Two Gram-Schmidt passes: orthonormal to float32 rounding however close ``b`` comes to ``a``."""
+    gen = torch.Generator().manual_seed(0)
+    a = torch.randn(4096, 3, generator=gen, dtype=F64)
+    side = torch.linalg.cross(a, torch.randn(4096, 3, generator=gen, dtype=F64))
+    b = a / a.norm(dim=-1, keepdim=True) + angle * side / side.norm(dim=-1, keepdim=True)
+    r = frames.rotation_from_vectors(a.float(), (3.0 * b).float())
+    assert float(gg.SO3().membership_residual(r).max()) < 1e-5
+    assert bool((torch.linalg.det(r) > 0.9999).all())

@@ -96,7 +96,8 @@ class Product(Group):
         return out
 
     def special_elements(self, dtype=None, device=None) -> Tensor:
-        """Each factor's special elements, paired with the identity of the others (cycled to equal length)."""
+        """Each factor's special elements, cycled to equal length and paired row by row (row ``k``: every factor's
+        ``k``-th special element)."""
         specials = [G.special_elements(dtype=dtype, device=device) for G in self.groups]
         k = max(s.shape[0] for s in specials)
         parts = [s.repeat(math.ceil(k / s.shape[0]), *([1] * (s.dim() - 1)))[:k] for s in specials]

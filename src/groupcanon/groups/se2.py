@@ -75,10 +75,7 @@ class _PlanarRigid(Group):
         """``xi = (theta, u)`` ``(*batch, 1 + space_dim)``; the translation is ``V(theta) u`` (left Jacobian)."""
         theta = xi[..., 0]
         u = xi[..., 1:]
-        small = theta.abs() < 1e-4
-        safe = torch.where(small, torch.ones_like(theta), theta)
-        a = torch.where(small, 1 - theta**2 / 6, torch.sin(safe) / safe)  # sin(t)/t
-        b = torch.where(small, theta / 2 - theta**3 / 24, (1 - torch.cos(safe)) / safe)  # (1-cos t)/t
+        a, b = _jacobian_coeffs(theta)
         x, y = u[..., 0], u[..., 1]
         txy = torch.stack((a * x - b * y, b * x + a * y), dim=-1)
         t = txy if self.space_dim == 2 else torch.cat((txy, u[..., 2:]), dim=-1)
@@ -86,11 +83,8 @@ class _PlanarRigid(Group):
 
     def log(self, g: Tensor) -> Tensor:
         theta = torch.atan2(g[..., 1], g[..., 0])
-        small = theta.abs() < 1e-4
-        safe = torch.where(small, torch.ones_like(theta), theta)
         # Inverse of V(theta) = [[a, -b], [b, a]]: V^-1 = [[a, b], [-b, a]] / (a^2 + b^2).
-        a = torch.where(small, 1 - theta**2 / 6, torch.sin(safe) / safe)
-        b = torch.where(small, theta / 2 - theta**3 / 24, (1 - torch.cos(safe)) / safe)
+        a, b = _jacobian_coeffs(theta)
         n = a * a + b * b
         x, y = g[..., 2], g[..., 3]
         uxy = torch.stack(((a * x + b * y) / n, (-b * x + a * y) / n), dim=-1)
@@ -135,6 +129,16 @@ class _PlanarRigid(Group):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(translation_scale={self.translation_scale:g})"
+
+
+def _jacobian_coeffs(theta: Tensor) -> tuple[Tensor, Tensor]:
+    """``sin(t) / t`` and ``(1 - cos t) / t``, the latter as ``2 sin^2(t/2) / t`` (no cancellation in float32),
+    with Taylor series at ``|t| < 1e-6``."""
+    small = theta.abs() < 1e-6
+    safe = torch.where(small, torch.ones_like(theta), theta)
+    a = torch.where(small, 1 - theta**2 / 6, torch.sin(safe) / safe)
+    b = torch.where(small, theta / 2 - theta**3 / 24, 2 * torch.sin(safe / 2) ** 2 / safe)
+    return a, b
 
 
 class SE2(_PlanarRigid):

@@ -52,11 +52,12 @@ def _fail(law: str, err: float, tol: float, detail: str = "") -> None:
 
 
 def _samples(group: Group, n: int, dtype, device, generator) -> Tensor:
-    """``n`` random elements with the group's special (near-singular) elements mixed in first."""
+    """``n`` elements: random ones, the first up to ``n // 2`` of them replaced by the group's special
+    (near-singular) elements, placed last so that a small ``n`` still tests random elements first."""
     special = group.special_elements(dtype=dtype, device=device)
     rand = group.sample(n, generator=generator, dtype=dtype, device=device)
     k = min(n // 2, special.shape[0])
-    return torch.cat((special[:k], rand[k:])) if k else rand
+    return torch.cat((rand[: n - k], special[:k])) if k else rand
 
 
 def check_group_axioms(
@@ -156,6 +157,42 @@ def check_group_axioms(
             err = _err(rot @ rot.transpose(-1, -2), eye)
             if not err <= s:
                 _fail(f"{group}: rotation(a) is orthonormal", err, s)
+            if group.orientation_preserving and not bool((torch.linalg.det(rot) > 0).all()):
+                _fail(f"{group}: det rotation(a) = +1 (orientation_preserving)", float("inf"), s)
+        worst = max(worst, _affine_consistency(group, a, p, s))
+    return worst
+
+
+def _affine_consistency(group: Group, a: Tensor, p: Tensor, s: float) -> float:
+    """Vectors and points move together: ``rotate(a, p) = transform(a, p) - transform(a, 0)``, ``translation(a) =
+    transform(a, 0)``, and ``matrix(a)`` moves them as ``rotate`` (a linear ``(d, d)`` one) or ``transform`` (a
+    homogeneous ``(d + 1, d + 1)`` one) does."""
+    worst = 0.0
+    zero = torch.zeros_like(p)
+    origin = group.transform(a, zero)
+    checks = [("rotate(a, v) = transform(a, v) - transform(a, 0)", group.rotate(a, p), group.transform(a, p) - origin)]
+    try:
+        checks.append(("translation(a) = transform(a, 0)", group.translation(a), origin))
+    except NotImplementedError:
+        pass
+    d = group.space_dim
+    try:
+        m = group.matrix(a)
+    except NotImplementedError:
+        m = None
+    if m is not None and tuple(m.shape[-2:]) == (d, d):
+        checks.append(("matrix(a) v = rotate(a, v)", (m @ p.unsqueeze(-1)).squeeze(-1), group.rotate(a, p)))
+    if m is not None and tuple(m.shape[-2:]) == (d + 1, d + 1):
+        ph = torch.cat((p, torch.ones_like(p[..., :1])), dim=-1)
+        moved = (m @ ph.unsqueeze(-1)).squeeze(-1)
+        checks.append(
+            ("matrix(a) [p; 1] = [transform(a, p); 1]", moved, torch.cat((group.transform(a, p), ph[..., -1:]), dim=-1))
+        )
+    for law, lhs, rhs in checks:
+        err = _err(lhs, rhs)
+        worst = max(worst, err)
+        if not err <= s * _scale(p, origin):
+            _fail(f"{group}: {law}", err, s * _scale(p, origin))
     return worst
 
 
@@ -211,10 +248,10 @@ def check_action_laws(
             ft.act(group.compose(a, b), x),
         ),
         "inverse act(a^-1, act(a, x)) = x": (ft.act(group.inverse(a), ax), x),
-        # the last element: a[0] is the identity when the special elements are mixed in first
+        # the first element: a random one (the special ones, the identity among them, come last)
         "broadcast act(a_k, x) = act(a_k repeated, x)": (
-            ft.act(a[-1], x),
-            ft.act(a[-1:].expand(nb, *a.shape[1:]), x),
+            ft.act(a[0], x),
+            ft.act(a[:1].expand(nb, *a.shape[1:]), x),
         ),
     }
     for law, (lhs, rhs) in laws.items():
@@ -340,8 +377,8 @@ def assert_equivariant(
 ) -> float:
     """Assert ``fn(g . inputs) == g . fn(inputs)`` within ``atol + rtol * max|output|``; return the worst error.
 
-    See :func:`equivariance_error` for the arguments. ``atol`` defaults to :func:`default_atol` of the inputs'
-    dtype, scaled by the magnitude of the outputs.
+    See :func:`equivariance_error` for the arguments. ``atol`` defaults to :func:`default_atol` of the outputs'
+    dtype (an absolute tolerance: pass ``rtol`` to scale with the outputs' magnitude).
     """
     err = equivariance_error(
         fn,

@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from groupcanon import groups as gg
-from groupcanon.testing import check_group_axioms
+from groupcanon.testing import check_action_laws, check_group_axioms
 from groupcanon.testing import strategies as gst
 
 GROUPS = all_groups()
@@ -389,3 +389,12 @@ def test_exp_and_log_keep_float32_precision_at_small_angles(G, angle):
     assert float((g32.double() - g64).abs().max()) < 1e-5 * 10
     back = G.log(g64.float()).double()
     assert float((back - xi).abs().max()) < 2e-5 * 10
+
+
+def test_a_trivial_factor_is_not_an_so2_factor():
+    from groupcanon.features import SO2Irrep
+
+    G = gg.Product(gg.SO2(), gg.Trivial())
+    g = G.sample(5, generator=torch.Generator().manual_seed(0), dtype=F64)
+    torch.testing.assert_close(G.planar_rotation(g), gg.SO2().planar_rotation(G.factor(g, 0)))
+    assert check_action_laws(G, SO2Irrep(2), dtype=F64) < 1e-12

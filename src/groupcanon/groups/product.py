@@ -14,11 +14,15 @@ import torch
 from torch import Tensor
 
 from ..group import Group
+from .trivial import Trivial
 
 __all__ = ["Product"]
 
 
 def _has_planar_rotation(G: Group) -> bool:
+    """Whether ``G`` has an SO(2) part of its own (the trivial group's identity rotation does not count)."""
+    if isinstance(G, Trivial):
+        return False
     try:
         G.planar_rotation(G.identity(1))
     except NotImplementedError:

@@ -480,14 +480,15 @@ def load_network(
     path: str | Path, part: str, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
 ) -> tuple[CBFNet | PolicyNet, TrainConfig]:
     """One trained network, ``part = "policy"`` or ``"cbf"``, of a checkpoint (or run) directory, in eval mode, and
-    the training config; needs only ``config.json`` and ``model.safetensors`` (the ``<part>.*`` weights)."""
+    the training config; needs only ``config.json`` and ``model.safetensors`` (the ``<part>.*`` weights). Of a run
+    directory: its ``best/`` (selected on validation episodes) if it has one, else its newest checkpoint."""
     from .nn import CBFNet, PolicyNet
 
     _check_path(path, "load_network")
     nets = {"policy": PolicyNet, "cbf": CBFNet}
     if part not in nets:
         raise ValueError(f"part must be one of {sorted(nets)}, got {part!r}")
-    ckpt = find_checkpoint(path)
+    ckpt = find_checkpoint(path, prefer_best=True)
     cfg = read_config(ckpt)
     weights = read_tensors(ckpt / "model.safetensors")
     check_identity(ckpt, cfg)

@@ -11,16 +11,22 @@ Inputs (world frame, SI units, float tensors of one dtype):
 
 * ``state`` ``(S,)``: the agent's own state (quadrotor: ``[p, R row-major, v, w]``, 18 numbers);
 * ``goal`` ``(d,)``: its goal position;
-* ``neighbours`` ``(K, S)``: the states its neighbours broadcast (any K >= 0). The policy reads those within the
-  communication radius (strictly closer than ``comm_radius``, as in the simulator); farther ones are ignored.
-  At most ``max_neighbours`` of them are used, the nearest (documented limit; the swarm evaluation has none, so
-  beyond it the two differ: tested);
-* ``hits`` ``(H, d)``: its LiDAR hit points (any H >= 0; at most ``max_hits``, the nearest, are used; the
-  simulator keeps ``lidar_max_hits`` per agent, 16 by default).
+* ``neighbours`` ``(K, S)``: the states its neighbours broadcast (any K >= 0; the other agents', not its own). The
+  policy reads those within the communication radius (squared distance strictly below ``comm_radius^2``, as in the
+  simulator); farther ones are ignored. At most ``max_neighbours`` of them are used, the nearest (documented
+  limit; the swarm evaluation has none, so beyond it the two differ: tested);
+* ``hits`` ``(H, d)``: its LiDAR hit points (any H >= 0). Those farther than the LiDAR range the policy was trained
+  with (``env_config.resolved_lidar_range``; the simulator's rays end there) are ignored, and at most ``max_hits``,
+  the nearest, are used (the simulator keeps ``lidar_max_hits`` per agent, 16 by default).
+
+A neighbour or hit row holding NaN or inf (a corrupt message) is dropped, not used, and counted; a non-finite
+``state`` or ``goal`` raises.
 
 Output: the body control ``u`` (quadrotor: torque and thrust, through the attitude loop of the checkpoint's command
-interface), and ``info`` with ``"command"`` (the policy's command in the interface's units) and
-``"num_neighbours"``, ``"num_hits"`` (how many were used).
+interface), and ``info`` with ``"command"`` (the policy's command in the interface's units), ``"num_neighbours"``,
+``"num_hits"`` (how many were used), ``"dropped_neighbours"``, ``"dropped_hits"`` (in range but beyond the
+``max_neighbours`` / ``max_hits`` slots; the first time this happens a warning says so) and
+``"rejected_neighbours"``, ``"rejected_hits"`` (non-finite rows).
 
 How: the network has one message-passing layer, so an agent's output reads only its own incoming edges (its
 neighbours, its goal, its hits). :class:`AgentPolicy` is that computation with **fixed shapes**: exactly
@@ -35,6 +41,7 @@ computation as the swarm-level :class:`egcbf.algo.learner.LearnedController` for
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -60,12 +67,13 @@ class AgentPolicy(nn.Module):
 
     ``forward(state (S,), goal (d,), neighbours (K, S), neighbour_valid (K,) bool, hits (H, d), hit_valid (H,) bool)
     -> (u (control_dim,), command (k,))`` with ``K = max_neighbours`` and ``H = max_hits`` fixed at construction.
-    A neighbour row is used if it is valid and strictly within ``comm_radius`` of the agent; a hit row if it is
-    valid. Invalid rows may hold any finite numbers.
+    A neighbour row is used if it is valid and its squared distance to the agent is strictly below
+    ``comm_radius^2``; a hit row if it is valid and within ``lidar_range`` (``None``: ``comm_radius``) of the agent.
+    Invalid rows may hold any finite numbers.
     """
 
     def __init__(self, policy: PolicyNet, model_config: ModelConfig, robot: Robot, comm_radius: float,
-                 max_neighbours: int, max_hits: int):  # fmt: skip
+                 max_neighbours: int, max_hits: int, lidar_range: float | None = None):  # fmt: skip
         super().__init__()
         for name, v in (("max_neighbours", max_neighbours), ("max_hits", max_hits)):
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
@@ -73,7 +81,17 @@ class AgentPolicy(nn.Module):
         self.policy, self.model_config, self.robot = policy, model_config, robot
         self.interface = make_interface(model_config.interface, robot)
         self.comm_radius = float(comm_radius)
+        self.lidar_range = self.comm_radius if lidar_range is None else float(lidar_range)
+        if not 0 < self.lidar_range <= self.comm_radius:
+            raise ValueError(f"AgentPolicy.lidar_range must be in (0, comm_radius = {self.comm_radius:g}], got "
+                             f"{lidar_range!r}")  # fmt: skip
         self.max_neighbours, self.max_hits = max_neighbours, max_hits
+
+    @property
+    def hit_reach(self) -> float:
+        """The farthest hit used: ``lidar_range`` and a relative 1e-6 (a hit the simulator's ray finds at exactly
+        its length lies there up to rounding)."""
+        return self.lidar_range * (1 + 1e-6)
 
     def graph(self, state: Tensor, goal: Tensor, neighbours: Tensor, neighbour_valid: Tensor, hits: Tensor,
               hit_valid: Tensor) -> tuple[SwarmGraph, Tensor, Tensor]:  # fmt: skip
@@ -85,7 +103,8 @@ class AgentPolicy(nn.Module):
         x = torch.stack((state, state))  # the agent and the sink (a copy: finite features, output dropped)
         p = robot.positions(x)
         p_nbr = robot.positions(neighbours)
-        in_range = neighbour_valid & (torch.linalg.vector_norm(p_nbr - p[:1], dim=-1) < self.comm_radius)
+        in_range = neighbour_valid & ((p_nbr - p[:1]).square().sum(-1) < self.comm_radius**2)
+        hit_valid = hit_valid & (torch.linalg.vector_norm(hits.to(p.dtype) - p[:1], dim=-1) <= self.hit_reach)
         feat = agent_features(robot, x)
         x_src = torch.cat((feat, agent_features(robot, neighbours), static_features(1, KIND_GOAL, feat),
                            static_features(h, KIND_HIT, feat)))  # fmt: skip
@@ -129,8 +148,14 @@ class AgentController:
     max_hits: int = 16
 
     def __post_init__(self) -> None:
-        self.module = AgentPolicy(self.policy, self.model_config, self.env_config.make_robot(),
-                                  self.env_config.comm_radius, self.max_neighbours, self.max_hits)  # fmt: skip
+        env = self.env_config
+        self.module = AgentPolicy(self.policy, self.model_config, env.make_robot(), env.comm_radius,
+                                  self.max_neighbours, self.max_hits, env.resolved_lidar_range)  # fmt: skip
+        if self.max_hits > env.lidar_max_hits:
+            warnings.warn(f"AgentController: max_hits = {self.max_hits} exceeds the {env.lidar_max_hits} LiDAR hits "
+                          "per agent the policy was trained with: it will read more hits than it ever saw",
+                          stacklevel=3)  # fmt: skip
+        self._warned_truncation = False
 
     @classmethod
     def from_checkpoint(
@@ -165,23 +190,41 @@ class AgentController:
             if not isinstance(t, Tensor) or t.dim() != 2 or t.shape[1] != width:
                 got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
                 raise ValueError(f"{name} must be a tensor of shape (K, {width}) (K >= 0), got {got}")
-        for name, t in (("state", state), ("goal", goal), ("neighbours", neighbours), ("hits", hits)):
+        for name, t in (("state", state), ("goal", goal)):
             if not bool(torch.isfinite(t).all()):
                 raise ValueError(f"{name} holds NaN or inf")
 
     def pad(self, state: Tensor, goal: Tensor, neighbours: Tensor, hits: Tensor) -> tuple[Tensor, ...]:
         """The fixed-shape inputs of :attr:`module`: ``(state, goal, neighbours (max_neighbours, S),
-        neighbour_valid, hits (max_hits, d), hit_valid)``, the nearest in-range neighbours and the nearest hits
-        first, the remaining rows zero and invalid."""
+        neighbour_valid, hits (max_hits, d), hit_valid)``, the nearest in-range neighbours and the nearest in-range
+        hits first, the remaining rows zero and invalid (non-finite rows dropped)."""
+        return self._select(state, goal, neighbours, hits)[0]
+
+    def _select(self, state: Tensor, goal: Tensor, neighbours: Tensor, hits: Tensor) -> tuple[tuple[Tensor, ...], dict]:
+        """:meth:`pad`'s inputs and the counts of rows dropped (beyond the slots) and rejected (non-finite)."""
         self._check(state, goal, neighbours, hits)
-        robot = self.robot
+        robot, env = self.robot, self.env_config
         p = next(self.policy.parameters())
         state, goal, neighbours, hits = (t.to(device=p.device, dtype=p.dtype) for t in (state, goal, neighbours, hits))
+        finite_n, finite_h = torch.isfinite(neighbours).all(-1), torch.isfinite(hits).all(-1)
+        counts = {"rejected_neighbours": int((~finite_n).sum()), "rejected_hits": int((~finite_h).sum())}
+        neighbours, hits = neighbours[finite_n], hits[finite_h]
         pos = robot.positions(state)
-        dist = torch.linalg.vector_norm(robot.positions(neighbours) - pos, dim=-1)
-        order = torch.argsort(dist)
-        order = order[dist[order] < self.env_config.comm_radius][: self.max_neighbours]
-        hit_order = torch.argsort(torch.linalg.vector_norm(hits - pos, dim=-1))[: self.max_hits]
+        d2 = (robot.positions(neighbours) - pos).square().sum(-1)
+        order = torch.argsort(d2)
+        heard = order[d2[order] < env.comm_radius**2]
+        hit_d = torch.linalg.vector_norm(hits - pos, dim=-1)
+        hit_order = torch.argsort(hit_d)
+        seen = hit_order[hit_d[hit_order] <= self.module.hit_reach]
+        order, hit_order = heard[: self.max_neighbours], seen[: self.max_hits]
+        counts["dropped_neighbours"] = int(heard.shape[0] - order.shape[0])
+        counts["dropped_hits"] = int(seen.shape[0] - hit_order.shape[0])
+        if (counts["dropped_neighbours"] or counts["dropped_hits"]) and not self._warned_truncation:
+            self._warned_truncation = True
+            warnings.warn(f"AgentController: {counts['dropped_neighbours']} neighbour(s) and {counts['dropped_hits']} "
+                          f"hit(s) in range beyond the max_neighbours = {self.max_neighbours} / max_hits = "
+                          f"{self.max_hits} slots were dropped (the nearest are kept; info counts them every call)",
+                          stacklevel=3)  # fmt: skip
         near, kept = neighbours[order], hits[hit_order]
         k, h = self.max_neighbours, self.max_hits
         nbr = neighbours.new_zeros(k, neighbours.shape[1])
@@ -190,14 +233,15 @@ class AgentController:
         pts[: kept.shape[0]] = kept
         nbr_valid = torch.arange(k, device=p.device) < near.shape[0]
         hit_valid = torch.arange(h, device=p.device) < kept.shape[0]
-        return state, goal, nbr, nbr_valid, pts, hit_valid
+        return (state, goal, nbr, nbr_valid, pts, hit_valid), counts
 
     @torch.no_grad()
     def __call__(self, state: Tensor, goal: Tensor, neighbours: Tensor, hits: Tensor) -> tuple[Tensor, dict]:
         """The agent's body control ``(control_dim,)`` and ``info`` (module doc)."""
-        inputs = self.pad(state, goal, neighbours, hits)
+        inputs, counts = self._select(state, goal, neighbours, hits)
         u, command = self.module(*inputs)
-        return u, {"command": command, "num_neighbours": int(inputs[3].sum()), "num_hits": int(inputs[5].sum())}
+        return u, {"command": command, "num_neighbours": int(inputs[3].sum()), "num_hits": int(inputs[5].sum()),
+                   **counts}  # fmt: skip
 
 
 @dataclass
@@ -234,6 +278,15 @@ class AgentFilteredController:
             raise ValueError("run-time filters act on the acceleration command (the 'accel' interface)")
         self._qp = DecentralizedCBFQP(barrier=cfg.barrier, penalty=cfg.penalty, brake_gain=cfg.brake_gain)
 
+    @property
+    def robot(self) -> Robot:
+        return self.controller.robot
+
+    @property
+    def env_config(self) -> EnvConfig:
+        """The sensing settings and control period the policy was trained with."""
+        return self.controller.env_config
+
     @classmethod
     def from_checkpoint(cls, path: str | Path, filter_config: FilterConfig | None = None, **kwargs):
         """The checkpoint's :class:`AgentController` (``kwargs`` as there) behind ``filter_config`` (default:
@@ -251,15 +304,25 @@ class AgentFilteredController:
         _, info = ctrl(state, goal, neighbours, hits)
         unit = ctrl.module.interface.accel_unit
         dtype = info["command"].dtype
-        x = torch.cat((state[None], neighbours)).to(torch.float64)
         k = neighbours.shape[0]
         if accelerations is not None and tuple(accelerations.shape) != (1 + k, robot.dim):
             raise ValueError(f"accelerations must have shape {(1 + k, robot.dim)} (the agent, then each neighbour), "
                              f"got {tuple(accelerations.shape)}")  # fmt: skip
+        finite = torch.isfinite(neighbours).all(-1)  # a corrupt message: dropped here as the policy drops it
+        if accelerations is not None:
+            if not bool(torch.isfinite(accelerations[0]).all()):
+                raise ValueError("accelerations[0] (the agent's own) holds NaN or inf")
+            finite = finite & torch.isfinite(accelerations[1:]).all(-1)
+            accelerations = torch.cat((accelerations[:1], accelerations[1:][finite]))
+        neighbours = neighbours[finite]
+        k = neighbours.shape[0]
+        x = torch.cat((state[None], neighbours)).to(torch.float64)
         centers, radii = obstacles if obstacles is not None else (x.new_zeros(0, robot.dim), x.new_zeros(0))
         if centers.dim() != 2 or centers.shape[-1] != robot.dim or tuple(radii.shape) != (centers.shape[0],):
             raise ValueError(f"obstacles must be (centers (O, {robot.dim}), radii (O,)), got "
                              f"{tuple(centers.shape)}, {tuple(radii.shape)}")  # fmt: skip
+        if not (bool(torch.isfinite(centers).all()) and bool(torch.isfinite(radii).all())):
+            raise ValueError("obstacles hold NaN or inf")
         goals = torch.cat((goal[None].to(x.dtype), robot.positions(x[1:])))
         swarm = SwarmState(x[None], goals[None], Obstacles(centers[None].to(x.dtype), radii[None].to(x.dtype)),
                            robot=robot)  # fmt: skip
@@ -271,5 +334,7 @@ class AgentFilteredController:
         command = torch.as_tensor(q["a_safe"][0, 0] / unit, dtype=dtype)
         return u[0, 0].to(dtype), {
             "command": command, "policy_command": info["command"], "failed": bool(q["failed"][0, 0]),
-            "slack": float(q["slack"][0, 0]), "num_neighbours": info["num_neighbours"], "num_hits": info["num_hits"],
+            "slack": float(q["slack"][0, 0]),
+            **{key: info[key] for key in ("num_neighbours", "num_hits", "dropped_neighbours", "dropped_hits",
+                                          "rejected_neighbours", "rejected_hits")},
         }  # fmt: skip

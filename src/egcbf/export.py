@@ -104,6 +104,8 @@ def layout(ctrl: AgentController, checkpoint: str | Path | None = None) -> dict:
         "max_neighbours": k,
         "max_hits": h,
         "comm_radius": m.comm_radius,
+        "lidar_range": m.lidar_range,  # hits farther away are ignored (the training rays' length)
+        "trained_lidar_max_hits": ctrl.env_config.lidar_max_hits,
         "control_period_s": ctrl.env_config.dt,
         "command_unit": getattr(m.interface, "accel_unit", None),  # the acceleration interface's A (m/s^2)
     }

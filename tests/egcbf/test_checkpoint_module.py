@@ -25,3 +25,21 @@ def test_loading_checkpoints_does_not_import_the_trainer():
         [sys.executable, "-c", CODE, str(ROOT / "checkpoints" / "egcbf+")], capture_output=True, text=True, timeout=300
     )
     assert res.returncode == 0 and "OK" in res.stdout, res.stdout + res.stderr
+
+
+def test_a_run_directory_loads_its_best_checkpoint_for_evaluation(tmp_path):
+    """load_network / load_controller of a run: its best/ (what the docs and `egcbf eval` say), not the newest
+    checkpoint (which only resuming wants)."""
+    import shutil
+    from pathlib import Path
+
+    from egcbf.checkpoint import CHECKPOINTS_DIR, load_controller
+
+    root = Path(__file__).resolve().parents[2] / "checkpoints"
+    run = tmp_path / "run"
+    shutil.copytree(root / "egcbf+", run / "best")
+    shutil.copytree(root / "gcbf+", run / CHECKPOINTS_DIR / "step_000001")
+    _, cfg = load_controller(run)
+    assert cfg.algo == "egcbf+"
+    shutil.rmtree(run / "best")
+    assert load_controller(run)[1].algo == "gcbf+"

@@ -121,8 +121,8 @@ def test_bad_observations_are_named():
         agent(torch.zeros(17, dtype=F64), goal, x.new_zeros(0, 18), x.new_zeros(0, 3))
     with pytest.raises(ValueError, match=r"neighbours must be a tensor of shape \(K, 18\)"):
         agent(x, goal, x.new_zeros(18), x.new_zeros(0, 3))
-    with pytest.raises(ValueError, match="hits holds NaN or inf"):
-        agent(x, goal, x.new_zeros(0, 18), torch.full((1, 3), float("nan"), dtype=F64))
+    with pytest.raises(ValueError, match="goal holds NaN or inf"):
+        agent(x, torch.full((3,), float("nan"), dtype=F64), x.new_zeros(0, 18), x.new_zeros(0, 3))
     with pytest.raises(ValueError, match="max_neighbours must be an integer >= 0"):
         AgentController(agent.policy, agent.model_config, agent.env_config, max_neighbours=-1)
 
@@ -171,3 +171,40 @@ def test_the_filtered_agent_refuses_bad_inputs():
 
     with pytest.raises(NotImplementedError, match="'dcbf' filter"):
         AgentFilteredController(agent.controller, FilterConfig.for_kind("prior"))
+
+
+def test_corrupt_far_and_surplus_rows_are_left_out_and_counted():
+    """A robot's observation as it comes: a corrupt message (NaN), LiDAR hits beyond the training range, more
+    neighbours than slots. Each is left out of the policy's input and counted in ``info``; the control is the
+    one of the clean, in-range, nearest rows."""
+    _, cfg, _ = _controllers("egcbf+")
+    agent = AgentController.from_checkpoint(ROOT / "egcbf+", dtype=F64, max_neighbours=2)
+    env, _, state = _scene(cfg, 6, 1.2, 2, seed=3)
+    x, goal, others, hits = _observation(env, state, 0)
+    reach = agent.env_config.resolved_lidar_range
+    near = others[(others[:, :3] - x[:3]).square().sum(-1) < agent.env_config.comm_radius**2]
+    assert near.shape[0] >= 3
+    u_ref, ref = agent(x, goal, others, hits)
+    bad = torch.full((1, 18), float("nan"), dtype=F64)
+    far = x[:3] + torch.tensor([[reach * 3, 0.0, 0.0], [0.0, reach * 1.5, 0.0]], dtype=F64)
+    with pytest.warns(UserWarning, match="slots were dropped"):
+        fresh = AgentController.from_checkpoint(ROOT / "egcbf+", dtype=F64, max_neighbours=2)
+        u, info = fresh(x, goal, torch.cat((bad, others)), torch.cat((hits, far, bad[:, :3])))
+    assert torch.equal(u, u_ref) and info["num_hits"] == ref["num_hits"] == hits.shape[0]
+    assert info["rejected_neighbours"] == 1 and info["rejected_hits"] == 1
+    assert info["dropped_neighbours"] == near.shape[0] - 2 and info["dropped_hits"] == 0
+    # the fixed-shape module (what ONNX runs) ignores a far hit marked valid as well
+    inputs = list(agent.pad(x, goal, others, hits))
+    pts, valid = inputs[4].clone(), inputs[5].clone()
+    free = int(valid.sum())
+    if free < pts.shape[0]:
+        pts[free], valid[free] = far[0], True
+        u2, _ = agent.module(*inputs[:4], pts, valid)
+        assert torch.equal(u2, agent.module(*inputs)[0])
+
+
+def test_more_hit_slots_than_training_warn_and_the_filtered_agent_has_the_robot():
+    with pytest.warns(UserWarning, match="exceeds the 16 LiDAR hits"):
+        AgentController.from_checkpoint(ROOT / "egcbf+", dtype=F64, max_hits=32)
+    _, _, agent = _filtered()
+    assert agent.robot.name == "quadrotor" and agent.env_config.comm_radius == agent.controller.env_config.comm_radius

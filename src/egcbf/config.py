@@ -190,6 +190,12 @@ class TrainConfig:
         scene_keys = sorted({"scene", "scene_yaw"} & set(self.env_overrides or {}))
         need(not scene_keys, "env_overrides", f"free of {scene_keys} (set TrainConfig.scene; evaluation takes "
              "--scene and --scene-yaw)")  # fmt: skip
+        # the run's own sizes and lengths: training replaces them, and evaluation must not inherit them
+        run_keys = sorted({"num_agents", "num_envs", "area_size", "num_obstacles", "max_steps"}
+                          & set(self.env_overrides or {}))  # fmt: skip
+        need(not run_keys, "env_overrides", f"free of {run_keys} (set TrainConfig.num_agents, area_size, "
+             "num_obstacles and rollout_steps; evaluation takes --num-agents, --area, --obstacles, "
+             "--max-steps)")  # fmt: skip
 
         for name in ("rollout_envs", "rollout_steps", "buffer_trajectories", "unsafe_buffer_size", "epochs",
                      "batch_size", "steps", "eval_interval", "eval_episodes", "checkpoint_interval", "qp_max_iter",

@@ -1,8 +1,10 @@
 """Evaluation: run a controller on batches of episodes and compute the paper's metrics.
 
-Every episode ``e`` of a swarm size ``N`` is sampled from its own seed ``episode_seed(seed, N, e)``, so results do
-not depend on how episodes are batched. Episodes are simulated ``batch`` at a time (vectorized over
-environments and agents).
+Every episode ``e`` of a swarm size ``N`` is sampled from its own seed ``episode_seed(seed, N, e)``, so what an
+episode is does not depend on how episodes are batched; its trajectory does up to floating-point rounding (batched
+matrix products round differently, and a closed loop can amplify that over 256 steps: millimetres, measured), so
+rerun a cell with the same ``batch`` to reproduce it bit for bit. Episodes are simulated ``batch`` at a time
+(vectorized over environments and agents).
 
 A controller is any callable ``controller(state, config) -> (u, info)`` with ``u`` ``(B, N, 4)`` and ``info`` a
 dict that may hold ``qp_ms`` (solve time of this step, ms), ``num_slack`` / ``num_failed`` (QP counts), ``u_ref``

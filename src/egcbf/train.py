@@ -16,8 +16,9 @@ Layout of a run directory ``OUT``::
                                     ties to the higher safe rate, then to the later update): config.json,
                                     model.safetensors, state.json (step, wall time, its metrics row)
 
-Model selection uses the evaluation rollouts of training (fixed episodes from ``seed + 1000``, never the seeds of
-:func:`egcbf.evaluate.evaluate`), so ``OUT/best`` is a validation choice: the learned policies can degrade late in
+Model selection uses the evaluation rollouts of training (fixed episodes from ``seed + 1000``, not the evaluation
+seed 0 of the reported results; ``egcbf eval --seed`` should stay away from training seed + 1000), so ``OUT/best``
+is a validation choice: the learned policies can degrade late in
 a run (docs/learning.md), and the best one seen is the one to ship.
 
 A checkpoint directory alone is enough to evaluate (:func:`egcbf.checkpoint.load_controller`). Checkpoints and

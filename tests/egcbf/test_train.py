@@ -261,3 +261,9 @@ def test_warm_start_from_a_checkpoint(tmp_path):
     r = CliRunner().invoke(app, [*base, str(first), "--out", str(tmp_path / "cli2")])
     assert r.exit_code == 0, r.output
     assert TrainConfig.from_json(tmp_path / "cli2" / "config.json").init_sha256 == digest
+
+
+def test_env_overrides_refuse_the_runs_own_sizes_and_lengths():
+    for key in ("max_steps", "num_agents", "area_size"):
+        with pytest.raises(ValueError, match=f"free of \\['{key}'\\]"):
+            TrainConfig.preset("egcbf+", "tiny", env_overrides={key: 5})

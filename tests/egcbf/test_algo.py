@@ -253,6 +253,19 @@ def test_loss_unlabelled_agents_train_only_the_action():
     assert h_next.grad[0] == pytest.approx(-0.2 / 4 / 0.1) and frozen.grad[0] == 0  # labelled: the CBF learns
 
 
+def test_the_condition_accuracy_reads_each_agent_where_its_loss_does():
+    """acc_hdot counts an agent whose derivative term does not train the CBF with the frozen CBF's values (its
+    full-graph next value), not with h_next (which the learner reads on a graph without that agent's neighbours)."""
+    h, h_next, safe, unsafe, u, u_ref = _loss_inputs()
+    masked_graph = torch.full_like(h_next, 10.0)  # "nothing in range": the condition would always look met
+    frozen = h - 1.0  # the true next values: the condition fails everywhere
+    none = torch.zeros_like(safe)
+    out = cbf_loss(h, masked_graph, safe, unsafe, u, u_ref, 0.1, h_next_frozen=frozen, hdot_labelled=none)
+    assert float(out["acc_hdot"]) == 0.0
+    out = cbf_loss(h, masked_graph, safe, unsafe, u, u_ref, 0.1, h_next_frozen=frozen, hdot_labelled=~none)
+    assert float(out["acc_hdot"]) == 1.0  # agents that train the CBF are read on their own (full) graph
+
+
 # ------------------------------------------------------------------------------------------------ learner
 def test_update_with_no_unsafe_data_and_gradient_routing():
     learner = GraphCBFLearner(TrainConfig.preset("egcbf+", "tiny"))

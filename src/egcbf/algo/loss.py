@@ -57,7 +57,8 @@ def cbf_loss(
     Args:
         h, h_next: ``(M,)`` CBF values at ``x`` and at the next state (with gradients).
         safe, unsafe: ``(M,)`` bool labels.
-        u, u_ref: ``(M, 4)`` the policy's and the reference's normalized controls (``u_ref`` is not differentiated).
+        u, u_ref: ``(M, k)`` the policy's and the reference's normalized commands (``k`` the command interface's
+            width: 3 for the acceleration interface, 4 for torque and thrust; ``u_ref`` is not differentiated).
         dt: the control period of the finite difference.
         h_frozen, h_next_frozen: the same values from the CBF with frozen parameters (gradient to the action only),
             used for unlabelled agents; ``None``: use ``h`` and ``h_next`` everywhere.
@@ -76,10 +77,15 @@ def cbf_loss(
     l_safe = _masked_mean(torch.relu(gamma - h), safe)
     hdot = (h_next - h) / dt
     v = torch.relu(gamma - hdot - alpha * h)
+    condition = hdot + alpha * h  # the one-step CBF condition's left side, per agent (for the accuracy)
     if h_next_frozen is not None:
         hf = h.detach() if h_frozen is None else h_frozen
-        v_frozen = torch.relu(gamma - (h_next_frozen - hf) / dt - alpha * hf.detach())
-        v = torch.where(safe | unsafe if hdot_labelled is None else hdot_labelled.bool(), v, v_frozen)
+        cond_frozen = (h_next_frozen - hf) / dt + alpha * hf.detach()
+        v_frozen = torch.relu(gamma - cond_frozen)
+        own = safe | unsafe if hdot_labelled is None else hdot_labelled.bool()
+        v = torch.where(own, v, v_frozen)
+        # the other agents' h_next is read on a graph without their neighbours: their condition is the frozen one
+        condition = torch.where(own, condition, cond_frozen)
     l_hdot = v.mean()
     err = (u - u_ref.detach()).square().sum(-1)
     l_control = (err if control == "squared" else err.clamp_min(1e-12).sqrt()).mean()
@@ -87,7 +93,7 @@ def cbf_loss(
     with torch.no_grad():
         acc_unsafe = _masked_mean((h < 0).to(h.dtype), unsafe)
         acc_safe = _masked_mean((h > 0).to(h.dtype), safe)
-        acc_hdot = (hdot + alpha * h > 0).to(h.dtype).mean()
+        acc_hdot = (condition > 0).to(h.dtype).mean()
     return {
         "total": total,
         "unsafe": l_unsafe,

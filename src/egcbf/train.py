@@ -167,7 +167,9 @@ def evaluate_policy(learner: GraphCBFLearner, config: TrainConfig) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------------- loop
-def _resume(out: Path, steps: int | None, log) -> tuple[GraphCBFLearner, TrainConfig, Path, tuple]:
+def _resume(
+    out: Path, steps: int | None, log, num_threads: int | None = None
+) -> tuple[GraphCBFLearner, TrainConfig, Path, tuple]:
     """The learner of the newest checkpoint of ``out`` that loads; newer ones that do not are renamed
     ``*.corrupt`` (kept for inspection, out of the way of new checkpoints) and said so on ``log``."""
     found = list_checkpoints(out)
@@ -184,6 +186,8 @@ def _resume(out: Path, steps: int | None, log) -> tuple[GraphCBFLearner, TrainCo
                         "pass a larger --steps (the total number of updates)"
                     )
                 config = config.replace(steps=steps)
+            if num_threads is not None:
+                config = config.replace(num_threads=num_threads)
             saved = _setup_torch(config)
             try:
                 learner = load_learner(ckpt, config=config)
@@ -228,6 +232,7 @@ def train(
     progress: bool = True,
     log=None,
     tensorboard: bool = False,
+    num_threads: int | None = None,
 ) -> GraphCBFLearner:
     """Train ``config`` into the run directory ``out`` (module doc); returns the learner.
 
@@ -240,6 +245,7 @@ def train(
         log: a callable receiving one line per evaluation (default: ``tqdm.write``).
         tensorboard: also log to TensorBoard (``OUT/tb``); needs the ``tensorboard`` extra
             (:func:`require_tensorboard` raises an ``ImportError`` saying how to install it).
+        num_threads: with ``resume``, torch CPU threads instead of the saved config's (``None``: the saved ones).
     """
     if not isinstance(config, TrainConfig) and not (resume and config is None):  # resume reads the run's config
         raise TypeError(f"train() argument config must be a TrainConfig, got {type(config).__name__}")
@@ -250,7 +256,7 @@ def train(
     out = Path(out)
     log = log or tqdm.write
     if resume:
-        learner, config, ckpt, saved = _resume(out, steps, log)
+        learner, config, ckpt, saved = _resume(out, steps, log, num_threads)
         state = read_state(ckpt)
         wall0, cpu0 = float(state.get("wall_s", 0.0)), float(state.get("cpu_s", 0.0))
         log(f"resumed {config.algo} from {ckpt} at update {learner.step}")

@@ -124,8 +124,10 @@ def test_the_command(tmp_path):
     assert json.loads(Path(str(out) + ".json").read_text())["max_neighbours"] == 3
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 2 and "--overwrite" in res.output
-    res = CliRunner().invoke(app, [*args, "--overwrite", "--max-neighbours", "-1"])
-    assert res.exit_code == 2 and "--max-neighbours must be >= 0" in res.output
+    res = CliRunner().invoke(app, [*args, "--overwrite", "--max-neighbours", "0"])
+    assert res.exit_code == 2 and "--max-neighbours must be >= 1" in res.output
+    res = CliRunner().invoke(app, [*args[:-1], str(tmp_path), "--overwrite"])
+    assert res.exit_code == 2 and "is a directory" in res.output
     res = CliRunner().invoke(
         app, ["export", "--checkpoint", str(tmp_path), "--format", "onnx", "--out", str(tmp_path / "b")]
     )

@@ -225,6 +225,9 @@ def test_eval_filter_refuses_what_it_cannot_do(tiny_checkpoint, tmp_path):
         env={"COLUMNS": "200"},
     )  # fmt: skip
     assert res.exit_code == 2 and "--filter-alpha" in res.output
+    res = CliRunner().invoke(app, [*base, "--checkpoint", str(tiny_checkpoint), "--filter-alpha", "2"],
+                             env={"COLUMNS": "200"})  # fmt: skip
+    assert res.exit_code == 2 and "pass --filter KIND too" in res.output
     assert not (tmp_path / "o").exists()
 
 

@@ -199,3 +199,16 @@ def test_a_fix_the_recommended_controller_does_not_perceive_is_said_so_and_n_a_w
     table = _breaking_levels(cfg, {(m, "none", 4, 0): _rows(0.5) for m in cfg.controllers}, 4, 0)
     row = next(x for x in table if x.startswith("| message loss"))
     assert row.endswith("| n/a | n/a |"), row  # nominal is below 99 % without faults, but reads no messages
+
+
+def test_bad_inputs_and_a_partial_plan_into_the_committed_report_are_refused_before_anything_runs(tmp_path):
+    base = ["robustness", "--axes", "thrust", "--controllers", "nominal", "--num-agents", "4", "--out",
+            str(tmp_path / "c"), "--report", str(tmp_path / "r.md"), "--figures", str(tmp_path / "f")]  # fmt: skip
+    for flag, value, says in (("--area", "-1", "--area"), ("--max-steps", "0", "--max-steps"),
+                              ("--checkpoints", str(tmp_path / "none"), "none")):  # fmt: skip
+        r = CliRunner().invoke(app, [*base, "--controllers", "nominal,egcbf+", flag, value])
+        assert r.exit_code == 2 and "Error:" in r.output and says in r.output, r.output
+        assert not (tmp_path / "c").exists() and not (tmp_path / "r.md").exists()
+    narrowed = ["robustness", "--axes", "thrust", "--out", str(tmp_path / "c"), "--report-only"]
+    r = CliRunner().invoke(app, narrowed)
+    assert r.exit_code == 2 and "docs/robustness.md is the whole plan's report" in r.output, r.output

@@ -226,6 +226,23 @@ def test_max_cpu_minutes_counts_process_time_and_survives_resume(tmp_path):
     assert [int(r["step"]) for r in _rows(metrics)] == [0, 2, 3]  # the old rows kept (tiny evaluates every 2)
 
 
+def test_resume_takes_the_threads_it_is_given(tmp_path, monkeypatch):
+    """``egcbf train --resume --threads N``: the resumed run uses N threads, not the saved config's."""
+    run = tmp_path / "run"
+    _quiet(TrainConfig.preset("gcbf", "tiny", steps=2), run)
+    before = torch.get_num_threads()
+    seen = []
+    update = GraphCBFLearner.update
+
+    def note_threads(self):
+        seen.append(torch.get_num_threads())
+        return update(self)
+
+    monkeypatch.setattr(GraphCBFLearner, "update", note_threads)
+    resumed = _quiet(None, run, resume=True, steps=3, num_threads=2)
+    assert resumed.config.num_threads == 2 and seen == [2] and torch.get_num_threads() == before
+
+
 def test_warm_start_from_a_checkpoint(tmp_path):
     """``init_from`` starts a fresh run (update 0, fresh optimizers) from another run's networks and records the
     weights' SHA-256; another method, other networks or a changed file are refused, naming what differs."""

@@ -173,6 +173,8 @@ def run_eval(
         "controller's (--controller nominal; not with cbf, which reads a checkpoint's CBF)",
     )
     filter_config = None
+    require(filter != "none" or (filter_alpha is None and filter_margin is None),
+            "--filter-alpha and --filter-margin set a run-time filter's barrier: pass --filter KIND too")  # fmt: skip
     if filter != "none":
         try:
             filter_config = FilterConfig.for_kind(filter, filter_alpha, filter_margin)

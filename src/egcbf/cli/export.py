@@ -29,10 +29,11 @@ def export_cmd(
     from ..deploy import AgentController
     from ..export import export_controller
 
-    require(max_neighbours >= 0, f"--max-neighbours must be >= 0, got {max_neighbours}")
+    require(max_neighbours >= 1, f"--max-neighbours must be >= 1 (a controller that reads no neighbour would not "
+            f"avoid them), got {max_neighbours}")  # fmt: skip
     require(max_hits is None or max_hits >= 0, f"--max-hits must be >= 0, got {max_hits}")
-    require(overwrite or not out.exists(), f"--out {out} exists; pass --overwrite to replace it")
     require(not out.is_dir(), f"--out {out} is a directory; name the file to write")
+    require(overwrite or not out.exists(), f"--out {out} exists; pass --overwrite to replace it")
     try:
         ctrl = AgentController.from_checkpoint(checkpoint, max_neighbours=max_neighbours, max_hits=max_hits)
     except (FileNotFoundError, CheckpointError, ValueError) as err:

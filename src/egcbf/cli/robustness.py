@@ -8,9 +8,21 @@ from typing import Annotated
 
 import typer
 
-from .checks import parse_device, parse_sizes, require
+from .checks import check_env_flags, parse_device, parse_sizes, prepare_out, require, usage_error
 from .choices import Backend
 from .root import app
+
+_DEFAULT_REPORT = Path("docs/robustness.md")
+
+
+def _narrowed(cfg) -> bool:
+    """Whether ``cfg`` selects other cells than the default plan (the committed report's)."""
+    from ..robustness import RobustnessConfig
+
+    fields = ("controllers", "axes", "num_agents", "area", "obstacles", "episodes", "seed", "max_steps", "out",
+              "checkpoints")  # fmt: skip
+    default = RobustnessConfig()
+    return any(getattr(cfg, f) != getattr(default, f) for f in fields)
 
 
 @app.command("robustness")
@@ -27,7 +39,9 @@ def robustness_cmd(
     max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's)")] = None,
     checkpoints: Annotated[Path, typer.Option(help="learned checkpoints (training seed 0)")] = Path("checkpoints"),
     out: Annotated[Path, typer.Option(help="cells folder")] = Path("docs/results/robustness"),
-    report: Annotated[Path, typer.Option(help="the report to write")] = Path("docs/robustness.md"),
+    report: Annotated[
+        Path, typer.Option(help="the report to write (the default, the committed one, only for the whole plan)")
+    ] = _DEFAULT_REPORT,
     figures: Annotated[Path, typer.Option(help="folder of the report's figures")] = Path("docs/figures"),
     workers: Annotated[int, typer.Option(help="cells evaluated at a time")] = 2,
     backend: Annotated[Backend, typer.Option(help="process or ray (as egcbf reproduce)")] = Backend.process,
@@ -35,11 +49,14 @@ def robustness_cmd(
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
     plan: Annotated[bool, typer.Option("--plan", help="print the axes, levels and sweeps; run nothing")] = False,
     report_only: Annotated[bool, typer.Option("--report-only", help="only rewrite the report")] = False,
+    recompute: Annotated[
+        bool, typer.Option("--recompute", help="replace stored cells made with other settings (else refused)")
+    ] = False,
 ) -> None:
     """Evaluate every controller under every fault axis (five levels each, and the default field conditions), as
     egcbf reproduce sweeps (resumable: rerun the same command), and write docs/robustness.md."""
     from ..reproduce import METHODS, sweep_many
-    from ..reproduce.runner import CellsFailed
+    from ..reproduce.runner import CellsFailed, validate
     from ..robustness import AXES, RobustnessConfig, write_report
 
     names = [a.name for a in AXES] if axes == "all" else [a.strip() for a in axes.split(",") if a.strip()]
@@ -50,12 +67,26 @@ def robustness_cmd(
     require(methods and not bad, f"--controllers: unknown {bad}; choose from {list(METHODS)}")
     require(episodes >= 1 and workers >= 1 and obstacles >= 0, "--episodes and --workers must be >= 1, "
             "--obstacles >= 0")  # fmt: skip
-    cfg = RobustnessConfig(
-        controllers=methods, axes=tuple(names), num_agents=tuple(parse_sizes(num_agents)), area=area,
-        obstacles=obstacles, episodes=episodes, seed=seed, max_steps=max_steps, checkpoints=checkpoints, out=out,
-        workers=workers, backend=backend.value, device=str(parse_device(device)),
-    )  # fmt: skip
-    sweeps = cfg.sweeps()
+    sizes = tuple(parse_sizes(num_agents))
+    try:  # every input checked before anything runs or is written: one "Error:" line, exit 2
+        check_env_flags(sizes, area, obstacles, max_steps)
+        cfg = RobustnessConfig(
+            controllers=methods, axes=tuple(names), num_agents=sizes, area=area, obstacles=obstacles,
+            episodes=episodes, seed=seed, max_steps=max_steps, checkpoints=checkpoints, out=out, workers=workers,
+            backend=backend.value, device=str(parse_device(device)),
+        )  # fmt: skip
+        sweeps = cfg.sweeps()
+        if not (plan or report_only):
+            validate(sweeps[0][2])  # the perfect world runs every controller: checkpoints, filters, backend
+    except (ValueError, FileNotFoundError, ImportError) as err:
+        usage_error(str(err), err)
+    if not plan and report == _DEFAULT_REPORT and _narrowed(cfg):
+        usage_error(f"this selection is not the whole plan, and {_DEFAULT_REPORT} is the whole plan's report: "
+                    "pass --report PATH (and --figures DIR) for this part's report, or drop the selecting "
+                    "flags")  # fmt: skip
+    if not plan:
+        prepare_out(report.parent, True, (), flag="--report", lock=False)
+        prepare_out(figures, True, (), flag="--figures", lock=False)
     if plan:
         for a in (x for x in AXES if x.name in names):
             typer.echo(f"{a.name}: {a.title} ({a.unit}): levels {', '.join(f'{v:g}' for v in a.levels)}")
@@ -69,9 +100,12 @@ def robustness_cmd(
             typer.echo(f"[{k}/{len(sweeps)}] faults {spec}: {', '.join(sw.methods)}")
         commands = [f"egcbf robustness --axes {name}" for name, _, _ in sweeps]
         try:  # every level's cells in one queue: no level waits for the slowest cell of the one before
-            sweep_many([sw for _, _, sw in sweeps], commands=commands, progress=progress, log=typer.echo)
+            sweep_many([sw for _, _, sw in sweeps], commands=commands, progress=progress, log=typer.echo,
+                       recompute=recompute)  # fmt: skip
         except CellsFailed as err:  # every other cell was computed; the failures are named at the end
             failed = err
+        except (ValueError, RuntimeError) as err:  # stored cells of other settings; another sweep holds the lock
+            usage_error(str(err), err)
     typer.echo(f"wrote {write_report(cfg, report, figures)}")
     if failed is not None:
         typer.echo(f"Error: {failed} (every other cell was computed)", err=True)

@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 from typing import Annotated
 
-import torch
 import typer
 
 from .checks import (
@@ -46,7 +45,9 @@ def train(
     resume: Annotated[
         bool, typer.Option("--resume", help="continue the run in OUT from its newest loadable checkpoint")
     ] = False,
-    threads: Annotated[int | None, typer.Option(help="torch CPU threads (default: torch's)")] = None,
+    threads: Annotated[
+        int | None, typer.Option(help="torch CPU threads (default: the preset's, 1 for the CPU presets)")
+    ] = None,
     tensorboard: Annotated[
         bool,
         typer.Option(
@@ -93,12 +94,11 @@ def train(
         current = checkpoint_step(out)
         if steps is not None and current is not None and steps < current:
             usage_error(f"--steps {steps} is below the run's current update {current}; pass --steps >= {current}")
-        if threads is not None:
-            torch.set_num_threads(threads)
         require(out.is_dir(), f"--resume --out {out}: no such run directory (no checkpoint to continue from)")
         prepare_out(out, False, (), run_dir_ok=True)  # locked: one process continues a run
         try:
-            run_training(TrainConfig(), out, resume=True, steps=steps, progress=progress, tensorboard=tensorboard)
+            run_training(TrainConfig(), out, resume=True, steps=steps, progress=progress, tensorboard=tensorboard,
+                         num_threads=threads)  # fmt: skip
         except (FileNotFoundError, CheckpointError) as err:
             usage_error(f"--resume --out {out}: {err}", err)
         return

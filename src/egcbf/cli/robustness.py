@@ -29,7 +29,7 @@ def _narrowed(cfg) -> bool:
 def robustness_cmd(
     axes: Annotated[str, typer.Option(help="comma list of fault axes (default: all; --plan lists them)")] = "all",
     controllers: Annotated[
-        str, typer.Option(help="comma list of egcbf reproduce methods")
+        str, typer.Option("--controllers", "--methods", help="comma list of egcbf reproduce methods")
     ] = "nominal,ccbf,dcbf,gcbf+,egcbf+,egcbf+:dcbf",
     num_agents: Annotated[str, typer.Option("--num-agents", help="comma-separated swarm sizes")] = "128,512",
     area: Annotated[float, typer.Option(help="side l of the arena (m)")] = 4.0,

@@ -38,6 +38,7 @@ def study_cmd(
         chosen = list(ARMS) if arms == "all" else [arm(a.strip()) for a in arms.split(",") if a.strip()]
     except ValueError as err:
         require(False, f"--arms: {err}")
+    require(chosen, f"--arms {arms!r} names no arm; choose from {', '.join(a.name for a in ARMS)} (or all)")
     if plan:
         missing = set(pending_runs(chosen, root))
         for a in chosen:

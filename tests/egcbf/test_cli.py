@@ -99,3 +99,29 @@ def test_version_is_one_source_and_python_m_runs_the_command():
     res = subprocess.run([sys.executable, "-m", "egcbf", "eval", "--episodes", "x"], capture_output=True, text=True,
                          timeout=120)  # fmt: skip
     assert res.returncode == 2 and res.stderr.startswith("Error: ") and "--episodes" in res.stderr
+
+
+def test_eval_resume_keeps_the_finished_sizes_and_evaluates_the_rest(tmp_path):
+    """An interrupted eval continues with --resume: the sizes in run.json's finished list are kept (not rerun),
+    the others evaluated, and the result equals the uninterrupted run's; other settings or --overwrite refused."""
+    base = ["eval", "--num-agents", "4,6", "--episodes", "2", "--max-steps", "5", "--no-progress"]
+    full, part = tmp_path / "full", tmp_path / "part"
+    assert CliRunner().invoke(app, [*base, "--out", str(full)]).exit_code == 0
+    assert CliRunner().invoke(app, [*base, "--out", str(part)]).exit_code == 0
+    rows = json.loads((part / "metrics.json").read_text())
+    run = json.loads((part / "run.json").read_text())
+    kept = {**rows[0], "safe_rate": -1.0}  # a marker: a kept size is read back, not recomputed
+    (part / "metrics.json").write_text(json.dumps([kept]))
+    (part / "run.json").write_text(json.dumps({**run, "finished": [4], "complete": False}))
+    res = CliRunner().invoke(app, [*base, "--out", str(part), "--resume"])
+    assert res.exit_code == 0, res.output
+    got, want = json.loads((part / "metrics.json").read_text()), json.loads((full / "metrics.json").read_text())
+    assert got[0]["safe_rate"] == -1.0 and [r["num_agents"] for r in got] == [4, 6]
+    drop = ("step_ms_median",)
+    assert {k: v for k, v in got[1].items() if k not in drop} == {k: v for k, v in want[1].items() if k not in drop}
+    assert json.loads((part / "run.json").read_text())["complete"] is True
+    for extra, says in ((["--episodes", "3"], "other settings (episodes)"), (["--overwrite"], "pass one"),
+                        (["--out", str(tmp_path / "none")], "does not exist")):  # fmt: skip
+        args = [*base, "--out", str(part), "--resume", *extra]
+        res = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+        assert res.exit_code == 2 and says in res.output, res.output

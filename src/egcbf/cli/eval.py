@@ -3,6 +3,7 @@ writing each finished swarm size at once (atomically), and print the table."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import sys
@@ -38,6 +39,8 @@ __all__ = ["DTYPES", "EVAL_RESULTS", "format_table", "load_policy", "render_reco
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 #: the files an evaluation writes into --out (a new run refuses a folder holding any of them without --overwrite)
 EVAL_RESULTS = ("metrics.json", "run.json", "*_N*.gif", "*_N*_topdown.png")
+#: run.json fields that may differ between a run and its --resume (the rest must be equal)
+_RESUME_FREE = ("command", "finished", "complete", "wall_s", "threads", "threads_reason", "allocator", "machine")
 
 
 def format_table(rows: list[dict], title: str = "") -> str:
@@ -149,6 +152,7 @@ def run_eval(
     scene_yaw: float = 0.0,
     max_travel: float | None = None,
     faults: str = "none",
+    resume: bool = False,
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -156,6 +160,8 @@ def run_eval(
     is written at once (``metrics.json`` with the rows so far, its renders, ``run.json``), atomically. Returns the
     first episode of each swarm size ``{N: EpisodeRecord}`` if ``render`` or ``record``, else ``{}``. ``robot``: the
     robot of a hand-crafted controller's swarm (a checkpoint's robot is its own; a different ``robot`` is an error).
+    ``resume``: continue the interrupted run in ``out`` (same settings, checked against its ``run.json``): the swarm
+    sizes it finished are kept, the others evaluated.
     """
     from ..algo.filtered import FILTERS, FilterConfig, FilteredController
     from ..control.controllers import CONTROLLERS, POINT_MASSES, make_controller
@@ -241,7 +247,9 @@ def run_eval(
     configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides, robot)
     if checkpoint is not None:
         check_policy_memory(configs, episodes, batch, train_cfg.model.hidden, dev)
-    prepare_out(out, overwrite, EVAL_RESULTS)
+    require(not (resume and overwrite), "--resume continues OUT's run and --overwrite would delete it: pass one")
+    previous = _previous_run(out) if resume else None
+    prepare_out(out, overwrite, () if resume else EVAL_RESULTS)
     t0 = time.time()
     meta = {
         "command": " ".join(["egcbf", *sys.argv[1:]]),
@@ -260,17 +268,28 @@ def run_eval(
         **({"faults": fault_config.to_dict()} if not fault_config.is_null else {}),
         "episodes": episodes,
         "seed": seed,
+        "max_steps": max_steps,
+        "batch": batch,
+        "dtype": dtype,
+        "device": str(dev),
         "wall_s": 0.0,
         "threads": torch.get_num_threads(),
         "threads_reason": threads_reason,
         "allocator": allocator,
         "machine": machine_info(),
     }
+    done_rows: list[dict] = []
+    if previous is not None:
+        done_rows = _resumable(previous, meta, out)
+        meta["finished"] = [r["num_agents"] for r in done_rows]
+        sizes = [n for n in sizes if n not in meta["finished"]]
+        typer.echo(f"resuming {out}: {len(done_rows)} swarm size(s) kept, {len(sizes)} to evaluate", err=True)
     write_json_atomic(out / "run.json", meta)
     written: list[Path] = []
     recorded: dict = {}
 
     def save_size(rows: list[dict], episode) -> None:  # a later failure never loses a finished size
+        rows = [*done_rows, *rows]
         write_json_atomic(out / "metrics.json", rows)
         if episode is not None:
             recorded[rows[-1]["num_agents"]] = episode
@@ -282,28 +301,33 @@ def run_eval(
         meta.update(finished=[r["num_agents"] for r in rows], wall_s=round(time.time() - t0, 1))
         write_json_atomic(out / "run.json", meta)
 
-    rows, _ = evaluate(
-        (lambda cfg: learned)
-        if checkpoint is not None
-        else (lambda cfg: filtered_nominal)
-        if filter_config is not None
-        else (lambda cfg: make_controller(controller, robot=robot)),
-        sizes,
-        area_size=area,
-        num_obstacles=obstacles,
-        episodes=episodes,
-        seed=seed,
-        batch=batch,
-        max_steps=max_steps,
-        device=dev,
-        dtype=DTYPES[dtype],
-        record=render or record,
-        show_progress=progress,
-        env_overrides=env_overrides,
-        on_size=save_size,
-        robot=robot,
-        faults=fault_config,
+    rows, _ = (
+        ([], None)
+        if not sizes
+        else evaluate(
+            (lambda cfg: learned)
+            if checkpoint is not None
+            else (lambda cfg: filtered_nominal)
+            if filter_config is not None
+            else (lambda cfg: make_controller(controller, robot=robot)),
+            sizes,
+            area_size=area,
+            num_obstacles=obstacles,
+            episodes=episodes,
+            seed=seed,
+            batch=batch,
+            max_steps=max_steps,
+            device=dev,
+            dtype=DTYPES[dtype],
+            record=render or record,
+            show_progress=progress,
+            env_overrides=env_overrides,
+            on_size=save_size,
+            robot=robot,
+            faults=fault_config,
+        )
     )
+    rows = [*done_rows, *rows]
     meta.update(complete=True, wall_s=round(time.time() - t0, 1))
     write_json_atomic(out / "run.json", meta)
     title = f"{controller}: l={area:g}, {obstacles} obstacles, {episodes} episodes"
@@ -314,6 +338,38 @@ def run_eval(
         typer.echo(f"wrote {p}")
     typer.echo(f"wrote {out / 'metrics.json'}")
     return recorded
+
+
+def _previous_run(out: Path) -> dict:
+    """``out``'s ``run.json`` (for ``--resume``), or a usage error saying why there is nothing to resume."""
+    path = out / "run.json"
+    require(path.is_file(), f"--resume: {path} does not exist (nothing to continue); run without --resume")
+    try:
+        previous = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        usage_error(f"--resume: {path} cannot be read ({err}); rerun with --overwrite", err)
+    require(isinstance(previous, dict) and "finished" in previous, f"--resume: {path} is not an eval run's record")
+    return previous
+
+
+def _resumable(previous: dict, meta: dict, out: Path) -> list[dict]:
+    """The finished rows of ``out``'s run if it was made with ``meta``'s settings, or a usage error naming the
+    settings that differ."""
+    now = json.loads(json.dumps(meta))  # tuples as lists, as run.json stores them
+    differ = sorted(k for k in set(now) | set(previous) if k not in _RESUME_FREE and now.get(k) != previous.get(k))
+    require(not differ, f"--resume: {out} was made with other settings ({', '.join(differ)}); pass the same flags, "
+            "or --overwrite to start again")  # fmt: skip
+    rows = []
+    if (out / "metrics.json").exists():
+        try:
+            rows = json.loads((out / "metrics.json").read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            usage_error(f"--resume: {out / 'metrics.json'} cannot be read ({err}); rerun with --overwrite", err)
+    finished = previous["finished"]
+    require([r.get("num_agents") for r in rows] == finished,
+            f"--resume: {out / 'metrics.json'} does not hold the finished sizes {finished} of run.json; rerun with "
+            "--overwrite")  # fmt: skip
+    return rows
 
 
 @app.command("eval")
@@ -342,6 +398,10 @@ def eval_cmd(
     threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="replace the results already in OUT (default: refuse to mix runs)")
+    ] = False,
+    resume: Annotated[
+        bool,
+        typer.Option("--resume", help="continue OUT's interrupted run (same flags): its finished swarm sizes are kept"),
     ] = False,
     robot: Annotated[
         RobotName | None,
@@ -416,4 +476,5 @@ def eval_cmd(
             scene_yaw=scene_yaw,
             max_travel=max_travel,
             faults=faults,
+            resume=resume,
         )

@@ -212,3 +212,20 @@ def test_bad_inputs_and_a_partial_plan_into_the_committed_report_are_refused_bef
     narrowed = ["robustness", "--axes", "thrust", "--out", str(tmp_path / "c"), "--report-only"]
     r = CliRunner().invoke(app, narrowed)
     assert r.exit_code == 2 and "docs/robustness.md is the whole plan's report" in r.output, r.output
+
+
+def test_the_report_reads_only_cells_made_with_its_settings(tmp_path):
+    """A stored cell counts only for the settings it was made with (episodes, seed, area, episode length)."""
+    from egcbf.reproduce.plan import cell_key
+    from egcbf.reproduce.store import write_json
+    from egcbf.robustness.cells import _cell, load_records
+
+    cfg = RobustnessConfig(axes=("thrust",), controllers=("nominal",), num_agents=(4,), episodes=2, out=tmp_path)
+    spec = axis("thrust").specs()[1]
+    cell = _cell("nominal", spec, 4, 0)
+    key = cell_key(cfg.sweep(spec, ("nominal",)), cell, None)
+    write_json(cell.path(tmp_path), {"key": key, "row": {"safe_rate": 1.0, "success_rate": 1.0}, "meta": {}})
+    assert ("nominal", spec, 4, 0) in load_records(cfg)
+    for other in (dataclasses.replace(cfg, episodes=3), dataclasses.replace(cfg, seed=1),
+                  dataclasses.replace(cfg, max_steps=100)):  # fmt: skip
+        assert ("nominal", spec, 4, 0) not in load_records(other)

@@ -265,10 +265,19 @@ def filter_settings(method: str) -> dict | None:
     return {"filter": kind, "filter_config": FilterConfig.for_kind(kind).settings()}
 
 
+#: The version of what the simulation computes: bump it by hand in the commit that changes a cell's results (the
+#: dynamics, a controller, a fault model, the metrics), so that stored cells made before it are not reused.
+#: ``tests/egcbf/test_results_version.py`` pins tiny evaluations of every controller under every fault family and
+#: fails until the pinned values are regenerated, which is the moment to bump this. Version 1 (every cell stored
+#: before versions were keyed) adds no field to the key.
+RESULTS_VERSION = 1
+
+
 def cell_key(cfg: SweepConfig, cell: Cell, checkpoint_sha256: str | None) -> dict:
     """What a cell's result depends on; a stored cell with an equal key is reused. A filtered method's key also
     holds its filter and the filter's settings (:func:`filter_settings`); the keys of the other cells are those of
-    the sweep before the filtered methods (so their stored cells are still found)."""
+    the sweep before the filtered methods (so their stored cells are still found); from :data:`RESULTS_VERSION` 2
+    on, the version."""
     key = {
         "method": cell.method,
         "obstacles": cell.obstacles,
@@ -281,4 +290,6 @@ def cell_key(cfg: SweepConfig, cell: Cell, checkpoint_sha256: str | None) -> dic
     }
     if cell.faults != "none":  # the keys of the perfect world's cells are those of the sweep before faults existed
         key["faults"] = cell.faults
+    if RESULTS_VERSION != 1:
+        key["results_version"] = RESULTS_VERSION
     return key | (filter_settings(cell.method) or {})

@@ -277,14 +277,23 @@ def unreadable_cells(cfg: SweepConfig) -> list[Path]:
     return bad
 
 
+def made_with(rec, cfg: SweepConfig, cell: Cell) -> bool:
+    """Whether the stored record ``rec`` of ``cell`` was made with ``cfg``'s settings (episodes, seed, area, episode
+    length, faults, filter, results version; any checkpoint)."""
+    return (
+        isinstance(rec, dict)
+        and "key" in rec
+        and "row" in rec
+        and not _settings_diff(rec["key"], cell_key(cfg, cell, None))
+    )
+
+
 def load_cells(cfg: SweepConfig) -> dict[Cell, dict]:
-    """The stored records of ``cfg``'s cells made with its episodes, seed, area and episode length (any checkpoint:
-    for regenerating the report without the checkpoints)."""
+    """The stored records of ``cfg``'s cells made with its settings (:func:`made_with`; any checkpoint: for
+    regenerating the report without the checkpoints)."""
     out = {}
     for cell in cfg.cells():
         rec = read_json(cell.path(cfg.out))
-        if not isinstance(rec, dict) or "key" not in rec:
-            continue
-        if not _settings_diff(rec["key"], cell_key(cfg, cell, None)):
+        if made_with(rec, cfg, cell):
             out[cell] = rec
     return out

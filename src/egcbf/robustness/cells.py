@@ -9,7 +9,7 @@ from ..bootstrap import mean_ci
 from ..reproduce.paper import BASELINES, base_method
 from ..reproduce.plan import Cell
 from ..reproduce.provenance import machine_text
-from ..reproduce.store import read_json
+from ..reproduce.store import made_with, read_json
 from .plan import RobustnessConfig, axis
 
 __all__ = [
@@ -31,7 +31,9 @@ def _cell(method: str, spec: str, n: int, obstacles: int) -> Cell:
 def load_records(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]:
     """``{(method, axis-level spec, N, obstacles): record}`` of every computed cell, the whole stored record (``row``
     and ``meta``); the level spec as the axis names it, a controller that does not read messages looked up under
-    the level's state-level spec (so one stored cell can stand under several keys)."""
+    the level's state-level spec (so one stored cell can stand under several keys). Only cells made with ``cfg``'s
+    settings count (episodes, seed, area, episode length, results version: :func:`egcbf.reproduce.store.made_with`);
+    the others show as pending."""
     out = {}
     for a in (axis(n) for n in cfg.axes):
         for spec in a.specs():
@@ -39,10 +41,12 @@ def load_records(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]
                 run = cfg.cell_spec(m, spec)
                 if run is None:
                     continue
+                sweep = cfg.sweep(run, (m,))
                 for n in cfg.num_agents:
                     for k in (0, cfg.obstacles):
-                        rec = read_json(_cell(m, run, n, k).path(cfg.out))
-                        if isinstance(rec, dict) and "row" in rec:
+                        cell = _cell(m, run, n, k)
+                        rec = read_json(cell.path(cfg.out))
+                        if made_with(rec, sweep, cell):
                             out[(m, spec, n, k)] = rec
     return out
 

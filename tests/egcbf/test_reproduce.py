@@ -903,3 +903,14 @@ def test_several_sweeps_run_as_one_queue_and_each_is_recorded(first, tmp_path, m
     remote = [SweepConfig(**{**c.__dict__, "backend": "ray", "out": tmp_path / "ray"}) for c in (a, b)]
     ra2, rb2 = rp.sweep_many(remote, progress=False, log=lambda s: None)
     assert {c: _metrics(r["row"]) for c, r in {**ra2, **rb2}.items()} == {c: serial[c] for c in {**ra, **rb}}
+
+
+def test_an_unreadable_sweep_history_is_moved_aside_not_overwritten(tmp_path):
+    from egcbf.reproduce.store import read_invocations, record_invocation
+
+    (tmp_path / "sweep.json").write_text('[{"command": "egcbf reproduce", "status": "fini')  # cut by a full disk
+    with pytest.warns(UserWarning, match="moved aside"):
+        assert record_invocation(tmp_path, {"command": "new", "status": "running"}, 3) == 0
+    aside = list(tmp_path.glob("sweep.json.unreadable-*"))
+    assert len(aside) == 1 and aside[0].read_text().startswith('[{"command": "egcbf reproduce"')
+    assert read_invocations(tmp_path) == [{"command": "new", "status": "running"}]

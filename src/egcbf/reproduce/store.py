@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import datetime
 import json
+import os
 import shlex
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -205,8 +207,18 @@ def read_invocations(out: str | Path) -> list[dict]:
 def record_invocation(out: Path, entry: dict, index: int | None = None) -> int:
     """Append ``entry`` to ``OUT/sweep.json`` (``index=None``) or overwrite the entry at ``index``; returns its
     index. The sweep rewrites its entry after every cell, so a killed invocation still counts up to its last
-    finished cell."""
-    log = read_invocations(out)
+    finished cell. A ``sweep.json`` that cannot be read is moved aside (``sweep.json.unreadable-<time>``) with a
+    warning, never overwritten."""
+    path = Path(out) / "sweep.json"
+    log = read_json(path)
+    if not isinstance(log, list):
+        if path.exists():
+            aside = path.with_name(f"sweep.json.unreadable-{datetime.datetime.now():%Y%m%dT%H%M%S}")
+            os.replace(path, aside)
+            warnings.warn(f"{path} could not be read as a list of invocations: moved aside to {aside.name}, a new "
+                          "history starts", stacklevel=2)  # fmt: skip
+            index = None
+        log = []
     if index is None or index >= len(log):
         log.append(entry)
         index = len(log) - 1

@@ -425,3 +425,11 @@ def test_noncooperative_count_rounds_half_up_and_leaves_someone_to_measure():
 def test_spec_strings_keep_every_digit_of_a_vector():
     f = FaultConfig(wind=(0.1234567891, 1.0, 0.5))
     assert parse_faults(f.spec()) == f and "wind=0.1234567891/1/0.5" in f.spec()
+
+
+def test_a_json_file_and_a_string_give_one_spec(tmp_path):
+    path = tmp_path / "f.json"
+    path.write_text(json.dumps({"pos_noise": 1, "msg_delay": 2.0, "wind": [1, 0, 0]}))
+    from_file = parse_faults(str(path))
+    assert from_file == parse_faults("pos=1,delay=2,wind=1/0/0")
+    assert from_file.spec() == parse_faults("pos=1,delay=2,wind=1/0/0").spec()

@@ -250,6 +250,10 @@ def parse_faults(spec: str | Path | FaultConfig | None) -> FaultConfig:
     return _build(base, fields, text)
 
 
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def _build(base: dict, fields: dict, source: str) -> FaultConfig:
     known = {f.name for f in dataclasses.fields(FaultConfig)}
     unknown = sorted(set(fields) - known)
@@ -258,8 +262,14 @@ def _build(base: dict, fields: dict, source: str) -> FaultConfig:
         raise ValueError(f"faults: unknown {unknown} in {source!r}; known: {names}")
     out = dict(base)
     for name, value in fields.items():
-        if not isinstance(value, str):
-            out[name] = tuple(value) if name == "wind" else value
+        if not isinstance(value, str):  # a JSON file's numbers: each field's type, so a spec has one spelling
+            if name == "wind":
+                value = tuple(float(w) if _is_number(w) else w for w in value)
+            elif _is_number(value) and name in _INT_FIELDS and float(value).is_integer():
+                value = int(value)
+            elif _is_number(value) and name not in _INT_FIELDS:
+                value = float(value)
+            out[name] = value
             continue
         try:
             if name == "wind":

@@ -56,21 +56,22 @@ def machine_info() -> dict:
 
 
 def code_version() -> str:
-    """The package version, plus ``git describe --always --dirty`` of the source tree when it is a git checkout
-    (e.g. ``0.4.0+g1a2b3c4-dirty``), for provenance records; never raises."""
+    """The package version, plus ``git describe --always`` of the source tree when it is a git checkout, with
+    ``-dirty`` when the package sources differ from that commit (``src/``; results and reports written meanwhile do
+    not count), e.g. ``0.4.0+g1a2b3c4-dirty``, for provenance records; never raises."""
     import subprocess
 
     from ._version import __version__
 
+    here = Path(__file__).resolve().parent
+
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", *args], cwd=here, capture_output=True, text=True, timeout=10)
+
     try:
-        desc = subprocess.run(
-            ["git", "describe", "--always", "--dirty", "--exclude", "*"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
-        ).stdout.strip()
+        desc = git("describe", "--always", "--exclude", "*").stdout.strip()
+        if desc and git("status", "--porcelain", "--", str(here.parent)).stdout.strip():
+            desc += "-dirty"
     except (OSError, subprocess.SubprocessError):
         return __version__
     return f"{__version__}+g{desc}" if desc else __version__

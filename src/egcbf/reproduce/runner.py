@@ -248,9 +248,10 @@ def sweep_many(
                     progress=False,
                 )
             )
+    code, machine = code_version(), machine_info()
+    tasks = [dataclasses.replace(t, code=code) for t in tasks]  # the code the sweep loaded, not HEAD at a cell's end
     if first.backend == "process" and (first.workers <= 1 or len(tasks) <= 1):  # one cell at a time, here
         tasks = [dataclasses.replace(t, progress=progress) for t in tasks]
-    code, machine = code_version(), machine_info()
 
     def entry(j: int, status: str) -> dict:
         cfg = cfgs[j]

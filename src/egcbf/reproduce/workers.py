@@ -44,6 +44,7 @@ class CellTask:
     threads: int = 1
     checkpoint_files: dict[str, bytes] | None = None
     progress: bool = False
+    code: str | None = None  # the code version the sweep started with (None: the worker's own)
 
 
 def _evaluate_cell(task: CellTask) -> dict:
@@ -97,7 +98,7 @@ def run_cell(task: CellTask) -> dict:
         machine = machine_info()
         if torch.device(task.device).type == "cuda":
             machine["gpu"] = torch.cuda.get_device_name(torch.device(task.device))
-        return {"row": row, "wall_s": round(wall, 2), "machine": machine, "code": code_version()}
+        return {"row": row, "wall_s": round(wall, 2), "machine": machine, "code": task.code or code_version()}
     finally:
         torch.set_num_threads(saved)
 

@@ -433,3 +433,13 @@ def test_a_json_file_and_a_string_give_one_spec(tmp_path):
     from_file = parse_faults(str(path))
     assert from_file == parse_faults("pos=1,delay=2,wind=1/0/0")
     assert from_file.spec() == parse_faults("pos=1,delay=2,wind=1/0/0").spec()
+
+
+def test_velocity_faults_are_refused_for_a_robot_without_velocity_state():
+    robot = make_robot("single_integrator")
+    cfg = EnvConfig.for_robot("single_integrator", num_agents=4, num_envs=1)
+    FaultProcess(FaultConfig(pos_noise=0.01, msg_loss=0.1), cfg, robot, [1])  # these act on it
+    for faults, name in ((FaultConfig(vel_noise=0.1), "vel_noise"), (FaultConfig(msg_delay=1, msg_predict=1),
+                         "msg_predict"), (FaultConfig(wind=(1.0, 0.0)), "wind")):  # fmt: skip
+        with pytest.raises(ValueError, match=f"{name} act on a velocity the single_integrator does not have"):
+            FaultProcess(faults, cfg, robot, [1])

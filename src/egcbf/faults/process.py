@@ -76,6 +76,13 @@ class FaultProcess:
     ):
         if faults.wind and len(faults.wind) != robot.dim:
             raise ValueError(f"faults: wind needs {robot.dim} numbers for the {robot.name}, got {faults.wind}")
+        if robot.kinematic:  # its velocity is its command, not its state: these faults would do nothing (or less)
+            moot = [n for n in ("vel_noise", "msg_predict", "gust") if getattr(faults, n) > 0] + (
+                ["wind"] if faults.wind else []
+            )
+            if moot:
+                raise ValueError(f"faults: {', '.join(moot)} act on a velocity the {robot.name} does not have (its "
+                                 "velocity is its command, not its state): they would silently do nothing")  # fmt: skip
         groups = robot.actuator_groups
         for name, group in (("thrust_gain", "thrust"), ("torque_gain", "torque"), ("torque_bias", "torque")):
             if getattr(faults, name) > 0 and group not in groups:

@@ -17,8 +17,9 @@ A robot is a plug-in. It declares
   the normalized raw control, works for every robot), with ``command_feature(name)``, how the group acts on it;
 * the **defaults** of an environment for it (``env_defaults``: arena, radii, LiDAR, time step).
 
-:mod:`egcbf.robots.quadrotor` (the paper's rigid body) and :mod:`egcbf.robots.unicycle` (a planar unicycle) are
-the two implementations; ``examples/new_robot.py`` and docs/robots.md show how to add one. Shapes: ``x``
+:mod:`egcbf.robots.quadrotor` (the paper's rigid body), the planar cars (:mod:`egcbf.robots.unicycle`, the
+Dubins car) and the point masses (:mod:`egcbf.robots.integrators`: single and double integrator, linear drone)
+implement it (``egcbf.robots.BUILTIN_ROBOTS``); ``examples/new_robot.py`` and docs/robots.md show how to add one. Shapes: ``x``
 ``(*batch, state_dim)``, ``u`` ``(*batch, control_dim)``, points and vectors ``(*batch, dim)``.
 """
 
@@ -209,7 +210,8 @@ class Robot:
     # ------------------------------------------------------------------------------------------- control
     def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:
         """The equivariant nominal controller's control ``(*batch, control_dim)`` towards ``goals``
-        ``(*batch, dim)``, clipped to the actuator box."""
+        ``(*batch, dim)``, clipped to the actuator box unless the robot documents otherwise (the Dubins car's law
+        is the reference's, unclipped: the environment clips every command before it acts)."""
         raise _not_implemented(self, "nominal_control")
 
     def parked(self, x: Tensor) -> Tensor:

@@ -149,6 +149,8 @@ class Unicycle(HeadingSpeedRobot):
 
     def step(self, x: Tensor, u: Tensor, dt: float, substeps: int = 1, integrator: str = "rk4") -> Tensor:
         if integrator == "euler":
+            if int(substeps) != substeps or substeps < 1:
+                raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
             h = dt / int(substeps)
             for _ in range(int(substeps)):
                 x = self._project(x + h * self.xdot(x, u))

@@ -19,8 +19,8 @@ A robot is a plug-in. It declares
 
 :mod:`egcbf.robots.quadrotor` (the paper's rigid body), the planar cars (:mod:`egcbf.robots.unicycle`, the
 Dubins car) and the point masses (:mod:`egcbf.robots.integrators`: single and double integrator, linear drone)
-implement it (``egcbf.robots.BUILTIN_ROBOTS``); ``examples/new_robot.py`` and docs/robots.md show how to add one. Shapes: ``x``
-``(*batch, state_dim)``, ``u`` ``(*batch, control_dim)``, points and vectors ``(*batch, dim)``.
+implement it (``egcbf.robots.BUILTIN_ROBOTS``); ``examples/new_robot.py`` and docs/robots.md show how to add one.
+Shapes: ``x`` ``(*batch, state_dim)``, ``u`` ``(*batch, control_dim)``, points and vectors ``(*batch, dim)``.
 """
 
 from __future__ import annotations

@@ -178,8 +178,13 @@ class Sensing:
         return self.faults.msg_hold > 0 and self.faults.msg_loss > 0
 
     def received(
-        self, receivers: Tensor, senders: Tensor, comm_radius: float, like: Tensor | None = None
-    ) -> tuple[Tensor, Tensor, Tensor]:
+        self,
+        receivers: Tensor,
+        senders: Tensor,
+        comm_radius: float,
+        like: Tensor | None = None,
+        accelerations: bool = False,
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
         """Which candidate directed links carry a message in this step, and what each message tells its receiver.
 
         Args:
@@ -189,6 +194,7 @@ class Sensing:
                 the QP).
             comm_radius: the communication radius (m).
             like: the dtype and device of the states returned (default: ``x_sent``'s).
+            accelerations: also tell the acceleration each message carries (else ``accel`` is ``None``).
 
         Returns:
             ``keep`` ``(E,)`` bool on the device of ``receivers``: the link has a message, i.e. the one of this step
@@ -229,7 +235,7 @@ class Sensing:
         else:
             age = torch.full_like(src, self.delay_age)
             states = self.sent_states(like)[src]
-        accel = self._carried_acceleration(history, src, age)
+        accel = self._carried_acceleration(history, src, age) if accelerations else None
         if f.msg_delay > 0 or self.per_link:
             seen = self.x_seen.reshape(b * n, -1).to(device=like.device, dtype=like.dtype)
             gap = torch.linalg.vector_norm(robot.positions(states) - robot.positions(seen)[receivers.to(like.device)],
@@ -246,10 +252,10 @@ class Sensing:
         if not self.dt > 0:
             raise ValueError(f"Sensing.dt must be the control period (s) > 0 to tell accelerations, got {self.dt!r}")
         rows = src.to(history[0].device)
-        vel = torch.stack([robot.velocities(h.reshape(-1, h.shape[-1])) for h in history])  # (K, B N, d)
+        stacked = torch.stack(history).reshape(k, -1, history[0].shape[-1])  # (K, B N, S)
         before = (age + 1).to(rows.device)
-        now_v = vel[age.to(rows.device), rows].to(torch.float64)
-        before_v = vel[before.clamp_max(k - 1), rows].to(torch.float64)
+        now_v = robot.velocities(stacked[age.to(rows.device), rows]).to(torch.float64)
+        before_v = robot.velocities(stacked[before.clamp_max(k - 1), rows]).to(torch.float64)
         accel = torch.where((before < k)[:, None], (now_v - before_v) / self.dt, torch.zeros_like(now_v))
         return accel.to(src.device)
 

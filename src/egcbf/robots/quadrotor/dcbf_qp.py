@@ -155,16 +155,17 @@ class DecentralizedCBFQP(_CBFQPBase):
         pairs = agent_pairs(p_now, near, batch)
         recv = np.concatenate((pairs[0], pairs[1]))
         send = np.concatenate((pairs[1], pairs[0]))
-        keep, states, carried = sensing.received(torch.from_numpy(recv), torch.from_numpy(send), comm, like=prep.x)
+        keep, states, carried = sensing.received(torch.from_numpy(recv), torch.from_numpy(send), comm, like=prep.x,
+                                                 accelerations=bool(lookahead))  # fmt: skip
         keep = keep.cpu().numpy()
         p = sensing.robot.positions(states).cpu().numpy()[keep]
         v = sensing.robot.velocities(states).cpu().numpy()[keep]
-        acc = carried.cpu().numpy()[keep]
         recv, send = recv[keep], send[keep]
         order = np.lexsort((send, recv))
         links = np.stack((recv[order], send[order]))
-        p, v, acc = p[order], v[order], acc[order]
+        p, v = p[order], v[order]
         if lookahead:
+            acc = carried.cpu().numpy()[keep][order]
             p = p + lookahead * v + 0.5 * lookahead**2 * acc
             v = v + lookahead * acc
         return links, p, v

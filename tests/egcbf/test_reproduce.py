@@ -168,8 +168,8 @@ def test_a_failing_cell_keeps_the_others_and_the_invocation_is_recorded(first, t
     assert "1 not recorded as finished" in rp.provenance_markdown(stopped, rp.load_cells(stopped))
 
 
-def test_a_second_sweep_into_the_same_directory_is_refused(first, tmp_path):
-    """Another process holding the results directory (a sweep, an eval) stops the sweep before any cell runs."""
+def test_a_second_sweep_into_the_same_directory_is_refused(first, tmp_path, monkeypatch):
+    """Another process holding the results directory (a sweep, an eval) stops the sweep before it plans."""
     import subprocess
     import sys
     import time
@@ -185,7 +185,15 @@ def test_a_second_sweep_into_the_same_directory_is_refused(first, tmp_path):
         deadline = time.time() + 30
         while not ready.exists() and time.time() < deadline:
             time.sleep(0.05)
-        with pytest.raises(RuntimeError, match=rf"is being written by egcbf reproduce \(pid {holder.pid}\)"):
+
+        def planned(*args):  # planning reads (and imports baselines into) OUT: only under its lock
+            raise AssertionError("the sweep planned while another process held OUT")
+
+        with (
+            monkeypatch.context() as patch,
+            pytest.raises(RuntimeError, match=rf"is being written by egcbf reproduce \(pid {holder.pid}\)"),
+        ):
+            patch.setattr(rp.runner, "_stored", planned)
             rp.sweep(cfg, progress=False, log=lambda s: None)
     finally:
         holder.kill()
@@ -215,6 +223,41 @@ def test_process_pool_yields_finished_cells_and_failures(first):
     got = {t.cell: (res, err) for t, res, err in rp.workers.execute([broken, tasks[1]], "process", 2)}
     assert got[cells[0]][0] is None and "no-such-device" in got[cells[0]][1]
     assert got[cells[1]][1] is None and 0 <= got[cells[1]][0]["row"]["safe_rate"] <= 1
+
+
+def test_process_pool_survives_a_dying_worker():
+    """A worker killed mid-cell (kill -9, out of memory) fails that cell alone; every other cell, including the one
+    that ran beside it, is still computed, and the sweep's iterator ends instead of waiting forever."""
+    import pool_helpers
+
+    cell = Cell("dcbf", 0, 2)
+    seeds = [pool_helpers.DIE, 1, 2, 3, 4]
+    tasks = [rp.CellTask(cell=cell, area=1.0, episodes=1, seed=s, max_steps=1, device="cpu") for s in seeds]
+    got = {t.seed: (res, err) for t, res, err in rp.workers._run_processes(tasks, 2, pool_helpers.die_or_answer)}
+    assert sorted(got) == sorted(seeds)
+    assert got[pool_helpers.DIE][0] is None and "died" in got[pool_helpers.DIE][1]
+    assert all(got[s] == ({"seed": s, "pid": got[s][0]["pid"]}, None) for s in seeds[1:])
+
+
+def test_process_pool_closing_stops_its_workers_at_once():
+    """Closing the iterator (an interruption) terminates the cells in progress instead of awaiting them."""
+    import os
+    import time
+
+    import pool_helpers
+
+    cell = Cell("dcbf", 0, 2)
+    seeds = (1, pool_helpers.SLEEP, pool_helpers.SLEEP)
+    tasks = [rp.CellTask(cell=cell, area=1.0, episodes=1, seed=s, max_steps=1, device="cpu") for s in seeds]
+    outcomes = rp.workers._run_processes(tasks, 2, pool_helpers.die_or_answer)
+    task, res, _ = next(outcomes)
+    assert task.seed == 1
+    t0 = time.perf_counter()
+    outcomes.close()
+    assert time.perf_counter() - t0 < 20
+    for pid in {res["pid"]}:  # the worker that answered was stopped with the pool
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
 
 
 def test_baseline_import(checkpoints, tmp_path):

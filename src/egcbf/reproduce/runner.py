@@ -209,8 +209,19 @@ def sweep_many(
     odd = [f for f in shared if len({str(getattr(c, f)) for c in cfgs}) > 1]
     if odd:
         raise ValueError(f"sweep_many: the sweeps must share {', '.join(shared)}; they differ in {', '.join(odd)}")
+    with DirLock(Path(cfgs[0].out), "egcbf reproduce"):  # before planning: another sweep may be writing there
+        return _run_sweeps(cfgs, commands, progress, log or tqdm.write, recompute)
+
+
+def _run_sweeps(
+    cfgs: list[SweepConfig],
+    commands: list[str | None],
+    progress: bool,
+    log: Callable[[str], None],
+    recompute: bool,
+) -> list[dict[Cell, dict]]:
+    """:func:`sweep_many`'s work, with ``OUT``'s lock held."""
     first = cfgs[0]
-    log = log or tqdm.write
     t0 = time.perf_counter()
     started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     plans = []  # per sweep: checkpoints, records, counts
@@ -270,7 +281,7 @@ def sweep_many(
 
     failures: dict[Cell, str] = {}
     out = Path(first.out)
-    with DirLock(out, "egcbf reproduce"), _TermAsInterrupt():
+    with _TermAsInterrupt():
         index = [record_invocation(out, entry(j, "running")) for j in range(len(cfgs))]
         bar = tqdm(total=len(tasks), desc="reproduce", unit="cell", disable=not progress)
         status, outcomes = "interrupted", execute(tasks, first.backend, first.workers)

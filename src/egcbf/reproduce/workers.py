@@ -18,7 +18,9 @@ import signal
 import tempfile
 import time
 import traceback
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -115,7 +117,9 @@ def require_ray():
     return ray
 
 
-def _init_worker(threads: int) -> None:
+def _init_worker(threads: int, started=None) -> None:
+    global _started
+    _started = started
     torch.set_num_threads(threads)
     try:  # Linux: a worker dies with the sweep (even `kill -9` of the sweep) instead of finishing its cell alone
         import ctypes
@@ -128,6 +132,9 @@ def _init_worker(threads: int) -> None:
 #: what a backend yields per cell: the task, then its result (``run_cell``'s dict) or ``None`` and the error text
 Outcome = tuple[CellTask, dict | None, str | None]
 
+#: in a worker process: the pool's shared flags, one per task, set when the worker starts that task
+_started = None
+
 
 def _run_cell_caught(task: CellTask) -> Outcome:
     try:
@@ -136,22 +143,77 @@ def _run_cell_caught(task: CellTask) -> Outcome:
         return task, None, traceback.format_exc()
 
 
+def _run_flagged(fn: Callable[[CellTask], Outcome], index: int, task: CellTask) -> Outcome:
+    _started[index] = 1  # the parent learns which cells were running if a worker dies
+    return fn(task)
+
+
 def _run_local(tasks: Sequence[CellTask]) -> Iterator[Outcome]:
     for task in tasks:
         yield _run_cell_caught(task)
 
 
-def _run_processes(tasks: Sequence[CellTask], workers: int) -> Iterator[Outcome]:
+_DIED = (
+    "the worker process running this cell died ({}) while it ran alone: killed by a signal, or out of memory? "
+    "The other cells went on in a new pool."
+)
+
+
+def _run_processes(
+    tasks: Sequence[CellTask], workers: int, fn: Callable[[CellTask], Outcome] = _run_cell_caught
+) -> Iterator[Outcome]:
+    """``fn`` over ``tasks`` on ``workers`` spawned processes, dispatched in order, yielded as they finish.
+
+    A worker that dies (``kill -9``, the out-of-memory killer, a crash in native code) breaks its pool, which stops
+    every cell in progress. The cells not yet started go on in a new pool; each cell that was running when it broke
+    is run again alone first, so the cell that kills its worker is told apart from the ones that ran beside it:
+    dying alone, it is yielded as failed with that error, and the sweep goes on."""
     ctx = multiprocessing.get_context("spawn")  # never fork a process whose torch thread pools are running
     threads = tasks[0].threads if tasks else 1
-    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(threads,))
-    try:
-        # dispatched in order (largest N starts first), yielded as they finish
-        yield from pool.imap_unordered(_run_cell_caught, tasks, chunksize=1)
-        pool.close()
-    finally:
-        pool.terminate()  # on an interruption the cells in progress are dropped at once, not awaited
-        pool.join()
+    waiting = list(range(len(tasks)))  # task indices never started, in dispatch order (largest N first)
+    suspects: list[int] = []  # running when a pool broke: each is retried alone
+    while waiting or suspects:
+        alone = bool(suspects)
+        batch = [suspects.pop(0)] if alone else waiting
+        started = ctx.Array("b", len(tasks), lock=False)
+        pool = ProcessPoolExecutor(
+            1 if alone else min(workers, len(batch)),
+            mp_context=ctx,
+            initializer=_init_worker,
+            initargs=(threads, started),
+        )
+        try:
+            futures = {pool.submit(_run_flagged, fn, i, tasks[i]): i for i in batch}
+            done: set[int] = set()
+            broken = None
+            for future in as_completed(futures):
+                i = futures[future]
+                try:
+                    outcome = future.result()
+                except BrokenProcessPool as err:
+                    broken = err
+                    continue
+                done.add(i)
+                yield outcome
+            if not alone:
+                waiting = []
+            if broken is not None:
+                lost = [i for i in batch if i not in done]
+                if alone:
+                    yield tasks[batch[0]], None, _DIED.format(broken)
+                else:
+                    suspects += [i for i in lost if started[i]]
+                    waiting = [i for i in lost if not started[i]]
+        finally:
+            _stop(pool)
+
+
+def _stop(pool: ProcessPoolExecutor) -> None:
+    """Shut ``pool`` down at once: cells in progress are dropped (an interruption), not awaited."""
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):  # no public terminate before 3.14
+        if proc.is_alive():
+            proc.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _run_ray(tasks: Sequence[CellTask]) -> Iterator[Outcome]:

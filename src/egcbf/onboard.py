@@ -18,7 +18,9 @@ The prediction rolls the estimate through :func:`egcbf.env.swarm.advance` (the s
 integrator, parking) with the commands in flight; the observer compares the velocity estimate with that model's
 prediction from the previous estimate under the command that acted, and low-passes the difference
 (``d <- d + beta (a - d)``, ``beta = 1 - exp(-dt / tau)``); the rejection is
-:meth:`egcbf.robots.Robot.reject_disturbance`. Neither knows gain errors or wind: the observer measures them.
+:meth:`egcbf.robots.Robot.reject_disturbance`. Neither knows gain errors or wind: the observer measures them, and
+with it the prediction adds the measured disturbance back to each period its commands (which cancel it) are rolled
+over.
 """
 
 from __future__ import annotations
@@ -106,9 +108,20 @@ class Onboard:
             self._observe(x, goals)
         self._estimate, self._goals = x, goals
         if self.predict and self.act_delay > 0:
-            for u in self._in_flight(x):
-                x, _ = advance(self.robot, self.config, x, u.to(x.dtype), goals)
+            x = self.predicted(x, goals)
         self._for = x
+        return x
+
+    def predicted(self, x: Tensor, goals: Tensor) -> Tensor:
+        """``x`` ``(*batch, S)`` rolled over the commands in flight (oldest first) through the robot's dynamics,
+        each period with the estimated disturbance acting as the simulator applies wind (velocity ``+ d dt``,
+        position ``+ d dt^2 / 2``): the commands already cancel it, so the model must add it back."""
+        d = self._disturbance
+        dt = self.config.dt
+        for u in self._in_flight(x):
+            x, _ = advance(self.robot, self.config, x, u.to(x.dtype), goals)
+            if d is not None:
+                x = self.robot.perturbed(x, 0.5 * d.to(x.dtype) * dt * dt, d.to(x.dtype) * dt)
         return x
 
     def reject(self, u: Tensor) -> Tensor:

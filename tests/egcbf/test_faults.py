@@ -330,6 +330,45 @@ def test_actuation_delay_prediction_sees_the_state_its_command_acts_on(delay):
         assert predict == 0 or not torch.equal(seen[0], truth[0])
 
 
+def test_prediction_with_the_observer_adds_back_the_disturbance_its_commands_cancel():
+    """Agents holding their positions in a steady wind, once the observer has converged: the predicted state is the
+    true state ``act_delay`` steps later, as without wind: the commands in flight cancel the wind, so the model adds
+    the estimated wind back (without it the prediction would miss ``d * delay * dt`` of velocity)."""
+    cfg = dataclasses.replace(CFG, num_agents=4, num_obstacles=0, max_steps=60)
+    env = SwarmEnv(cfg, dtype=F64)
+    state = env.reset(3)
+    hold = ROBOT.positions(state.x).clone()
+    wind = 1.0
+    proc = FaultProcess(FaultConfig(act_delay=2, act_predict=1, dist_obs=1, wind=(wind, 0.0, 0.0)), cfg, ROBOT,
+                        [1, 2], dtype=F64)  # fmt: skip
+    seen, truth = [], [state.x]
+    for _ in range(60):
+        seen.append(proc.observe(state).x)
+        state, _ = env.step(state, proc.actuate(ROBOT.nominal_control(seen[-1], hold), state))
+        state = proc.push(state)
+        truth.append(state.x)
+    assert float(proc.disturbance[..., 0].mean()) == pytest.approx(wind, abs=0.01)
+    err = ROBOT.velocities(seen[-3]) - ROBOT.velocities(truth[-1])  # seen at t, for the state at t + 2
+    assert float(err.abs().max()) < 0.1 * wind * 2 * cfg.dt, err
+
+
+@pytest.mark.parametrize("mode", ["hover", "straight"])
+def test_noncooperative_agents_predict_over_the_actuation_delay_like_the_others(mode):
+    """A non-cooperative agent's autopilot commands for its state over the commands in flight when the agents
+    predict: under two steps of delay it flies the path it flies without delay (it does not oscillate away)."""
+    cfg = dataclasses.replace(CFG, num_agents=8, num_envs=1, area_size=4.0, num_obstacles=0, max_steps=240)
+    ends = []
+    for spec in (f"noncoop=0.5,noncoop_mode={mode}", f"noncoop=0.5,noncoop_mode={mode},act_delay=2,act_predict=1"):
+        env = SwarmEnv(cfg, dtype=F64)
+        state = env.reset(11)
+        proc = FaultProcess(parse_faults(spec), cfg, ROBOT, [11], dtype=F64)
+        for _ in range(240):
+            seen = proc.observe(state)
+            state, _ = env.step(state, proc.actuate(ROBOT.nominal_control(seen.x, seen.goals), state))
+        ends.append(ROBOT.positions(state.x)[proc.noncoop])
+    assert torch.allclose(ends[1], ends[0], atol=0.05), (ends[1] - ends[0]).norm(dim=-1)
+
+
 def test_wind_pushes_with_its_acceleration():
     env = SwarmEnv(CFG, dtype=F64)
     state = env.reset(1)

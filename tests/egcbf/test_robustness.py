@@ -123,7 +123,8 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     fixes = report.read_text().split("## Fixes: cancelling")[1].split("## What to choose")[0]
     assert "`thrust_gain=0.3`" in fixes
     advice = report.read_text().split("## What to choose")[1].split("## Where")[0]
-    assert "- thrust gain error, agents observing the disturbance: turn on `dist_obs=1`." in advice
+    line = next(x for x in advice.splitlines() if x.startswith("- thrust gain error, agents observing"))
+    assert "`dist_obs=1`" in line and "for nominal (no CBF)" in line and "measured at N = 4: 0 obstacles: " in line
     row = next(line for line in fixes.splitlines() if line.startswith("| nominal (no CBF) | 4 | 1 |"))
     assert "| - |" not in row
     before = (out / "nominal_obs1" / "N4.json").read_text()
@@ -210,8 +211,10 @@ def test_bad_inputs_and_a_partial_plan_into_the_committed_report_are_refused_bef
         assert r.exit_code == 2 and "Error:" in r.output and says in r.output, r.output
         assert not (tmp_path / "c").exists() and not (tmp_path / "r.md").exists()
     narrowed = ["robustness", "--axes", "thrust", "--out", str(tmp_path / "c"), "--report-only"]
-    r = CliRunner().invoke(app, narrowed)
-    assert r.exit_code == 2 and "docs/robustness.md is the whole plan's report" in r.output, r.output
+    for own in ([], ["--report", str(tmp_path / "r.md")], ["--figures", str(tmp_path / "f")]):
+        r = CliRunner().invoke(app, [*narrowed, *own])  # its figures would replace the whole plan's too
+        assert r.exit_code == 2 and "is the whole plan's report" in " ".join(r.output.split()), r.output
+        assert not (tmp_path / "r.md").exists() and not (tmp_path / "f").exists()
 
 
 def test_the_report_reads_only_cells_made_with_its_settings(tmp_path):
@@ -229,3 +232,32 @@ def test_the_report_reads_only_cells_made_with_its_settings(tmp_path):
     for other in (dataclasses.replace(cfg, episodes=3), dataclasses.replace(cfg, seed=1),
                   dataclasses.replace(cfg, max_steps=100)):  # fmt: skip
         assert ("nominal", spec, 4, 0) not in load_records(other)
+
+
+def test_the_fix_advice_follows_the_paired_intervals():
+    """A fix is advised on only when the paired intervals show it helps and does not cost safety; one that costs
+    safety is advised off, and one whose intervals all include 0 is said to change nothing measurable."""
+    from egcbf.robustness.advice import advice
+
+    cfg = RobustnessConfig(axes=("field", "thrust", "thrust_observer"), controllers=("nominal",), num_agents=(4,),
+                           obstacles=1)  # fmt: skip
+    after = axis("thrust_observer").compared()[1]
+
+    def row(safe: list[float], success: list[float]) -> dict:
+        return {"safe_rate": sum(safe) / len(safe), "success_rate": sum(success) / len(success),
+                "per_episode": {"safe_rate": safe, "success_rate": success}}  # fmt: skip
+
+    safe, success = [0.99, 1.0, 1.0, 0.995, 1.0, 0.99, 1.0, 1.0], [0.8, 0.9, 0.85, 0.8, 0.9, 0.85, 0.8, 0.9]
+    cases = {
+        "turn on `dist_obs=1` for nominal (no CBF)": row(safe, [x + 0.05 for x in success]),  # more success, as safe
+        "leave `dist_obs=1` off for nominal (no CBF): it costs safety": row([x - 0.1 for x in safe], [1.0] * 8),
+        "`dist_obs=1` changes nothing measurable for nominal (no CBF)": row(safe, success),
+    }
+    for says, fixed in cases.items():
+        cells = {("nominal", spec, 4, k): row(safe, success) for a in ("field", "thrust") for spec in axis(a).specs()
+                 for k in (0, 1)}  # fmt: skip
+        cells |= {("nominal", after, 4, k): fixed for k in (0, 1)}
+        line = next(x for x in advice(cfg, cells) if x.startswith("- thrust gain error, agents observing"))
+        assert says in line and "measured at N = 4: 0 obstacles: " in line, line
+        hint = next(x for x in advice(cfg, cells) if x.startswith("- thrust gain error, up to"))
+        assert f"The agents' fix: {says}" in hint, hint

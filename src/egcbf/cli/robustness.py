@@ -13,6 +13,7 @@ from .choices import Backend
 from .root import app
 
 _DEFAULT_REPORT = Path("docs/robustness.md")
+_DEFAULT_FIGURES = Path("docs/figures")
 
 
 def _narrowed(cfg) -> bool:
@@ -42,7 +43,7 @@ def robustness_cmd(
     report: Annotated[
         Path, typer.Option(help="the report to write (the default, the committed one, only for the whole plan)")
     ] = _DEFAULT_REPORT,
-    figures: Annotated[Path, typer.Option(help="folder of the report's figures")] = Path("docs/figures"),
+    figures: Annotated[Path, typer.Option(help="folder of the report's figures")] = _DEFAULT_FIGURES,
     workers: Annotated[int, typer.Option(help="cells evaluated at a time")] = 2,
     backend: Annotated[Backend, typer.Option(help="process or ray (as egcbf reproduce)")] = Backend.process,
     device: Annotated[str, typer.Option(help="cpu | cuda | cuda:K")] = "cpu",
@@ -80,10 +81,10 @@ def robustness_cmd(
             validate(sweeps[0][2])  # the perfect world runs every controller: checkpoints, filters, backend
     except (ValueError, FileNotFoundError, ImportError) as err:
         usage_error(str(err), err)
-    if not plan and report == _DEFAULT_REPORT and _narrowed(cfg):
-        usage_error(f"this selection is not the whole plan, and {_DEFAULT_REPORT} is the whole plan's report: "
-                    "pass --report PATH (and --figures DIR) for this part's report, or drop the selecting "
-                    "flags")  # fmt: skip
+    if not plan and _narrowed(cfg) and (report == _DEFAULT_REPORT or figures == _DEFAULT_FIGURES):
+        usage_error(f"this selection is not the whole plan, and {_DEFAULT_REPORT} with its figures in "
+                    f"{_DEFAULT_FIGURES} is the whole plan's report: pass --report PATH and --figures DIR for this "
+                    "part's report, or drop the selecting flags")  # fmt: skip
     if not plan:
         prepare_out(report.parent, True, (), flag="--report", lock=False)
         prepare_out(figures, True, (), flag="--figures", lock=False)

@@ -183,7 +183,10 @@ class FaultProcess:
             u = self.onboard.reject(u)
         if f.noncoop > 0 and bool(self.noncoop.any()):
             target = self._starts if f.noncoop_mode == "hover" else state.goals
-            own = robot.nominal_control(state.x, target.to(state.x.dtype)).to(u.dtype)
+            x = state.x  # a non-cooperative agent's autopilot knows its true state (and predicts like the others)
+            if self.onboard is not None and self.onboard.predict and f.act_delay > 0:
+                x = self.onboard.predicted(x, state.goals)
+            own = robot.nominal_control(x, target.to(x.dtype)).to(u.dtype)
             u = torch.where(self.noncoop[..., None], own, u)
         if f.act_delay > 0 and not self._commands:  # the actuators' delay line starts from hover commands: the
             if self.onboard is not None:  # ones the agents take it to hold, else at the true states

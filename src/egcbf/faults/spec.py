@@ -84,7 +84,8 @@ class FaultConfig:
         act_predict: not a fault, the agents' handling of ``act_delay`` (inert without it): 1: every agent
             commands for its state ``act_delay`` steps ahead, its estimate rolled through the robot's dynamics with
             its own commands still in flight (a Smith predictor, :class:`egcbf.onboard.Onboard`; gain errors and
-            wind unknown to it), and broadcasts that prediction; 0: it commands for its current estimate.
+            wind unknown to it, or, with ``dist_obs``, their estimate added back), and broadcasts that prediction;
+            0: it commands for its current estimate.
         dist_obs: not a fault, the agents' handling of disturbances (wind, gusts, the translational effect of gain
             and torque errors): 1: every agent
             estimates the acceleration acting on it beyond its model (its velocity estimate minus its model's

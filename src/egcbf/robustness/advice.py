@@ -5,7 +5,7 @@ controller keeps 99 % safe and the one to choose there."""
 from __future__ import annotations
 
 from ..reproduce.paper import LABELS
-from .cells import pct
+from .cells import paired_interval, pct
 from .plan import AXES, Axis, RobustnessConfig, axis
 
 __all__ = ["advice", "recommended"]
@@ -51,10 +51,66 @@ def _fault_axes(cfg: RobustnessConfig) -> list[Axis]:
     return [axis(x) for x in cfg.axes if axis(x).fixes is None and not x.startswith("field")]
 
 
-def _fix_hint(name: str) -> str:
-    """`` The agents' fix: `...`.`` for a fault axis some fix's axis repeats (its handling), else ``""``."""
-    hints = [a.handling() for a in AXES if a.fixes == name]
-    return f" The agents' fix: `{hints[0]}`." if hints else ""
+def _fix_effect(cfg: RobustnessConfig, cells: dict, m: str, before: str, after: str, sizes) -> tuple[str, str]:
+    """What the fix that turns level ``before`` into ``after`` does for controller ``m``, judged by the paired 95 %
+    intervals (after minus before, the same scenes) at the largest of ``sizes`` where both cells are computed (each
+    obstacle setting there): ``("on", evidence)`` when it makes ``m`` safer or more successful and no less safe,
+    ``("off", ...)`` when it costs safety, ``("none", ...)`` when no interval excludes 0, or ``("unreached", ...)``,
+    ``("pending", ...)``."""
+    name = LABELS.get(m, m)
+    if cfg.cell_spec(m, before) == cfg.cell_spec(m, after):
+        return "unreached", f"it does not change {name}, which does not perceive what it handles"
+    for n in sorted(sizes, reverse=True):
+        ks = [k for k in (0, cfg.obstacles) if all((m, sp, n, k) in cells for sp in (before, after))]
+        if ks:
+            break
+    else:
+        return "pending", f"measured for {name}: pending"
+    parts, verdicts = [], []
+    for k in ks:
+        b, f = cells[(m, before, n, k)], cells[(m, after, n, k)]
+        safe, success = paired_interval(b, f, "safe_rate"), paired_interval(b, f, "success_rate")
+        if safe is None or success is None:  # rows without episodes: the point estimates only
+            verdicts.append("none")
+        else:
+            verdicts.append("off" if safe.high < 0 else "on" if safe.low > 0 or success.low > 0 else "none")
+        parts.append(f"{k} obstacles: {pct(b, 'safe_rate')} -> {pct(f, 'safe_rate')} % safe{_ci(safe)}, "
+                     f"{pct(b, 'success_rate')} -> {pct(f, 'success_rate')} % success{_ci(success)}")  # fmt: skip
+    verdict = "off" if "off" in verdicts else "on" if "on" in verdicts else "none"
+    larger = [x for x in sizes if x > n]
+    note = f" (N = {', '.join(map(str, larger))} pending)" if larger else ""
+    return verdict, f"measured at N = {n}{note}: " + "; ".join(parts)
+
+
+def _ci(interval) -> str:
+    return "" if interval is None else f" ({interval.text(100, 2)})"
+
+
+_VERDICTS = {
+    "on": "turn on {h} for {name}: safer or more successful with it, and not less safe",
+    "off": "leave {h} off for {name}: it costs safety",
+    "none": "{h} changes nothing measurable for {name} (every 95 % interval includes 0)",
+}
+
+
+def _fix_line(cfg: RobustnessConfig, cells: dict, m: str, fix: Axis, before: str, after: str, sizes) -> str:
+    """``fix``'s verdict for controller ``m`` with its evidence (after minus before, points, paired 95 % CI)."""
+    verdict, evidence = _fix_effect(cfg, cells, m, before, after, sizes)
+    h = f"`{fix.handling()}`"
+    if verdict in ("unreached", "pending"):
+        return f"{h}: {evidence}"
+    return _VERDICTS[verdict].format(h=h, name=LABELS.get(m, m)) + f"; {evidence}"
+
+
+def _fix_hint(cfg: RobustnessConfig, cells: dict, name: str, m: str, level: int, n: int) -> str:
+    """`` The agents' fix: ...`` for the fault axis ``name`` at level index ``level``: what the fix whose axis
+    repeats it does for the chosen controller ``m`` there (at ``n`` agents), or ``""`` when no fix repeats it."""
+    fixes = [a for a in AXES if a.fixes == name and a.name in cfg.axes]
+    if not fixes or level == 0:
+        return ""
+    fix = fixes[0]
+    before, after = axis(name).specs()[level], fix.specs()[level]
+    return f" The agents' fix: {_fix_line(cfg, cells, m, fix, before, after, (n,))}."
 
 
 def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
@@ -77,21 +133,23 @@ def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
             first_fail = {m: next((i for i in range(len(specs)) if worst[(m, i)][0] < 0.99), len(specs))
                           for m in methods}  # fmt: skip
             held = max(first_fail.values())
-            fix = _fix_hint(a.name)
             names = ", ".join(LABELS.get(m, m) for m in methods)
             where = f"N = {n}, each rate the worse of {obstacles[0]} and {obstacles[1]} obstacles"
             if held == 0:
                 lines.append(f"- {a.title}: none of the controllers that perceive it ({names}) is 99 % safe even "
-                             f"without it ({where}).{fix}")  # fmt: skip
+                             f"without it ({where}).")  # fmt: skip
                 break
             i = held - 1  # the most severe level some controller holds, with every milder one
             if i == 0:
+                best = max(methods, key=lambda m: worst[(m, 1)][::-1])  # the safest at the mildest level
+                fix = _fix_hint(cfg, cells, a.name, best, 1, n)
                 lines.append(f"- {a.title}: every controller drops below 99 % safe at {a.levels[1]:g} ({a.unit}) "
                              f"already ({where}).{fix}")  # fmt: skip
                 break
             pick = max((m for m in methods if first_fail[m] > i), key=lambda m: worst[(m, i)][::-1])
             safe, success = worst[(pick, i)]
             beyond = f"; none stays 99 % safe up to {a.levels[held]:g}" if held < len(specs) else ""
+            fix = _fix_hint(cfg, cells, a.name, pick, i, n)
             lines.append(
                 f"- {a.title}, up to {a.levels[i]:g} ({a.unit}): **{LABELS.get(pick, pick)}** "
                 f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, {where}{beyond}).{fix}"
@@ -111,23 +169,8 @@ def _fix_advice(cfg: RobustnessConfig, cells: dict) -> list[str]:
     for fix in (axis(x) for x in cfg.axes):
         if fix.compared() is None or fix.fixes not in cfg.axes:
             continue
-        name, (before, after) = fix.fixes, fix.compared()
-        what, handling = fix.title, f"`{fix.handling()}`"
-        if cfg.cell_spec(pick, before) == cfg.cell_spec(pick, after):
-            lines.append(f"- {what}: {handling} does not change {LABELS.get(pick, pick)}, which does not perceive "
-                         f"what it handles.")  # fmt: skip
-            continue
-        pairs = [(n, k) for n in sorted(cfg.num_agents, reverse=True) for k in (0, cfg.obstacles)
-                 if all((pick, spec, n, k) in cells for spec in (before, after))]  # fmt: skip
-        if not pairs:
-            lines.append(f"- {what}: turn on {handling} (measured for {LABELS.get(pick, pick)}: pending).")
-            continue
-        n, k = pairs[0]
-        b, f = cells[(pick, before, n, k)], cells[(pick, after, n, k)]
-        where = "the default field conditions" if name == "field" else f"`{before}`"
-        lines.append(f"- {what}: turn on {handling}. {LABELS.get(pick, pick)} at {where}, N = {n}, {k} "
-                     f"obstacles: {pct(b, 'safe_rate')} -> {pct(f, 'safe_rate')} % safe, "
-                     f"{pct(b, 'success_rate')} -> {pct(f, 'success_rate')} % success.")  # fmt: skip
+        before, after = fix.compared()
+        lines.append(f"- {fix.title}: {_fix_line(cfg, cells, pick, fix, before, after, cfg.num_agents)}.")
     return lines
 
 

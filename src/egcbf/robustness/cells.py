@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections import Counter
 
-from ..bootstrap import mean_ci
+from ..bootstrap import Interval, mean_ci
 from ..reproduce.paper import BASELINES, base_method
 from ..reproduce.plan import Cell
 from ..reproduce.provenance import machine_text
@@ -85,12 +85,21 @@ def pct(row: dict | None, key: str) -> str:
     return "-" if row is None else f"{100 * row[key]:.2f}"
 
 
+def paired_interval(before: dict, after: dict, key: str = "safe_rate") -> Interval | None:
+    """``after - before`` of the rate ``key`` with its paired 95 % interval (the same scenes, episode by episode;
+    the rows' ``per_episode`` values in episode order); ``None`` without two paired episodes."""
+    a, b = episodes(after, key), episodes(before, key)
+    if len(a) != len(b) or len(a) < 2:
+        return None
+    return mean_ci([[x - y for x, y in zip(a, b)]], resamples=2000)
+
+
 def paired_change(clean: dict, faulty: dict) -> str:
     """Safe-rate change (points) with its paired 95 % interval (the same scenes, episode by episode)."""
-    a, b = episodes(faulty, "safe_rate"), episodes(clean, "safe_rate")
-    if len(a) != len(b) or len(a) < 2:
+    interval = paired_interval(clean, faulty)
+    if interval is None:
         return f"{100 * (faulty['safe_rate'] - clean['safe_rate']):+.2f}"
-    return mean_ci([[x - y for x, y in zip(a, b)]], resamples=2000).text(100, 2)
+    return interval.text(100, 2)
 
 
 def before_after(before: dict | None, after: dict | None) -> str:

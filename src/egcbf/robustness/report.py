@@ -43,8 +43,9 @@ _FAULTS_TABLE = (
      "cancels it in its command (wind, gusts, thrust errors)"),
     ("wind", "", "m/s^2 (a vector)", "a constant world acceleration on every agent (wind force over mass)"),
     ("gust", "", "m/s^2 (std per axis)", "an Ornstein-Uhlenbeck gust per environment (time constant gust_tau, s)"),
-    ("noncoop", "", "fraction", "agents that ignore their controller (noncoop_mode: hover in place or fly straight "
-     "to their goal); the metrics count the others"),
+    ("noncoop", "", "fraction", "agents that ignore their controller and fly on their autopilot (true state; "
+     "noncoop_mode: hover in place, or fly straight to their goal at the nominal cruise speed as if alone, then hover "
+     "there); they still broadcast; the metrics count the others"),
 )  # fmt: skip
 
 
@@ -152,7 +153,8 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         "place without cooperating. Why these: a motion-capture or UWB-aided estimator is good to about a "
         "centimetre, a crowded 2.4 GHz mesh loses messages at this rate, one control period of latency is the "
         "least a radio round adds, and motor and propeller spread is about 10 %; a swarm in the field always has "
-        "an agent that lost its link or its estimator and holds position.",
+        "an agent whose planner has failed or been told to wait, which holds position on its autopilot (it still "
+        "broadcasts its state: the others know of it only through its messages).",
         "",
         "The change is the paired difference (the same scenes, episode by episode) with its bootstrap 95 % "
         "interval.",

@@ -51,11 +51,12 @@ def test_spec_strings_round_trip_and_bad_specs_name_the_problem(tmp_path):
     path.write_text(json.dumps({"pos_noise": 0.02, "wind": [0, 1, 0]}))
     assert parse_faults(str(path)) == FaultConfig(pos_noise=0.02, wind=(0, 1, 0))
     for bad, match in (("posx=1", "unknown"), ("pos", "key=value"), ("pos=abc", "not a number"),
-                       ("loss=1.5", "probability"), ("pos=-1", ">= 0"), ("delay=0.5", "not a number"),
-                       ("gain=1", "< 1"), ("noncoop_mode=fly", "noncoop_mode")):  # fmt: skip
+                       ("loss=1.5", "probability"), ("pos=-1", ">= 0"), ("delay=0.5", "not a whole number"),
+                       ("delay=x", "not a number"), ("gain=1", "< 1"), ("noncoop_mode=fly", "mode")):  # fmt: skip
         with pytest.raises(ValueError, match=match):
             parse_faults(bad)
     assert FaultConfig(wind=(0.0, 0.0, 0.0)).is_null and not DEFAULT_FIELD.is_null
+    assert parse_faults("delay=2.0") == parse_faults("delay=2")  # a whole number however it is written
     assert DEFAULT_FIELD.edge_faults and not FaultConfig(pos_noise=1.0).edge_faults
     # the receivers' message handling: spec keys, and inert (not a fault) on its own
     held = parse_faults("default,hold=3,predict=1")
@@ -69,7 +70,7 @@ def test_spec_strings_round_trip_and_bad_specs_name_the_problem(tmp_path):
     assert observed.dist_obs == 1 and parse_faults(observed.spec()) == observed
     assert FaultConfig(dist_obs=1).is_null and not observed.is_null
     for bad, match in (("predict=2", "0 or 1"), ("act_predict=2", "0 or 1"), ("dist_obs=2", "0 or 1"),
-                       ("hold=-1", "whole number"), ("hold=1.5", "not a number")):  # fmt: skip
+                       ("hold=-1", "whole number"), ("hold=1.5", "not a whole number")):  # fmt: skip
         with pytest.raises(ValueError, match=match):
             parse_faults(bad)
 

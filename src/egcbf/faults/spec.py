@@ -278,10 +278,15 @@ def _build(base: dict, fields: dict, source: str) -> FaultConfig:
             elif name == "noncoop_mode":
                 out[name] = value
             elif name in _INT_FIELDS:
-                out[name] = int(value)
+                number = float(value)
+                if not number.is_integer():
+                    raise ValueError(f"faults: {name}={value!r} in {source!r} is not a whole number")
+                out[name] = int(number)
             else:
                 out[name] = float(value)
         except ValueError as err:
+            if "whole number" in str(err):
+                raise
             raise ValueError(f"faults: {name}={value!r} in {source!r} is not a number") from err
     if "wind" in out:
         out["wind"] = tuple(out["wind"])

@@ -261,3 +261,27 @@ def test_the_fix_advice_follows_the_paired_intervals():
         assert says in line and "measured at N = 4: 0 obstacles: " in line, line
         hint = next(x for x in advice(cfg, cells) if x.startswith("- thrust gain error, up to"))
         assert f"The agents' fix: {says}" in hint, hint
+
+
+def test_the_default_field_pick_is_compared_with_its_runner_up_and_safety_without_arrival_is_said():
+    """The recommendation states the pick minus the runner-up (paired intervals; a tie when both include 0), and an
+    axis pick that is safe because its agents do not arrive says so."""
+    from egcbf.robustness.advice import advice
+
+    cfg = RobustnessConfig(axes=("field", "thrust"), controllers=("nominal", "ccbf"), num_agents=(4,), obstacles=1)
+
+    def row(safe: list[float], success: list[float]) -> dict:
+        return {"safe_rate": sum(safe) / len(safe), "success_rate": sum(success) / len(success),
+                "per_episode": {"safe_rate": safe, "success_rate": success}}  # fmt: skip
+
+    safe = [0.99, 1.0, 1.0, 0.995, 1.0, 0.99, 1.0, 1.0]
+    few = [0.3, 0.4, 0.35, 0.3, 0.4, 0.35, 0.3, 0.4]
+    arrive = {"nominal": few, "ccbf": [0.31, *few[1:]]}  # cCBF-QP: 0.01 more in one episode
+    cells = {(m, spec, 4, k): row(safe, arrive[m]) for m in cfg.controllers for a in ("field", "thrust")
+             for spec in axis(a).specs() for k in (0, 1)}  # fmt: skip
+    lines = advice(cfg, cells)
+    pick = next(x for x in lines if x.startswith("- default field conditions, N = 4, 0 obstacles"))
+    assert "**cCBF-QP**" in pick and "Against the runner-up, nominal (no CBF): safe +0.00 [+0.00, +0.00]" in pick
+    assert "a tie within these episodes" in pick, pick
+    thrust = next(x for x in lines if x.startswith("- thrust gain error, up to"))
+    assert "fewer than half reach their goals" in thrust, thrust

@@ -42,8 +42,32 @@ def _recommendation(cfg: RobustnessConfig, cells: dict, n: int) -> list[str]:
         lines.append(
             f"- default field conditions, N = {n}, {k} obstacles: **{LABELS.get(pick, pick)}** "
             f"({100 * row['safe_rate']:.2f} % safe, {100 * row['success_rate']:.2f} % success; {why})."
+            + _runner_up(cfg, cells, spec, n, k, pick, ok)
         )
     return lines  # fmt: skip
+
+
+def _runner_up(cfg: RobustnessConfig, cells: dict, spec: str, n: int, k: int, pick: str, ok: bool) -> str:
+    """`` Against the runner-up ...``: the pick minus the next controller by the same rule, paired over the same
+    scenes, so a reader sees whether the choice is settled or a tie (``""`` when there is none)."""
+
+    def rank(m: str) -> tuple[float, float]:  # recommended()'s order
+        r = cells[(m, spec, n, k)]
+        return (r["success_rate"], r["safe_rate"]) if ok else (r["safe_rate"], r["success_rate"])
+
+    others = [m for m in cfg.controllers if m != pick and (not ok or cells[(m, spec, n, k)]["safe_rate"] >= 0.99)]
+    if not others:
+        return ""
+    other = max(others, key=rank)
+    mine, theirs = cells[(pick, spec, n, k)], cells[(other, spec, n, k)]
+    intervals = [paired_interval(theirs, mine, rate) for rate in ("safe_rate", "success_rate")]
+    if None in intervals:
+        return ""
+    tie = "" if any(x.excludes_zero() for x in intervals) else "; a tie within these episodes"
+    return (
+        f" Against the runner-up, {LABELS.get(other, other)}: safe {intervals[0].text(100, 2)}, success "
+        f"{intervals[1].text(100, 2)} points (paired 95 % CI{tie})."
+    )
 
 
 def _fault_axes(cfg: RobustnessConfig) -> list[Axis]:
@@ -143,16 +167,17 @@ def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
             if i == 0:
                 best = max(methods, key=lambda m: worst[(m, 1)][::-1])  # the safest at the mildest level
                 fix = _fix_hint(cfg, cells, a.name, best, 1, n)
-                lines.append(f"- {a.title}: every controller drops below 99 % safe at {a.levels[1]:g} ({a.unit}) "
-                             f"already ({where}).{fix}")  # fmt: skip
+                lines.append(f"- {a.title}: no controller stays 99 % safe at {a.levels[1]:g} ({a.unit}) already "
+                             f"({where}).{fix}")  # fmt: skip
                 break
             pick = max((m for m in methods if first_fail[m] > i), key=lambda m: worst[(m, i)][::-1])
             safe, success = worst[(pick, i)]
             beyond = f"; none stays 99 % safe up to {a.levels[held]:g}" if held < len(specs) else ""
             fix = _fix_hint(cfg, cells, a.name, pick, i, n)
+            few = " It is safe by not arriving: fewer than half reach their goals." if success < 0.5 else ""
             lines.append(
                 f"- {a.title}, up to {a.levels[i]:g} ({a.unit}): **{LABELS.get(pick, pick)}** "
-                f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, {where}{beyond}).{fix}"
+                f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, {where}{beyond}).{few}{fix}"
             )
             break
     return lines

@@ -36,12 +36,15 @@ def _series(cells: dict, specs: list[str], m: str, n: int, k: int, key: str) -> 
 def axis_figure(cfg: RobustnessConfig, cells: dict, name: str, out_png: Path) -> Path | None:
     """Safe and success % against the level (columns: without and with obstacles), one colour per controller, one
     line style per swarm size (the largest solid), 95 % bands over episodes; a fix's axis also draws the axis it
-    repeats, faint and without bands (before the fix). ``None`` if nothing is drawable."""
+    repeats, faint and without bands (before the fix); dashed and dotted lines mark 99 and 95 % safe. Controllers that
+    perceive none of the axis' faults are left out (n/a). ``None`` if nothing is drawable."""
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
     a = axis(name)
     before = axis(a.fixes).specs() if a.fixes is not None and a.fixes in cfg.axes else None
+    # a controller that perceives none of the axis' faults is n/a there (as in the tables), not a flat line
+    methods = [m for m in cfg.controllers if all(cfg.cell_spec(m, sp) is not None for sp in a.specs())]
     sizes = sorted(cfg.num_agents, reverse=True)
     styles = dict(zip(sizes, ("-", "--", ":", "-.")))
     fig = Figure(figsize=(8.4, 5.6))
@@ -50,7 +53,7 @@ def axis_figure(cfg: RobustnessConfig, cells: dict, name: str, out_png: Path) ->
     for col, k in enumerate((0, cfg.obstacles)):
         for row, key in enumerate(("safe_rate", "success_rate")):
             ax = panels[row][col]
-            for m in cfg.controllers:
+            for m in methods:
                 for n in sizes:
                     color = COLORS.get(m)
                     if before is not None:
@@ -63,13 +66,18 @@ def axis_figure(cfg: RobustnessConfig, cells: dict, name: str, out_png: Path) ->
                     drawn.add(n)
                     ax.plot(xs, mid, marker="o", ls=styles[n], color=color, ms=3)
                     ax.fill_between(xs, lo, hi, color=color, alpha=0.12, lw=0)
+            if key == "safe_rate":  # the report's thresholds
+                for level, ls in ((99, "--"), (95, ":")):
+                    ax.axhline(level, color="black", lw=0.6, ls=ls, alpha=0.5)
             ax.set_title(f"{'safe' if key == 'safe_rate' else 'success'} %, {k} obstacles", fontsize=9)
             ax.set_xticks(range(len(a.levels)), [f"{x:g}" for x in a.levels], fontsize=8)
             ax.set_xlabel(a.unit, fontsize=8)
             ax.grid(alpha=0.3)
     if not drawn:
         return None
-    handles = [Line2D([], [], color=COLORS.get(m), marker="o", ms=3, label=LABELS.get(m, m)) for m in cfg.controllers]
+    handles = [Line2D([], [], color=COLORS.get(m), marker="o", ms=3, label=LABELS.get(m, m)) for m in methods]
+    handles += [Line2D([], [], color="black", lw=0.6, ls=ls, alpha=0.5, label=f"{v} % safe") for v, ls in
+                ((99, "--"), (95, ":"))]  # fmt: skip
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=7, frameon=False)
     fig.subplots_adjust(bottom=0.16, hspace=0.45)
     names = {"-": "solid", "--": "dashed", ":": "dotted", "-.": "dash-dotted"}

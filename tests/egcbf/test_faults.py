@@ -56,6 +56,7 @@ def test_spec_strings_round_trip_and_bad_specs_name_the_problem(tmp_path):
         with pytest.raises(ValueError, match=match):
             parse_faults(bad)
     assert FaultConfig(wind=(0.0, 0.0, 0.0)).is_null and not DEFAULT_FIELD.is_null
+    assert FaultConfig(wind=(0.0, 0.0, 0.0)) == FaultConfig() and parse_faults("wind=0/0/0").spec() == "none"
     assert parse_faults("delay=2.0") == parse_faults("delay=2")  # a whole number however it is written
     assert DEFAULT_FIELD.edge_faults and not FaultConfig(pos_noise=1.0).edge_faults
     # the receivers' message handling: spec keys, and inert (not a fault) on its own

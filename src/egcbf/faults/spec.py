@@ -128,7 +128,8 @@ class FaultConfig:
     noncoop_mode: str = "hover"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "wind", tuple(float(w) for w in self.wind))
+        wind = tuple(float(w) for w in self.wind)
+        object.__setattr__(self, "wind", () if all(w == 0.0 for w in wind) else wind)  # no wind is one config
         for name in ("pos_noise", "vel_noise", "lidar_noise", "gain", "thrust_gain", "torque_gain", "torque_bias",
                      "gust"):  # fmt: skip
             _check(name, getattr(self, name), lambda v: v >= 0, "a finite number >= 0")
@@ -157,7 +158,7 @@ class FaultConfig:
         then changes nothing)."""
         zero = dataclasses.replace(FaultConfig(), noncoop_mode=self.noncoop_mode, gust_tau=self.gust_tau,
                                    **{name: getattr(self, name) for name in HANDLING_FIELDS})  # fmt: skip
-        return dataclasses.replace(self, wind=tuple(w for w in self.wind if w != 0.0)) == zero
+        return self == zero
 
     @property
     def edge_faults(self) -> bool:

@@ -15,3 +15,10 @@ def die_or_answer(task):
         time.sleep(60)
     time.sleep(0.2)  # long enough for the cells of one pool to run side by side
     return task, {"seed": task.seed, "pid": os.getpid()}, None
+
+
+class DiesWhenUnpickled:
+    """Unpickling it ends the process: a worker that dies before its cell starts."""
+
+    def __reduce__(self):
+        return os._exit, (3,)

@@ -239,6 +239,31 @@ def test_process_pool_survives_a_dying_worker():
     assert all(got[s] == ({"seed": s, "pid": got[s][0]["pid"]}, None) for s in seeds[1:])
 
 
+def test_process_pool_ends_when_a_worker_dies_before_its_cell_starts():
+    """A worker that dies before the cell it took starts (here: unpickling the task) still fails only that cell,
+    and the iterator ends instead of building new pools forever."""
+    import signal
+
+    import pool_helpers
+
+    cell = Cell("dcbf", 0, 2)
+    tasks = [rp.CellTask(cell=cell, area=1.0, episodes=1, seed=s, max_steps=1, device="cpu") for s in (1, 2, 3)]
+    tasks[1] = dataclasses.replace(tasks[1], device=pool_helpers.DiesWhenUnpickled())
+
+    def hung(*_):
+        raise TimeoutError("the pool kept rebuilding")
+
+    old = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(240)
+    try:
+        got = {t.seed: (res, err) for t, res, err in rp.workers._run_processes(tasks, 2, pool_helpers.die_or_answer)}
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+    assert sorted(got) == [1, 2, 3] and got[2][0] is None and "died" in got[2][1]
+    assert got[1][1] is None and got[3][1] is None
+
+
 def test_process_pool_closing_stops_its_workers_at_once():
     """Closing the iterator (an interruption) terminates the cells in progress instead of awaiting them."""
     import os

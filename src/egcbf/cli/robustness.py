@@ -81,7 +81,8 @@ def robustness_cmd(
             validate(sweeps[0][2])  # the perfect world runs every controller: checkpoints, filters, backend
     except (ValueError, FileNotFoundError, ImportError) as err:
         usage_error(str(err), err)
-    if not plan and _narrowed(cfg) and (report == _DEFAULT_REPORT or figures == _DEFAULT_FIGURES):
+    committed = report.resolve() == _DEFAULT_REPORT.resolve() or figures.resolve() == _DEFAULT_FIGURES.resolve()
+    if not plan and _narrowed(cfg) and committed:
         usage_error(f"this selection is not the whole plan, and {_DEFAULT_REPORT} with its figures in "
                     f"{_DEFAULT_FIGURES} is the whole plan's report: pass --report PATH and --figures DIR for this "
                     "part's report, or drop the selecting flags")  # fmt: skip

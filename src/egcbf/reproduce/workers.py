@@ -13,6 +13,8 @@ workers at once.
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import multiprocessing
 import signal
 import tempfile
@@ -45,6 +47,7 @@ class CellTask:
     device: str
     threads: int = 1
     checkpoint_files: dict[str, bytes] | None = None
+    checkpoint_dir: str | None = None  # instead of the bytes: a directory on this machine (the process backend)
     progress: bool = False
     code: str | None = None  # the code version the sweep started with (None: the worker's own)
 
@@ -59,11 +62,14 @@ def _evaluate_cell(task: CellTask) -> dict:
     config = None if kind == "none" else FilterConfig.for_kind(kind)
     learned, env_overrides = None, None
     with tempfile.TemporaryDirectory(prefix="egcbf-ckpt-") as tmp:
-        if task.checkpoint_files is not None:  # the same loading as `egcbf eval --checkpoint [--filter KIND]`
+        if task.checkpoint_files is not None or task.checkpoint_dir is not None:  # as `egcbf eval --checkpoint`
             from ..checkpoint import load_controller
 
-            for name, data in task.checkpoint_files.items():
-                (Path(tmp) / name).write_bytes(data)
+            if task.checkpoint_dir is not None:
+                tmp = task.checkpoint_dir
+            else:
+                for name, data in task.checkpoint_files.items():
+                    (Path(tmp) / name).write_bytes(data)
             if config is None:
                 learned, train_cfg = load_controller(tmp, device=task.device, dtype=torch.float32)
             else:
@@ -167,7 +173,9 @@ def _run_processes(
     A worker that dies (``kill -9``, the out-of-memory killer, a crash in native code) breaks its pool, which stops
     every cell in progress. The cells not yet started go on in a new pool; each cell that was running when it broke
     is run again alone first, so the cell that kills its worker is told apart from the ones that ran beside it:
-    dying alone, it is yielded as failed with that error, and the sweep goes on."""
+    dying alone, it is yielded as failed with that error, and the sweep goes on. A pool that breaks before any of
+    its lost cells started (a worker that cannot start) sends them all to be run alone, so every round resolves at
+    least one cell and the iterator always ends."""
     ctx = multiprocessing.get_context("spawn")  # never fork a process whose torch thread pools are running
     threads = tasks[0].threads if tasks else 1
     waiting = list(range(len(tasks)))  # task indices never started, in dispatch order (largest N first)
@@ -183,9 +191,12 @@ def _run_processes(
             initargs=(threads, started),
         )
         try:
-            futures = {pool.submit(_run_flagged, fn, i, tasks[i]): i for i in batch}
-            done: set[int] = set()
-            broken = None
+            futures, done, broken = {}, set(), None
+            try:
+                for i in batch:
+                    futures[pool.submit(_run_flagged, fn, i, tasks[i])] = i
+            except BrokenProcessPool as err:  # a worker died while the cells were being handed out
+                broken = err
             for future in as_completed(futures):
                 i = futures[future]
                 try:
@@ -194,16 +205,18 @@ def _run_processes(
                     broken = err
                     continue
                 done.add(i)
-                yield outcome
+                yield tasks[i], outcome[1], outcome[2]  # the caller's task object, not the worker's copy
             if not alone:
                 waiting = []
             if broken is not None:
                 lost = [i for i in batch if i not in done]
                 if alone:
                     yield tasks[batch[0]], None, _DIED.format(broken)
-                else:
+                elif any(started[i] for i in lost):
                     suspects += [i for i in lost if started[i]]
                     waiting = [i for i in lost if not started[i]]
+                else:  # it broke before any lost cell started (a worker's start-up, a task's unpickling)
+                    suspects += lost
         finally:
             _stop(pool)
 
@@ -243,4 +256,28 @@ def execute(tasks: Sequence[CellTask], backend: str, workers: int) -> Iterator[O
         return _run_ray(tasks)
     if workers <= 1 or len(tasks) <= 1:
         return _run_local(tasks)
-    return _run_processes(tasks, min(workers, len(tasks)))
+    return _run_on_disk(tasks, min(workers, len(tasks)))
+
+
+def _run_on_disk(tasks: Sequence[CellTask], workers: int) -> Iterator[Outcome]:
+    """:func:`_run_processes` with each checkpoint written once to a temporary directory that the tasks name, so
+    a task crosses the process boundary in a few kilobytes, not the checkpoint's bytes (a task larger than a pipe's
+    buffer can hang a broken pool's shutdown on Python < 3.11.5, CPython gh-94777)."""
+    with tempfile.TemporaryDirectory(prefix="egcbf-sweep-") as root:
+        dirs: dict[tuple, str] = {}
+        local = []
+        for task in tasks:
+            if task.checkpoint_files is None:
+                local.append(task)
+                continue
+            files = task.checkpoint_files
+            key = tuple(sorted((name, hashlib.sha256(data).hexdigest()) for name, data in files.items()))
+            if key not in dirs:
+                dirs[key] = str(Path(root) / str(len(dirs)))
+                Path(dirs[key]).mkdir()
+                for name, data in files.items():
+                    (Path(dirs[key]) / name).write_bytes(data)
+            local.append(dataclasses.replace(task, checkpoint_files=None, checkpoint_dir=dirs[key]))
+        originals = {id(t): task for t, task in zip(local, tasks)}
+        for task, res, err in _run_processes(local, workers):
+            yield originals.get(id(task), task), res, err

@@ -63,9 +63,9 @@ def _runner_up(cfg: RobustnessConfig, cells: dict, spec: str, n: int, k: int, pi
     intervals = [paired_interval(theirs, mine, rate) for rate in ("safe_rate", "success_rate")]
     if None in intervals:
         return ""
-    tie = "" if any(x.excludes_zero() for x in intervals) else "; a tie within these episodes"
+    tie = "" if any(x.excludes_zero() for x in intervals) else "; not distinguishable within these episodes"
     return (
-        f" Against the runner-up, {LABELS.get(other, other)}: safe {intervals[0].text(100, 2)}, success "
+        f" Minus the runner-up, {LABELS.get(other, other)}: safe {intervals[0].text(100, 2)}, success "
         f"{intervals[1].text(100, 2)} points (paired 95 % CI{tie})."
     )
 
@@ -95,12 +95,12 @@ def _fix_effect(cfg: RobustnessConfig, cells: dict, m: str, before: str, after: 
         b, f = cells[(m, before, n, k)], cells[(m, after, n, k)]
         safe, success = paired_interval(b, f, "safe_rate"), paired_interval(b, f, "success_rate")
         if safe is None or success is None:  # rows without episodes: the point estimates only
-            verdicts.append("none")
+            verdicts.append("unjudged")
         else:
             verdicts.append("off" if safe.high < 0 else "on" if safe.low > 0 or success.low > 0 else "none")
         parts.append(f"{k} obstacles: {pct(b, 'safe_rate')} -> {pct(f, 'safe_rate')} % safe{_ci(safe)}, "
                      f"{pct(b, 'success_rate')} -> {pct(f, 'success_rate')} % success{_ci(success)}")  # fmt: skip
-    verdict = "off" if "off" in verdicts else "on" if "on" in verdicts else "none"
+    verdict = next((v for v in ("off", "on", "unjudged") if v in verdicts), "none")
     larger = [x for x in sizes if x > n]
     note = f" (N = {', '.join(map(str, larger))} pending)" if larger else ""
     return verdict, f"measured at N = {n}{note}: " + "; ".join(parts)
@@ -111,9 +111,10 @@ def _ci(interval) -> str:
 
 
 _VERDICTS = {
-    "on": "turn on {h} for {name}: safer or more successful with it, and not less safe",
+    "on": "turn on {h} for {name}: safer or more successful with it, and not measurably less safe",
     "off": "leave {h} off for {name}: it costs safety",
     "none": "{h} changes nothing measurable for {name} (every 95 % interval includes 0)",
+    "unjudged": "{h} for {name}: not judged (no per-episode results to pair)",
 }
 
 
@@ -165,7 +166,7 @@ def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
                 break
             i = held - 1  # the most severe level some controller holds, with every milder one
             if i == 0:
-                best = max(methods, key=lambda m: worst[(m, 1)][::-1])  # the safest at the mildest level
+                best = max(methods, key=lambda m: worst[(m, 1)])  # the safest at the mildest level
                 fix = _fix_hint(cfg, cells, a.name, best, 1, n)
                 lines.append(f"- {a.title}: no controller stays 99 % safe at {a.levels[1]:g} ({a.unit}) already "
                              f"({where}).{fix}")  # fmt: skip
@@ -174,7 +175,7 @@ def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
             safe, success = worst[(pick, i)]
             beyond = f"; none stays 99 % safe up to {a.levels[held]:g}" if held < len(specs) else ""
             fix = _fix_hint(cfg, cells, a.name, pick, i, n)
-            few = " It is safe by not arriving: fewer than half reach their goals." if success < 0.5 else ""
+            few = " Fewer than half of its agents reach their goals there." if success < 0.5 else ""
             lines.append(
                 f"- {a.title}, up to {a.levels[i]:g} ({a.unit}): **{LABELS.get(pick, pick)}** "
                 f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, {where}{beyond}).{few}{fix}"

@@ -116,12 +116,12 @@ class Onboard:
         """``x`` ``(*batch, S)`` rolled over the commands in flight (oldest first) through the robot's dynamics,
         each period with the estimated disturbance acting as the simulator applies wind (velocity ``+ d dt``,
         position ``+ d dt^2 / 2``): the commands already cancel it, so the model must add it back."""
-        d = self._disturbance
         dt = self.config.dt
+        d = None if self._disturbance is None else self._disturbance.to(x.dtype)
         for u in self._in_flight(x):
             x, _ = advance(self.robot, self.config, x, u.to(x.dtype), goals)
             if d is not None:
-                x = self.robot.perturbed(x, 0.5 * d.to(x.dtype) * dt * dt, d.to(x.dtype) * dt)
+                x = self.robot.perturbed(x, 0.5 * d * dt * dt, d * dt)
         return x
 
     def reject(self, u: Tensor) -> Tensor:

@@ -168,6 +168,12 @@ def test_the_committed_report_is_generated_from_the_committed_cells(tmp_path, mo
     assert path.read_text() == (root / "docs" / "robustness.md").read_text()
 
 
+def _with_episodes(safe: list[float], success: list[float]) -> dict:
+    """A cell's row with its per-episode safe and success rates (what the paired intervals read)."""
+    return {"safe_rate": sum(safe) / len(safe), "success_rate": sum(success) / len(success),
+            "per_episode": {"safe_rate": safe, "success_rate": success}}  # fmt: skip
+
+
 def _rows(safe: float, success: float | None = None) -> dict:
     return {"safe_rate": safe, "success_rate": safe if success is None else success}
 
@@ -243,20 +249,18 @@ def test_the_fix_advice_follows_the_paired_intervals():
                            obstacles=1)  # fmt: skip
     after = axis("thrust_observer").compared()[1]
 
-    def row(safe: list[float], success: list[float]) -> dict:
-        return {"safe_rate": sum(safe) / len(safe), "success_rate": sum(success) / len(success),
-                "per_episode": {"safe_rate": safe, "success_rate": success}}  # fmt: skip
-
     safe, success = [0.99, 1.0, 1.0, 0.995, 1.0, 0.99, 1.0, 1.0], [0.8, 0.9, 0.85, 0.8, 0.9, 0.85, 0.8, 0.9]
     cases = {
-        "turn on `dist_obs=1` for nominal (no CBF)": row(safe, [x + 0.05 for x in success]),  # more success, as safe
-        "leave `dist_obs=1` off for nominal (no CBF): it costs safety": row([x - 0.1 for x in safe], [1.0] * 8),
-        "`dist_obs=1` changes nothing measurable for nominal (no CBF)": row(safe, success),
+        "turn on `dist_obs=1` for nominal (no CBF)": _with_episodes(safe, [x + 0.05 for x in success]),  # as safe
+        "leave `dist_obs=1` off for nominal (no CBF): it costs safety": _with_episodes(
+            [x - 0.1 for x in safe], [1.0] * 8
+        ),
+        "`dist_obs=1` changes nothing measurable for nominal (no CBF)": _with_episodes(safe, success),
         "`dist_obs=1` for nominal (no CBF): not judged": {"safe_rate": 0.5, "success_rate": 1.0},  # no episodes
     }
     for says, fixed in cases.items():
-        cells = {("nominal", spec, 4, k): row(safe, success) for a in ("field", "thrust") for spec in axis(a).specs()
-                 for k in (0, 1)}  # fmt: skip
+        cells = {("nominal", spec, 4, k): _with_episodes(safe, success) for a in ("field", "thrust")
+                 for spec in axis(a).specs() for k in (0, 1)}  # fmt: skip
         cells |= {("nominal", after, 4, k): fixed for k in (0, 1)}
         line = next(x for x in advice(cfg, cells) if x.startswith("- thrust gain error, agents observing"))
         assert says in line and "measured at N = 4: 0 obstacles: " in line, line
@@ -271,14 +275,10 @@ def test_the_default_field_pick_is_compared_with_its_runner_up_and_safety_withou
 
     cfg = RobustnessConfig(axes=("field", "thrust"), controllers=("nominal", "ccbf"), num_agents=(4,), obstacles=1)
 
-    def row(safe: list[float], success: list[float]) -> dict:
-        return {"safe_rate": sum(safe) / len(safe), "success_rate": sum(success) / len(success),
-                "per_episode": {"safe_rate": safe, "success_rate": success}}  # fmt: skip
-
     safe = [0.99, 1.0, 1.0, 0.995, 1.0, 0.99, 1.0, 1.0]
     few = [0.3, 0.4, 0.35, 0.3, 0.4, 0.35, 0.3, 0.4]
     arrive = {"nominal": few, "ccbf": [0.31, *few[1:]]}  # cCBF-QP: 0.01 more in one episode
-    cells = {(m, spec, 4, k): row(safe, arrive[m]) for m in cfg.controllers for a in ("field", "thrust")
+    cells = {(m, spec, 4, k): _with_episodes(safe, arrive[m]) for m in cfg.controllers for a in ("field", "thrust")
              for spec in axis(a).specs() for k in (0, 1)}  # fmt: skip
     lines = advice(cfg, cells)
     pick = next(x for x in lines if x.startswith("- default field conditions, N = 4, 0 obstacles"))

@@ -256,6 +256,17 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
+def _whole_number(name: str, value: str, source: str) -> int:
+    """``value`` as a whole number (``"2"`` or ``"2.0"``), or a ValueError saying why not."""
+    try:
+        number = float(value)
+    except ValueError as err:
+        raise ValueError(f"faults: {name}={value!r} in {source!r} is not a number") from err
+    if not number.is_integer():
+        raise ValueError(f"faults: {name}={value!r} in {source!r} is not a whole number")
+    return int(number)
+
+
 def _build(base: dict, fields: dict, source: str) -> FaultConfig:
     known = {f.name for f in dataclasses.fields(FaultConfig)}
     unknown = sorted(set(fields) - known)
@@ -273,21 +284,17 @@ def _build(base: dict, fields: dict, source: str) -> FaultConfig:
                 value = float(value)
             out[name] = value
             continue
+        if name in _INT_FIELDS:
+            out[name] = _whole_number(name, value, source)
+            continue
         try:
             if name == "wind":
                 out[name] = tuple(float(w) for w in value.split("/")) if value else ()
             elif name == "noncoop_mode":
                 out[name] = value
-            elif name in _INT_FIELDS:
-                number = float(value)
-                if not number.is_integer():
-                    raise ValueError(f"faults: {name}={value!r} in {source!r} is not a whole number")
-                out[name] = int(number)
             else:
                 out[name] = float(value)
         except ValueError as err:
-            if "whole number" in str(err):
-                raise
             raise ValueError(f"faults: {name}={value!r} in {source!r} is not a number") from err
     if "wind" in out:
         out["wind"] = tuple(out["wind"])

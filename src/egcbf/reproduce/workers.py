@@ -14,7 +14,6 @@ workers at once.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import multiprocessing
 import signal
 import tempfile
@@ -65,15 +64,11 @@ def _evaluate_cell(task: CellTask) -> dict:
         if task.checkpoint_files is not None or task.checkpoint_dir is not None:  # as `egcbf eval --checkpoint`
             from ..checkpoint import load_controller
 
-            if task.checkpoint_dir is not None:
-                tmp = task.checkpoint_dir
-            else:
-                for name, data in task.checkpoint_files.items():
-                    (Path(tmp) / name).write_bytes(data)
+            path = task.checkpoint_dir or _write_checkpoint(tmp, task.checkpoint_files)
             if config is None:
-                learned, train_cfg = load_controller(tmp, device=task.device, dtype=torch.float32)
+                learned, train_cfg = load_controller(path, device=task.device, dtype=torch.float32)
             else:
-                learned, train_cfg = load_filtered_controller(tmp, config, device=task.device, dtype=torch.float32)
+                learned, train_cfg = load_filtered_controller(path, config, device=task.device, dtype=torch.float32)
             env_overrides = dict(train_cfg.env_overrides)
         elif config is not None:  # `egcbf eval --controller nominal --filter KIND`
             learned = FilteredController(None, None, config)
@@ -92,6 +87,13 @@ def _evaluate_cell(task: CellTask) -> dict:
         faults=parse_faults(task.cell.faults),
     )
     return rows[0]
+
+
+def _write_checkpoint(directory: str | Path, files: dict[str, bytes]) -> str:
+    """Write a checkpoint's ``files`` (name -> bytes) into ``directory``; returns it."""
+    for name, data in files.items():
+        (Path(directory) / name).write_bytes(data)
+    return str(directory)
 
 
 def run_cell(task: CellTask) -> dict:
@@ -270,14 +272,12 @@ def _run_on_disk(tasks: Sequence[CellTask], workers: int) -> Iterator[Outcome]:
             if task.checkpoint_files is None:
                 local.append(task)
                 continue
-            files = task.checkpoint_files
-            key = tuple(sorted((name, hashlib.sha256(data).hexdigest()) for name, data in files.items()))
+            key = tuple(sorted(task.checkpoint_files.items()))  # equal contents: one directory
             if key not in dirs:
-                dirs[key] = str(Path(root) / str(len(dirs)))
-                Path(dirs[key]).mkdir()
-                for name, data in files.items():
-                    (Path(dirs[key]) / name).write_bytes(data)
+                directory = Path(root) / str(len(dirs))
+                directory.mkdir()
+                dirs[key] = _write_checkpoint(directory, task.checkpoint_files)
             local.append(dataclasses.replace(task, checkpoint_files=None, checkpoint_dir=dirs[key]))
-        originals = {id(t): task for t, task in zip(local, tasks)}
+        originals = {id(t): task for t, task in zip(local, tasks)}  # _run_processes yields the objects it got
         for task, res, err in _run_processes(local, workers):
-            yield originals.get(id(task), task), res, err
+            yield originals[id(task)], res, err

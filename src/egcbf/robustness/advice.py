@@ -18,13 +18,19 @@ def recommended(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> tuple[str
     spec = axis("field").specs()[1]
     if any((m, spec, n, k) not in cells for m in cfg.controllers):
         return None
+    order, ok = _ranked(cfg, cells, spec, n, k)
+    return order[0], cells[(order[0], spec, n, k)], ok
+
+
+def _ranked(cfg: RobustnessConfig, cells: dict, spec: str, n: int, k: int) -> tuple[list[str], bool]:
+    """The candidates for level ``spec`` at ``n`` agents and ``k`` obstacles, best first: those >= 99 % safe by
+    success (then safety), or, when none is, every controller by safety (then success); and whether some is
+    >= 99 % safe. Ties keep ``cfg.controllers``' order."""
     rows = {m: cells[(m, spec, n, k)] for m in cfg.controllers}
     safe = [m for m in cfg.controllers if rows[m]["safe_rate"] >= 0.99]
     if safe:
-        pick = max(safe, key=lambda m: (rows[m]["success_rate"], rows[m]["safe_rate"]))
-    else:
-        pick = max(cfg.controllers, key=lambda m: (rows[m]["safe_rate"], rows[m]["success_rate"]))
-    return pick, rows[pick], bool(safe)
+        return sorted(safe, key=lambda m: (rows[m]["success_rate"], rows[m]["safe_rate"]), reverse=True), True
+    return sorted(cfg.controllers, key=lambda m: (rows[m]["safe_rate"], rows[m]["success_rate"]), reverse=True), False
 
 
 def _recommendation(cfg: RobustnessConfig, cells: dict, n: int) -> list[str]:
@@ -42,23 +48,18 @@ def _recommendation(cfg: RobustnessConfig, cells: dict, n: int) -> list[str]:
         lines.append(
             f"- default field conditions, N = {n}, {k} obstacles: **{LABELS.get(pick, pick)}** "
             f"({100 * row['safe_rate']:.2f} % safe, {100 * row['success_rate']:.2f} % success; {why})."
-            + _runner_up(cfg, cells, spec, n, k, pick, ok)
+            + _runner_up(cfg, cells, spec, n, k)
         )
     return lines  # fmt: skip
 
 
-def _runner_up(cfg: RobustnessConfig, cells: dict, spec: str, n: int, k: int, pick: str, ok: bool) -> str:
-    """`` Against the runner-up ...``: the pick minus the next controller by the same rule, paired over the same
+def _runner_up(cfg: RobustnessConfig, cells: dict, spec: str, n: int, k: int) -> str:
+    """`` Minus the runner-up ...``: the pick minus the next candidate (:func:`_ranked`), paired over the same
     scenes, so a reader sees whether the choice is settled or a tie (``""`` when there is none)."""
-
-    def rank(m: str) -> tuple[float, float]:  # recommended()'s order
-        r = cells[(m, spec, n, k)]
-        return (r["success_rate"], r["safe_rate"]) if ok else (r["safe_rate"], r["success_rate"])
-
-    others = [m for m in cfg.controllers if m != pick and (not ok or cells[(m, spec, n, k)]["safe_rate"] >= 0.99)]
-    if not others:
+    order, _ = _ranked(cfg, cells, spec, n, k)
+    if len(order) < 2:
         return ""
-    other = max(others, key=rank)
+    pick, other = order[:2]
     mine, theirs = cells[(pick, spec, n, k)], cells[(other, spec, n, k)]
     intervals = [paired_interval(theirs, mine, rate) for rate in ("safe_rate", "success_rate")]
     if None in intervals:

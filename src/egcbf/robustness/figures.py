@@ -16,6 +16,10 @@ COLORS = {"nominal": "tab:gray", "ccbf": "tab:brown", "dcbf": "tab:purple", "gcb
           "egcbf+": "tab:blue", "egcbf+:dcbf": "tab:green"}  # fmt: skip
 
 
+#: the report's safety thresholds (%), each with its line style
+_THRESHOLDS = ((99, "--"), (95, ":"))
+
+
 def _series(cells: dict, specs: list[str], m: str, n: int, k: int, key: str) -> tuple[list, ...]:
     """``(xs, mid, lo, hi)`` of controller ``m`` at ``n`` agents and ``k`` obstacles along ``specs``: the level
     index (levels equally spaced: they grow by factors) and the rate in percent with its 95 % band over episodes."""
@@ -66,8 +70,8 @@ def axis_figure(cfg: RobustnessConfig, cells: dict, name: str, out_png: Path) ->
                     drawn.add(n)
                     ax.plot(xs, mid, marker="o", ls=styles[n], color=color, ms=3)
                     ax.fill_between(xs, lo, hi, color=color, alpha=0.12, lw=0)
-            if key == "safe_rate":  # the report's thresholds
-                for level, ls in ((99, "--"), (95, ":")):
+            if key == "safe_rate":
+                for level, ls in _THRESHOLDS:
                     ax.axhline(level, color="black", lw=0.6, ls=ls, alpha=0.5)
             ax.set_title(f"{'safe' if key == 'safe_rate' else 'success'} %, {k} obstacles", fontsize=9)
             ax.set_xticks(range(len(a.levels)), [f"{x:g}" for x in a.levels], fontsize=8)
@@ -76,8 +80,7 @@ def axis_figure(cfg: RobustnessConfig, cells: dict, name: str, out_png: Path) ->
     if not drawn:
         return None
     handles = [Line2D([], [], color=COLORS.get(m), marker="o", ms=3, label=LABELS.get(m, m)) for m in methods]
-    handles += [Line2D([], [], color="black", lw=0.6, ls=ls, alpha=0.5, label=f"{v} % safe") for v, ls in
-                ((99, "--"), (95, ":"))]  # fmt: skip
+    handles += [Line2D([], [], color="black", lw=0.6, ls=ls, alpha=0.5, label=f"{v} % safe") for v, ls in _THRESHOLDS]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=7, frameon=False)
     fig.subplots_adjust(bottom=0.16, hspace=0.45)
     names = {"-": "solid", "--": "dashed", ":": "dotted", "-.": "dash-dotted"}

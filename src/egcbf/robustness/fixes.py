@@ -74,8 +74,8 @@ def _actuation_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
         "controller breaks). The agent knows its delay and the commands it has sent, so it can roll its estimate "
         "forward through its own dynamics over them and command for that predicted state (`act_predict`: a Smith "
         "predictor; it knows neither gain errors nor wind, unless `dist_obs` measures them; it broadcasts the "
-        "prediction, so the whole swarm acts "
-        "on the same future). The `act_delay_predict` axis repeats the actuation-delay axis with it; the table "
+        "prediction, so the whole swarm acts on the same future). The `act_delay_predict` axis repeats the "
+        "actuation-delay axis with it; the table "
         "is two steps of delay without and with it (the same scenes; after minus before). With the delay the only "
         "fault the prediction is exact, so this axis is the fix's ceiling; under noise, gain errors or wind as well "
         "it is approximate (`egcbf eval --faults default,act_delay=2,act_predict=1` measures that case).",

@@ -13,6 +13,8 @@ The lock is a POSIX ``flock`` on ``OUT/.egcbf.lock`` (the file holds the holder'
 the kernel drops the lock when its process dies, even under ``kill -9``, so a stale file never blocks anyone). It
 is re-entrant within a process (a command that locks a directory and then calls code that locks it again does not
 block itself); between processes it is exclusive. On a platform without ``fcntl`` (Windows) nothing is locked.
+A directory the lock created and nothing else wrote to (a command refused for bad settings) is removed with the
+lock, so a refused command leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ __all__ = ["LOCK_NAME", "DirLock", "DirLockedError", "hold_dir"]
 
 #: The lock file inside a locked directory.
 LOCK_NAME = ".egcbf.lock"
-#: directories this process holds: resolved path -> [open lock file, depth]
+#: directories this process holds: resolved path -> [open lock file, depth, the directories the lock created]
 _HELD: dict[Path, list] = {}
 
 
@@ -48,6 +50,7 @@ class DirLock:
             import fcntl
         except ImportError:  # pragma: no cover - Windows
             return self
+        created = [d for d in (self.directory, *self.directory.parents) if not d.exists()]
         self.directory.mkdir(parents=True, exist_ok=True)
         key = self.directory.resolve()
         if key in _HELD:  # this process holds it already
@@ -69,7 +72,7 @@ class DirLock:
         file.truncate()
         file.write(f"{self.what} (pid {os.getpid()})")
         file.flush()
-        _HELD[key] = [file, 1]
+        _HELD[key] = [file, 1, created]
         self.key = key
         return self
 
@@ -79,8 +82,23 @@ class DirLock:
         if entry is not None:
             entry[1] -= 1
             if entry[1] == 0:
+                if entry[2]:
+                    _remove_if_unused(entry[2])
                 entry[0].close()  # closing releases the lock
                 del _HELD[key]
+
+
+def _remove_if_unused(created: list[Path]) -> None:
+    """Remove the locked directory ``created[0]`` and the parents the lock made for it (``created[1:]``) if it
+    holds nothing but the lock file (still held: no one else is writing there)."""
+    try:
+        if [p.name for p in created[0].iterdir()] != [LOCK_NAME]:
+            return
+        (created[0] / LOCK_NAME).unlink()
+        for directory in created:
+            directory.rmdir()  # raises, and stops, at a parent that something else now uses
+    except OSError:  # something arrived meanwhile, or it went: leave it
+        pass
 
 
 def hold_dir(directory: str | Path, what: str) -> None:

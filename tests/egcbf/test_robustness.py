@@ -208,6 +208,27 @@ def test_a_fix_the_recommended_controller_does_not_perceive_is_said_so_and_n_a_w
     assert row.endswith("| n/a | n/a |"), row  # nominal is below 99 % without faults, but reads no messages
 
 
+def test_a_break_within_its_episode_band_of_the_threshold_is_marked_borderline():
+    """'*' marks the first level below a threshold only when that level's 95 % band over episodes still reaches it:
+    one agent-episode short of 99 % is borderline, a collapse is not."""
+    from egcbf.robustness.report import _breaking_levels
+
+    cfg = RobustnessConfig(axes=("thrust",), controllers=("nominal", "ccbf"), num_agents=(4,), obstacles=1)
+    specs = axis("thrust").specs()
+    clean = _with_episodes([1.0] * 20, [1.0] * 20)
+    short = _with_episodes([1.0] * 19 + [0.8], [1.0] * 20)  # 99.0 % -> just below with one bad episode
+    short = {**short, "safe_rate": 0.9899}
+    collapse = _with_episodes([0.5] * 20, [0.5] * 20)
+    cells = {("nominal", specs[0], 4, 0): clean, ("nominal", specs[1], 4, 0): short,
+             ("ccbf", specs[0], 4, 0): clean, ("ccbf", specs[1], 4, 0): collapse}  # fmt: skip
+    for m in ("nominal", "ccbf"):
+        for spec in specs[2:]:
+            cells[m, spec, 4, 0] = collapse
+    row = next(x for x in _breaking_levels(cfg, cells, 4, 0) if x.startswith("| thrust gain error"))
+    level = f"{axis('thrust').levels[1]:g}"
+    assert row.endswith(f"| {level}* / {axis('thrust').levels[2]:g} | {level} / {level} |"), row
+
+
 def test_bad_inputs_and_a_partial_plan_into_the_committed_report_are_refused_before_anything_runs(tmp_path):
     base = ["robustness", "--axes", "thrust", "--controllers", "nominal", "--num-agents", "4", "--out",
             str(tmp_path / "c"), "--report", str(tmp_path / "r.md"), "--figures", str(tmp_path / "f")]  # fmt: skip

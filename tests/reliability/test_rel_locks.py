@@ -50,6 +50,21 @@ def test_lock_is_reentrant_within_a_process(tmp_path):
     assert (tmp_path / LOCK_NAME).exists()
 
 
+def test_a_directory_the_lock_created_and_no_one_used_goes_with_it(tmp_path):
+    """A command refused for bad settings after taking the lock leaves no empty directory behind; a directory that
+    existed before, or that received files, stays."""
+    with pytest.raises(ValueError), DirLock(tmp_path / "new" / "out", "test"):
+        raise ValueError("bad settings")
+    assert list(tmp_path.iterdir()) == []  # neither out nor the parent it needed
+    with DirLock(tmp_path / "used", "test"):
+        (tmp_path / "used" / "metrics.json").write_text("{}")
+    assert (tmp_path / "used" / "metrics.json").exists()
+    (tmp_path / "old").mkdir()
+    with DirLock(tmp_path / "old", "test"):
+        pass
+    assert (tmp_path / "old").is_dir()
+
+
 def _eval_cmd(out: Path) -> list[str]:
     return [*EGCBF, "eval", "--controller", "nominal", "--num-agents", "4", "--area", "2", "--episodes", "1",
             "--max-steps", "30", "--out", str(out), "--no-progress", "--threads", "1"]  # fmt: skip

@@ -20,6 +20,7 @@ __all__ = [
     "load_records",
     "paired_change",
     "pct",
+    "rate_band",
     "stored_cell",
 ]
 
@@ -79,6 +80,16 @@ def computed_where(cfg: RobustnessConfig, records: dict[tuple[str, str, int, int
 
 def episodes(row: dict, key: str) -> list[float]:
     return list(row.get("per_episode", {}).get(key, [])) or [row[key]]
+
+
+def rate_band(row: dict, key: str) -> tuple[float, float]:
+    """The 95 % band over episodes of the rate ``key`` of one cell (``(rate, rate)`` with fewer than two
+    episodes): the figures' bands and the report's borderline marks use this one interval."""
+    values = episodes(row, key)
+    if len(values) < 2:
+        return row[key], row[key]
+    ci = mean_ci([values], resamples=2000)
+    return ci.low, ci.high
 
 
 def pct(row: dict | None, key: str) -> str:

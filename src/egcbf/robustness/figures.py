@@ -5,9 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..bootstrap import mean_ci
 from ..reproduce.paper import LABELS
-from .cells import episodes
+from .cells import rate_band
 from .plan import RobustnessConfig, axis
 
 __all__ = ["COLORS", "axis_figure"]
@@ -28,12 +27,11 @@ def _series(cells: dict, specs: list[str], m: str, n: int, k: int, key: str) -> 
         r = cells.get((m, spec, n, k))
         if r is None:
             continue
-        values = episodes(r, key)
-        ci = mean_ci([values], resamples=2000) if len(values) > 1 else None
+        low, high = rate_band(r, key)
         xs.append(i)
         mid.append(100 * r[key])
-        lo.append(100 * (ci.low if ci else r[key]))
-        hi.append(100 * (ci.high if ci else r[key]))
+        lo.append(100 * low)
+        hi.append(100 * high)
     return xs, mid, lo, hi
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ..reproduce.paper import LABELS
 from .advice import advice
-from .cells import before_after, computed_where, load_records, stored_cell
+from .cells import before_after, computed_where, load_records, rate_band, stored_cell
 from .figures import axis_figure
 from .fixes import fix_sections
 from .plan import RobustnessConfig, axis
@@ -66,7 +66,8 @@ def _field_table(cfg: RobustnessConfig, cells: dict) -> list[str]:
 
 def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list[str]:
     """Per axis and controller: the first level whose safe rate drops below each threshold ('>' the last level
-    when it never does; '?' where a level is missing)."""
+    when it never does; '?' where a level is missing; '*' where that level's 95 % band over episodes still
+    reaches the threshold, so the break is not distinguishable from it)."""
     head = "| axis (unit) | " + " | ".join(LABELS.get(m, m) for m in cfg.controllers) + " |"
     lines = [head, "|---|" + "---|" * len(cfg.controllers)]
     for a in (axis(x) for x in cfg.axes if not x.startswith("field")):
@@ -84,7 +85,7 @@ def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list
                         found = "?" if cfg.cell_spec(m, spec) is not None else "n/a"
                         break
                     if r["safe_rate"] < thr:
-                        found = f"{level:g}"
+                        found = f"{level:g}" + ("*" if rate_band(r, "safe_rate")[1] >= thr else "")
                         break
                 parts.append(found or f">{a.levels[-1]:g}")
             row.append(" / ".join(parts))
@@ -171,7 +172,9 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         "",
         "The first level at which the safe rate drops below 99 % / 95 % ('>x': never up to the last level x; "
         "'?': not computed yet; 'n/a': the controller does not perceive this fault; '0': already below it without "
-        "faults).",
+        "faults). These are point estimates over the episodes: '*' marks a level whose 95 % band over episodes still "
+        "reaches the threshold: below it in these episodes, but not distinguishably so (e.g. one agent-episode "
+        "short of it).",
         "",
     ]  # fmt: skip
     for n in sorted(cfg.num_agents, reverse=True):

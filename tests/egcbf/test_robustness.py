@@ -276,7 +276,7 @@ def test_the_fix_advice_follows_the_paired_intervals():
         "leave `dist_obs=1` off for nominal (no CBF): it costs safety": _with_episodes(
             [x - 0.1 for x in safe], [1.0] * 8
         ),
-        "`dist_obs=1` changes nothing measurable for nominal (no CBF)": _with_episodes(safe, success),
+        "`dist_obs=1`: no change measurable within these episodes for nominal (no CBF)": _with_episodes(safe, success),
         "`dist_obs=1` for nominal (no CBF): not judged": {"safe_rate": 0.5, "success_rate": 1.0},  # no episodes
     }
     for says, fixed in cases.items():
@@ -286,7 +286,44 @@ def test_the_fix_advice_follows_the_paired_intervals():
         line = next(x for x in advice(cfg, cells) if x.startswith("- thrust gain error, agents observing"))
         assert says in line and "measured at N = 4: 0 obstacles: " in line, line
         hint = next(x for x in advice(cfg, cells) if x.startswith("- thrust gain error, up to"))
-        assert f"The agents' fix: {says}" in hint, hint
+        assert f"The agents' fix, at 0.3 (+- fraction), the last level: {says}" in hint, hint
+
+
+def test_an_axis_fix_is_measured_where_the_pick_breaks_and_a_pending_larger_n_is_said():
+    """The per-axis hint measures the agents' fix at the level where the chosen controller first drops below 99 %
+    safe (there the fix matters; at a level it holds there is little to gain) and names that level; a pick read at
+    a smaller N because the larger one is incomplete says so."""
+    from egcbf.robustness.advice import advice
+
+    cfg = RobustnessConfig(axes=("thrust", "thrust_observer"), controllers=("nominal", "ccbf"), num_agents=(4, 8),
+                           obstacles=1)  # fmt: skip
+    specs, fixed = axis("thrust").specs(), axis("thrust_observer").specs()
+    holds, breaks = [1.0] * 8, [1.0] * 4 + [0.9] * 4
+    cells = {}
+    for k in (0, 1):
+        for i, spec in enumerate(specs):
+            cells["nominal", spec, 4, k] = _with_episodes(breaks, breaks)
+            cells["ccbf", spec, 4, k] = _with_episodes(breaks if i >= 3 else holds, holds)
+            cells["nominal", fixed[i], 4, k] = _with_episodes(breaks, breaks)
+            cells["ccbf", fixed[i], 4, k] = _with_episodes(holds, holds)
+    cells["ccbf", specs[0], 8, 0] = _with_episodes(holds, holds)  # N = 8 begun, not complete
+    hint = next(x for x in advice(cfg, cells) if x.startswith("- thrust gain error, up to"))
+    assert "up to 0.1 (+- fraction): **cCBF-QP**" in hint and "N = 4 (N = 8 pending)" in hint, hint
+    assert "The agents' fix, at 0.2 (+- fraction), where it first drops below 99 % safe: turn on" in hint, hint
+    assert "95.00 -> 100.00 % safe" in hint, hint  # the mean of breaks, not of a level cCBF-QP holds
+
+
+def test_a_filtered_pick_says_which_faults_reach_only_its_policy():
+    """The dCBF filter's obstacle rows come from the map: a LiDAR fault reaches the filtered controller's policy
+    only, which the advice says where it picks it; message faults reach the filter too, so nothing is said."""
+    from egcbf.robustness.advice import _filter_spared
+
+    lidar = axis("lidar").specs()[2]
+    assert "does not read `lidar_noise`, `lidar_drop`: those faults reach only its policy" in _filter_spared(
+        "egcbf+:dcbf", lidar
+    )
+    assert _filter_spared("egcbf+:dcbf", axis("loss").specs()[2]) == ""
+    assert _filter_spared("egcbf+", lidar) == ""
 
 
 def test_the_default_field_pick_is_compared_with_its_runner_up_and_safety_without_arrival_is_said():
@@ -303,7 +340,9 @@ def test_the_default_field_pick_is_compared_with_its_runner_up_and_safety_withou
              for spec in axis(a).specs() for k in (0, 1)}  # fmt: skip
     lines = advice(cfg, cells)
     pick = next(x for x in lines if x.startswith("- default field conditions, N = 4, 0 obstacles"))
-    assert "**cCBF-QP**" in pick and "Minus the runner-up, nominal (no CBF): safe +0.00 [+0.00, +0.00]" in pick
+    spared = "ran without `msg_loss`, `msg_delay`, which it does not perceive: not like for like"
+    assert "**cCBF-QP**" in pick and f"safe; {spared})." in pick, pick
+    assert f"Minus the runner-up, nominal (no CBF) ({spared}): safe +0.00 [+0.00, +0.00]" in pick, pick
     assert "not distinguishable within these episodes" in pick, pick
     thrust = next(x for x in lines if x.startswith("- thrust gain error, up to"))
     assert "Fewer than half of its agents reach their goals there." in thrust, thrust

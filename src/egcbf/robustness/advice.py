@@ -4,7 +4,10 @@ controller keeps 99 % safe and the one to choose there."""
 
 from __future__ import annotations
 
-from ..reproduce.paper import LABELS
+from ..faults import parse_faults
+from ..faults.sensing import unread_fields
+from ..filter_names import FILTER_LABELS
+from ..reproduce.paper import LABELS, method_filter
 from .cells import paired_interval, pct
 from .plan import AXES, Axis, RobustnessConfig, axis
 
@@ -45,10 +48,11 @@ def _recommendation(cfg: RobustnessConfig, cells: dict, n: int) -> list[str]:
             continue
         pick, row, ok = choice
         why = "the most successful of those >= 99 % safe" if ok else "none reaches 99 % safe; the safest"
+        spared = _spared(cfg, pick, spec)
         lines.append(
             f"- default field conditions, N = {n}, {k} obstacles: **{LABELS.get(pick, pick)}** "
-            f"({100 * row['safe_rate']:.2f} % safe, {100 * row['success_rate']:.2f} % success; {why})."
-            + _runner_up(cfg, cells, spec, n, k)
+            f"({100 * row['safe_rate']:.2f} % safe, {100 * row['success_rate']:.2f} % success; {why}"
+            f"{'; ' + spared if spared else ''})." + _runner_up(cfg, cells, spec, n, k)
         )
     return lines  # fmt: skip
 
@@ -65,10 +69,37 @@ def _runner_up(cfg: RobustnessConfig, cells: dict, spec: str, n: int, k: int) ->
     if None in intervals:
         return ""
     tie = "" if any(x.excludes_zero() for x in intervals) else "; not distinguishable within these episodes"
+    spared = _spared(cfg, other, spec)
     return (
-        f" Minus the runner-up, {LABELS.get(other, other)}: safe {intervals[0].text(100, 2)}, success "
-        f"{intervals[1].text(100, 2)} points (paired 95 % CI{tie})."
+        f" Minus the runner-up, {LABELS.get(other, other)}{f' ({spared})' if spared else ''}: safe "
+        f"{intervals[0].text(100, 2)}, success {intervals[1].text(100, 2)} points (paired 95 % CI{tie})."
     )
+
+
+def _spared(cfg: RobustnessConfig, m: str, spec: str) -> str:
+    """``"ran without ..."`` when controller ``m`` does not perceive some of level ``spec``'s faults (a centralized
+    QP reads no messages: its result at this level is not like for like with those that do), else ``""``."""
+    run = cfg.cell_spec(m, spec)
+    if run is None or run == spec:
+        return ""
+    spared = [k for k in parse_faults(spec).active() if k not in parse_faults(run).active()]
+    return f"ran without {', '.join(f'`{k}`' for k in spared)}, which it does not perceive: not like for like"
+
+
+def _filter_spared(m: str, spec: str) -> str:
+    """``" ..."`` when ``m`` is a policy behind a filter that itself does not read some of ``spec``'s faults (the
+    dCBF filter's obstacle rows come from the map, not the LiDAR): those reach only the policy, which a reader
+    choosing for that fault must know. ``""`` otherwise."""
+    kind = method_filter(m)
+    if kind == "none":
+        return ""
+    from ..algo.filtered import filter_reads_sensing
+
+    unread = unread_fields(filter_reads_sensing(kind, has_policy=False), parse_faults(spec))
+    if not unread:
+        return ""
+    label = FILTER_LABELS.get(kind, f"{kind} filter")
+    return f" Its {label} does not read {', '.join(f'`{k}`' for k in unread)}: those faults reach only its policy."
 
 
 def _fault_axes(cfg: RobustnessConfig) -> list[Axis]:
@@ -114,7 +145,7 @@ def _ci(interval) -> str:
 _VERDICTS = {
     "on": "turn on {h} for {name}: safer or more successful with it, and not measurably less safe",
     "off": "leave {h} off for {name}: it costs safety",
-    "none": "{h} changes nothing measurable for {name} (every 95 % interval includes 0)",
+    "none": "{h}: no change measurable within these episodes for {name} (every 95 % interval includes 0)",
     "unjudged": "{h} for {name}: not judged (no per-episode results to pair)",
 }
 
@@ -128,15 +159,26 @@ def _fix_line(cfg: RobustnessConfig, cells: dict, m: str, fix: Axis, before: str
     return _VERDICTS[verdict].format(h=h, name=LABELS.get(m, m)) + f"; {evidence}"
 
 
-def _fix_hint(cfg: RobustnessConfig, cells: dict, name: str, m: str, level: int, n: int) -> str:
-    """`` The agents' fix: ...`` for the fault axis ``name`` at level index ``level``: what the fix whose axis
-    repeats it does for the chosen controller ``m`` there (at ``n`` agents), or ``""`` when no fix repeats it."""
+def _fix_hint(cfg: RobustnessConfig, cells: dict, name: str, m: str, level: int, n: int, why: str) -> str:
+    """`` The agents' fix, at ...: ...`` for the fault axis ``name`` at level index ``level`` (``why`` says what
+    that level is to ``m``): what the fix whose axis repeats it does for the chosen controller ``m`` there (at ``n``
+    agents), or ``""`` when no fix repeats it."""
     fixes = [a for a in AXES if a.fixes == name and a.name in cfg.axes]
     if not fixes or level == 0:
         return ""
-    fix = fixes[0]
-    before, after = axis(name).specs()[level], fix.specs()[level]
-    return f" The agents' fix: {_fix_line(cfg, cells, m, fix, before, after, (n,))}."
+    fix, a = fixes[0], axis(name)
+    before, after = a.specs()[level], fix.specs()[level]
+    line = _fix_line(cfg, cells, m, fix, before, after, (n,))
+    return f" The agents' fix, at {a.levels[level]:g} ({a.unit}), {why}: {line}."
+
+
+def _fix_level(first_fail: int, held: int, count: int) -> tuple[int, str]:
+    """Where to measure a fix for a controller that first drops below 99 % safe at level index ``first_fail`` (``count``
+    levels) and is chosen up to level index ``held``: where it breaks, the level the fix is for; at its last level
+    when it never breaks."""
+    if first_fail < count:
+        return first_fail, "where it first drops below 99 % safe"
+    return held, "the last level"
 
 
 def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
@@ -160,7 +202,9 @@ def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
                           for m in methods}  # fmt: skip
             held = max(first_fail.values())
             names = ", ".join(LABELS.get(m, m) for m in methods)
-            where = f"N = {n}, each rate the worse of {obstacles[0]} and {obstacles[1]} obstacles"
+            larger = [x for x in cfg.num_agents if x > n]
+            pending = f" (N = {', '.join(map(str, larger))} pending)" if larger else ""
+            where = f"N = {n}{pending}, each rate the worse of {obstacles[0]} and {obstacles[1]} obstacles"
             if held == 0:
                 lines.append(f"- {a.title}: none of the controllers that perceive it ({names}) is 99 % safe even "
                              f"without it ({where}).")  # fmt: skip
@@ -168,18 +212,20 @@ def _axis_choices(cfg: RobustnessConfig, cells: dict) -> list[str]:
             i = held - 1  # the most severe level some controller holds, with every milder one
             if i == 0:
                 best = max(methods, key=lambda m: worst[(m, 1)])  # the safest at the mildest level
-                fix = _fix_hint(cfg, cells, a.name, best, 1, n)
+                fix = _fix_hint(cfg, cells, a.name, best, 1, n, f"for {LABELS.get(best, best)}, the safest there")
                 lines.append(f"- {a.title}: no controller stays 99 % safe at {a.levels[1]:g} ({a.unit}) already "
                              f"({where}).{fix}")  # fmt: skip
                 break
             pick = max((m for m in methods if first_fail[m] > i), key=lambda m: worst[(m, i)][::-1])
             safe, success = worst[(pick, i)]
             beyond = f"; none stays 99 % safe up to {a.levels[held]:g}" if held < len(specs) else ""
-            fix = _fix_hint(cfg, cells, a.name, pick, i, n)
+            j, why = _fix_level(first_fail[pick], i, len(specs))
+            fix = _fix_hint(cfg, cells, a.name, pick, j, n, why)
             few = " Fewer than half of its agents reach their goals there." if success < 0.5 else ""
             lines.append(
                 f"- {a.title}, up to {a.levels[i]:g} ({a.unit}): **{LABELS.get(pick, pick)}** "
-                f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, {where}{beyond}).{few}{fix}"
+                f"({100 * safe:.2f} % safe, {100 * success:.2f} % success there, {where}{beyond})."
+                f"{_filter_spared(pick, specs[i])}{few}{fix}"
             )
             break
     return lines

@@ -4,6 +4,8 @@ paired over the same scenes."""
 
 from __future__ import annotations
 
+from ..faults import DEFAULT_FIELD
+from ..onboard import DIST_OBS_TAU
 from ..reproduce.paper import LABELS
 from .cells import before_after
 from .plan import RECEIVER_HOLD, RobustnessConfig, axis
@@ -66,27 +68,39 @@ def _actuation_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
     if pair is None:
         return []
     before, after = pair
+    delay = _compared_level("act_delay_predict")
     return [
         "## Fixes: commanding for the state the command will act on",
         "",
-        "A command that acts `act_delay` control steps late was computed for a state the agent has left: the "
-        "attitude loop then fights its own past commands (the actuation-delay figure below shows where each "
-        "controller breaks). The agent knows its delay and the commands it has sent, so it can roll its estimate "
-        "forward through its own dynamics over them and command for that predicted state (`act_predict`: a Smith "
-        "predictor; it knows neither gain errors nor wind, unless `dist_obs` measures them; it broadcasts the "
-        "prediction, so the whole swarm acts on the same future). The `act_delay_predict` axis repeats the "
-        "actuation-delay axis with it; the table "
-        "is two steps of delay without and with it (the same scenes; after minus before). With the delay the only "
-        "fault the prediction is exact, so this axis is the fix's ceiling; under noise, gain errors or wind as well "
-        "it is approximate (`egcbf eval --faults default,act_delay=2,act_predict=1` measures that case).",
+        "A command that acts `act_delay` control steps late was computed for a state the agent has left. The "
+        "quadrotor's command is its body torques and collective thrust (`u = [tau, F3]`), so the delay acts inside "
+        "the attitude loop, as on a vehicle whose torques are computed off board; a vehicle with its own fast "
+        "attitude controller sees the delay on its setpoint only, which is milder (this model is the harsher "
+        "one). Without a fix one step makes the attitude loop oscillate and two flip the agents, which then fall "
+        "or fly out of the arena (tests/egcbf/test_faults.py, `test_actuation_delay_destabilizes_the_attitude_"
+        "loop_and_the_predictor_restores_it`): those agents touch no one, so the safe rates of these cells count "
+        "agents out of control as safe; read them with the success rates. The agent knows its delay and the "
+        "commands it has sent, so it can roll its estimate forward through its own dynamics over them and command "
+        "for that predicted state (`act_predict`: a Smith predictor; it knows neither gain errors nor wind, unless "
+        "`dist_obs` measures them; it broadcasts the prediction, so the whole swarm acts on the same future). The "
+        f"`act_delay_predict` axis repeats the actuation-delay axis with it; the table is {delay:g} steps of delay "
+        "without and with it (the same scenes; after minus before). With the delay the only fault the prediction "
+        "is exact, so this axis is the fix's ceiling; under noise, gain errors or wind as well it is approximate "
+        f"(`egcbf eval --faults default,act_delay={delay:g},act_predict=1` measures that case).",
         "",
         *fix_rows(cfg, cells, before, after, f"`{before}`"),
         "",
     ]  # fmt: skip
 
 
+def _compared_level(name: str) -> float:
+    """The level at which the report compares fix axis ``name`` with the axis it repeats (in the axis' unit)."""
+    a = axis(name)
+    return a.levels[a.compare]
+
+
 def _disturbance_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
-    """The fix of wind and thrust gain errors (issue 27, item 4): 1 m/s^2 of wind and +-30 % thrust gain with every
+    """The fix of wind and thrust gain errors (issue 27, item 4): the compared wind and thrust gain levels with every
     agent's disturbance observer, against the same faults without (every controller; paired over the same
     scenes)."""
     tables = []
@@ -100,8 +114,9 @@ def _disturbance_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
         before, after = pair
         tables += [
             "The default field conditions' fixes at once (the receivers' hold and prediction, and the disturbance "
-            "observer against their +-10 % thrust), against the same conditions without (`field_fixes`; the "
-            "observer differentiates noisy velocity estimates, so this is where it could cost safety):",
+            f"observer against their +-{100 * DEFAULT_FIELD.thrust_gain:g} % thrust), against the same conditions "
+            "without (`field_fixes`; the observer differentiates noisy velocity estimates, so this is where it "
+            "could cost safety):",
             "",
             *fix_rows(cfg, cells, before, after, "default"),
             "",
@@ -109,17 +124,22 @@ def _disturbance_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
     return [
         "## Fixes: cancelling the wind and the thrust errors",
         "",
-        "Wind and a thrust gain error leave every controller safe but slow: each controller's position loop is "
-        "proportional, so a steady push leaves a steady offset, and an agent held off its goal by more than the "
-        "goal radius never arrives (the wind and thrust figures below). The agent can measure what pushes it: "
-        "its velocity estimate against what its own model predicts from its previous estimate under the command "
-        "it knows acted, low-passed over 0.25 s, is the acceleration acting on it beyond its model; it then "
-        "cancels that in its command (`dist_obs`: a disturbance observer; `Robot.reject_disturbance` turns the "
+        "Wind and a thrust gain error push every agent off what its controller commands: each controller's "
+        "position loop is proportional, so a steady push leaves a steady offset, and an agent held off its goal by "
+        "more than the goal radius never arrives; a QP that takes the commanded acceleration for the realized one "
+        "can also be pushed closer to a neighbour than it planned (the wind and thrust figures below, and the "
+        "tables). The agent can measure what pushes it: its velocity estimate against what its own model predicts "
+        "from its previous estimate under the command it knows acted, low-passed over "
+        f"{DIST_OBS_TAU:g} s, is the acceleration acting on it beyond its model; it then cancels that in its "
+        "command (`dist_obs`: a disturbance observer; `Robot.reject_disturbance` turns the "
         "quadrotor's thrust vector by `-m d`, the attitude loop's own answer to the lowered target, to first "
-        "order). The `wind_observer` and `thrust_observer` axes repeat those axes with it; the tables are 1 m/s^2 "
-        "of wind (with gusts of half that) and +-30 % thrust gain, without and with it (the same scenes; after "
-        "minus before). It reads velocity estimates, so sensing noise enters it (about `vel_noise / 0.25 s`: "
-        "0.08 m/s^2 at the default field's 2 cm/s). Both agent-side fixes, this one and the actuation predictor, "
+        "order). The `wind_observer` and `thrust_observer` axes repeat those axes with it; the tables are "
+        f"{_compared_level('wind_observer'):g} m/s^2 of wind (with gusts of half that) and "
+        f"+-{100 * _compared_level('thrust_observer'):g} % thrust gain, without and with it (the same "
+        "scenes; after minus before). It reads velocity estimates, so sensing noise enters it (about "
+        f"`vel_noise / {DIST_OBS_TAU:g} s`: "
+        f"{DEFAULT_FIELD.vel_noise / DIST_OBS_TAU:.2g} m/s^2 at the default field's "
+        f"{100 * DEFAULT_FIELD.vel_noise:g} cm/s). Both agent-side fixes, this one and the actuation predictor, "
         "are `egcbf.onboard.Onboard`, which a robot runs around its own controller (docs/deploy.md, \"Latency and "
         "wind on board\"; `examples/onboard_robot.py`).",
         "",

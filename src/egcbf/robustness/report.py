@@ -127,7 +127,10 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         f"and with {cfg.obstacles}; the learned controllers are the shipped checkpoints (`{cfg.checkpoints}`, "
         "training seed 0). The faults, their units and where they act are in `egcbf.faults` "
         "(`egcbf eval --faults`); the controller sees corrupted perception and sends corrupted commands, the "
-        "metrics read the true states and count the cooperative agents only.",
+        "metrics read the true states and count the cooperative agents only. Safe: an agent touched no other "
+        "agent and no obstacle in the episode; success: safe and at its goal once (docs/metrics.md). Neither "
+        "counts an agent that loses its attitude or leaves the arena (it has no walls) as failed, so read a safe "
+        "rate with its success rate.",
         "",
         "A controller runs the faults of a level it perceives: the learned policies all of them (filtered or not: "
         "the policy reads the messages and the LiDAR through its graph), the dCBF-QP the messages but not the "
@@ -150,12 +153,21 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         "## Default field conditions",
         "",
         "`--faults default`: 1 cm position and 2 cm/s velocity estimation noise, 10 % of messages lost, every "
-        "message one control step (25 ms) late, +-10 % thrust gain per motor set, 5 % of the agents hovering in "
-        "place without cooperating. Why these: a motion-capture or UWB-aided estimator is good to about a "
-        "centimetre, a crowded 2.4 GHz mesh loses messages at this rate, one control period of latency is the "
-        "least a radio round adds, and motor and propeller spread is about 10 %; a swarm in the field always has "
-        "an agent whose planner has failed or been told to wait, which holds position on its autopilot (it still "
+        "message one control step (25 ms) late, +-10 % collective thrust gain per agent, 5 % of the agents "
+        "hovering in place without cooperating. Why these: 1 cm is a motion-capture-grade estimate (a UWB-aided "
+        "one is typically at 5 to 10 cm, which the state-estimate noise axis covers up to "
+        f"{axis('sensing').levels[-1]:g} m); a crowded "
+        "2.4 GHz mesh loses messages at this rate, and one control period of latency is the least a radio round "
+        "adds; a battery's sag and the spread of motors and propellers change the thrust an agent gets for a "
+        "command by about 10 % (lumped into one collective gain; a per-motor spread shows mostly as torque error, "
+        "`torque_gain` and `torque_bias`, which the default leaves at 0); a swarm in the field always has an agent "
+        "whose planner has failed or been told to wait, which holds position on its autopilot (it still "
         "broadcasts its state: the others know of it only through its messages).",
+        "",
+        "Every random fault is drawn afresh each step and link (white estimation noise, independent losses). A "
+        "real estimator's errors are correlated in time and a radio loses messages in bursts, which a controller "
+        "averages out less well than the same rates spread evenly: read these results as the optimistic side of "
+        "their rates.",
         "",
         "The change is the paired difference (the same scenes, episode by episode) with its bootstrap 95 % "
         f"interval over the {cfg.episodes} episodes (an interval of [+0.00, +0.00] means that no episode "

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..faults import parse_faults
 from ..reproduce.paper import LABELS
 from .advice import advice
 from .cells import before_after, computed_where, load_records, rate_band, stored_cell
@@ -58,10 +59,16 @@ def _field_table(cfg: RobustnessConfig, cells: dict) -> list[str]:
         for n in cfg.num_agents:
             for k in (0, cfg.obstacles):
                 sees = cfg.cell_spec(m, spec)
-                note = "all" if sees == spec else f"state-level only (`{sees}`)"
+                note = "all" if sees == spec else "none" if sees is None else f"not {_unseen(spec, sees)} (`{sees}`)"
                 pair = before_after(cells.get((m, "none", n, k)), cells.get((m, spec, n, k)))
                 lines.append(f"| {LABELS.get(m, m)} | {n} | {k} | {pair} | {note} |")
     return lines
+
+
+def _unseen(spec: str, sees: str) -> str:
+    """The fault fields of ``spec`` missing from ``sees`` (what a controller does not perceive), as code."""
+    seen = parse_faults(sees).active()
+    return ", ".join(f"`{k}`" for k in parse_faults(spec).active() if k not in seen)
 
 
 def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list[str]:

@@ -97,7 +97,7 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     assert "(12 of 12 cells computed" in text
     where = text.split("## Where the cells were computed")[1]  # each stored cell counted once, with its machine
     assert f"| 12 | {machine_text(machine_info())}, torch {torch.__version__}, device cpu |" in where
-    assert "state-level only" in text  # the nominal controller reads no messages
+    assert "| not `msg_loss`, `msg_delay` (" in text  # the nominal controller reads no messages
     choices = text.split("Under one fault")[1].split("## Where")[0]
     assert "- thrust gain error" in choices and "nominal (no CBF)" in choices  # every level of the axis computed
     cells = sorted(p.relative_to(out).as_posix() for p in out.rglob("N4.json"))

@@ -70,8 +70,14 @@ def test_spec_strings_round_trip_and_bad_specs_name_the_problem(tmp_path):
     observed = parse_faults("wind=1/0/0,dist_obs=1")
     assert observed.dist_obs == 1 and parse_faults(observed.spec()) == observed
     assert FaultConfig(dist_obs=1).is_null and not observed.is_null
+    # the faults' shapes in time: spec keys, inert on their own, not message faults by themselves
+    shaped = parse_faults("default,noise_tau=0.2,burst=4")
+    assert (shaped.noise_tau, shaped.msg_burst) == (0.2, 4) and parse_faults(shaped.spec()) == shaped
+    assert FaultConfig(noise_tau=0.2, msg_burst=4).is_null and not FaultConfig(msg_burst=4).edge_faults
     for bad, match in (("predict=2", "0 or 1"), ("act_predict=2", "0 or 1"), ("dist_obs=2", "0 or 1"),
-                       ("hold=-1", "whole number"), ("hold=1.5", "not a whole number")):  # fmt: skip
+                       ("hold=-1", "whole number"), ("hold=1.5", "not a whole number"),
+                       ("burst=2.5", "not a whole number"), ("burst=-2", "whole number"),
+                       ("noise_tau=-0.1", ">= 0")):  # fmt: skip
         with pytest.raises(ValueError, match=match):
             parse_faults(bad)
 
@@ -92,7 +98,11 @@ def test_draws_are_pure_functions_of_their_address_with_the_right_law():
 def test_zero_level_is_the_fault_free_simulation_bit_for_bit():
     seeds = [11, 12]
     plain, _, _ = run_episodes(_nominal, CFG, seeds, dtype=F64)
-    for zero in (FaultConfig(), FaultConfig(wind=(0.0, 0.0, 0.0), noncoop_mode="straight")):
+    for zero in (
+        FaultConfig(),
+        FaultConfig(wind=(0.0, 0.0, 0.0), noncoop_mode="straight"),
+        FaultConfig(noise_tau=0.5, msg_burst=4),
+    ):  # fmt: skip  (the shapes in time alone are inert)
         faulty, _, _ = run_episodes(_nominal, CFG, seeds, dtype=F64, faults=zero)
         assert all(torch.equal(v, faulty.per_episode()[k]) for k, v in plain.per_episode().items())
     # the process itself at zero level: observe, actuate and push are identities
@@ -117,6 +127,68 @@ def test_sensing_noise_has_its_standard_deviation_and_fresh_draws_each_step():
     assert torch.equal(seen.x[..., 3:12], state.x[..., 3:12])  # attitude and rates untouched
     state.t = 1
     assert not torch.equal(proc.observe(state).x, seen.x)  # a fresh error every step
+
+
+def test_correlated_estimation_errors_keep_their_std_and_have_their_memory():
+    """``noise_tau``: each coordinate's error is a Gauss-Markov process: std ``pos_noise`` (``vel_noise``) at every
+    step, lag-k autocorrelation ``exp(-k dt / noise_tau)``; ``noise_tau = 0`` is the white errors, draw for draw."""
+    cfg = dataclasses.replace(CFG, num_agents=100, num_obstacles=0)
+    state = SwarmEnv(cfg, dtype=F64).reset(3)
+    tau, steps = 0.1, 120
+    errors = {}
+    for t_memory in (0.0, tau):
+        proc = FaultProcess(FaultConfig(pos_noise=0.01, vel_noise=0.02, noise_tau=t_memory), cfg, ROBOT, [1, 2],
+                            dtype=F64)  # fmt: skip
+        runs = [proc.observe(dataclasses.replace(state, t=t)).x - state.x for t in range(steps)]
+        errors[t_memory] = torch.stack(runs)  # (T, B, N, S)
+    white, red = errors[0.0], errors[tau]
+    assert torch.equal(white[0], red[0])  # started from the stationary law: the first step's draws
+    rho = math.exp(-cfg.dt / tau)
+    for cols, std in ((slice(0, 3), 0.01), (slice(12, 15), 0.02)):
+        e = red[..., cols]
+        assert abs(float(e.std()) / std - 1) < 0.06
+        for lag in (1, 4):
+            corr = float((e[lag:] * e[:-lag]).mean() / (e * e).mean())
+            assert abs(corr - rho**lag) < 0.05, (lag, corr, rho**lag)
+        w = white[..., cols]
+        assert abs(float((w[1:] * w[:-1]).mean() / (w * w).mean())) < 0.03  # white: no memory
+    assert torch.equal(red[..., 3:12], torch.zeros_like(red[..., 3:12]))  # attitude and rates untouched
+
+
+def test_bursty_losses_keep_the_loss_rate_and_come_in_runs_of_whole_blocks():
+    """``msg_burst = L``: each link loses whole blocks of ``L`` steps (a phase per link) with probability
+    ``msg_loss``: the loss rate is ``msg_loss``, every run of losses that starts after the episode's first step and
+    ends before its last is a multiple of ``L`` steps, and runs average ``L / (1 - msg_loss)``; ``msg_burst = 1``
+    is the independent losses, draw for draw."""
+    assert FaultConfig(msg_burst=1) == FaultConfig() and FaultConfig(msg_loss=0.2, msg_burst=1).spec() == "msg_loss=0.2"
+    p, burst, steps = 0.3, 4, 80
+    series = {}
+    for b in (0, burst):
+        cfg, _, seen, (src, dst) = _held_run(FaultConfig(msg_loss=p, msg_burst=b), steps=1)
+        arrived = []
+        for t in range(steps):
+            sens = dataclasses.replace(seen.sensing, t=t)
+            arrived.append(sens.received(dst, src, cfg.comm_radius)[0])
+        series[b] = torch.stack(arrived)  # (T, links)
+    lost = ~series[burst]
+    assert abs(float(lost.double().mean()) - p) < 0.03
+    runs = []
+    for link in lost.T.tolist():
+        t = 0
+        while t < steps:
+            if not link[t]:
+                t += 1
+                continue
+            start = t
+            while t < steps and link[t]:
+                t += 1
+            if start > 0 and t < steps:  # a run cut by the episode's ends is not whole
+                runs.append(t - start)
+    assert runs and all(r % burst == 0 for r in runs)
+    assert abs(sum(runs) / len(runs) / (burst / (1 - p)) - 1) < 0.12
+    independent = ~series[0]
+    assert abs(float(independent.double().mean()) - p) < 0.03
+    assert float((independent[1:] & independent[:-1]).double().mean()) < p * p + 0.03  # no memory
 
 
 def test_message_loss_rate_and_delay_match_their_parameters():
@@ -461,14 +533,16 @@ _TOL = {F64: 1e-8, torch.float32: 2e-3}
 @settings(max_examples=6, deadline=None)
 @given(yaw=st.floats(-math.pi, math.pi), shift=st.tuples(*[st.floats(-2, 2)] * 3),
        dtype=st.sampled_from([F64, torch.float32]), act_predict=st.sampled_from([0, 1]),
-       dist_obs=st.sampled_from([0, 1]))  # fmt: skip
-def test_closed_loop_under_faults_is_equivariant(yaw, shift, dtype, act_predict, dist_obs):
+       dist_obs=st.sampled_from([0, 1]), shaped=st.booleans())  # fmt: skip
+def test_closed_loop_under_faults_is_equivariant(yaw, shift, dtype, act_predict, dist_obs, shaped):
     """The rotated scene with the same draws rotated gives the rotated trajectory (every fault on; with and without
-    the agents predicting over their actuation delay, with and without their disturbance observer)."""
+    the agents predicting over their actuation delay, with and without their disturbance observer, with white or
+    correlated estimation errors and independent or bursty losses)."""
     faults = FaultConfig(pos_noise=0.01, vel_noise=0.02, msg_loss=0.2, msg_delay=1, lidar_noise=0.01,
                          lidar_drop=0.2, thrust_gain=0.1, torque_gain=0.05, torque_bias=1e-4, act_delay=1,
                          wind=(0.3, -0.2, 0.1), gust=0.2, noncoop=0.2, msg_hold=2, msg_predict=1,
-                         act_predict=act_predict, dist_obs=dist_obs)  # fmt: skip
+                         act_predict=act_predict, dist_obs=dist_obs, noise_tau=0.1 if shaped else 0.0,
+                         msg_burst=3 if shaped else 0)  # fmt: skip
     env = SwarmEnv(CFG, dtype=dtype)
     state = env.reset(21)
     c, s = math.cos(yaw), math.sin(yaw)

@@ -100,6 +100,7 @@ class FaultProcess:
         self.noncoop = noncooperative_mask(faults, self.seeds, n)
         self.gains, self.bias = self._actuator_errors(b, n)
         self._seen: deque[Tensor] = deque(maxlen=faults.msg_delay + faults.msg_hold + 2)  # newest first
+        self._errors: dict[str, tuple[int, Tensor]] = {}  # stream -> (step, estimation error): noise_tau only
         self._commands: deque[Tensor] = deque()
         self._starts: Tensor | None = None
         # the agents' own handling of their actuation delay and of disturbances (act_predict, dist_obs)
@@ -144,9 +145,20 @@ class FaultProcess:
         return gains, bias
 
     def _noise(self, stream: str, std: float, t: int) -> Tensor:
+        """The estimation error of step ``t`` ``(B, N, d)`` (world frame): ``std`` times the draws of the step, or
+        with ``noise_tau`` the Gauss-Markov recursion over them (restarted from its stationary law when the steps
+        are not consecutive, e.g. at an episode's first step)."""
         b = self.seeds.shape[0]
-        z = draws.normal(STREAMS[stream], self.seeds.view(b, 1, 1), t, self._agents, self._axes)
-        return self._world(std * z)
+        z = self._world(std * draws.normal(STREAMS[stream], self.seeds.view(b, 1, 1), t, self._agents, self._axes))
+        tau = self.faults.noise_tau
+        if tau <= 0:
+            return z
+        last = self._errors.get(stream)
+        if last is not None and last[0] == t - 1:
+            rho = math.exp(-self.config.dt / tau)
+            z = rho * last[1] + math.sqrt(1.0 - rho * rho) * z
+        self._errors[stream] = (t, z)
+        return z
 
     # -------------------------------------------------------------------------------------------------- steps
     def observe(self, state: SwarmState) -> SwarmState:

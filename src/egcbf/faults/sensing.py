@@ -13,7 +13,8 @@ passes the graph it built through :meth:`Sensing.messages`. So every controller 
 * **Messages**: an agent-to-agent edge carries the sender's broadcast estimate; with ``msg_delay = k`` it is the
   estimate of ``k`` steps ago (sender features and position), and the edge vector is that position minus the
   receiver's current estimate; an edge whose delayed neighbour lies outside the communication radius is dropped, and
-  each edge is lost with probability ``msg_loss`` in each step. The receivers' handling (:data:`RECEIVER_FIELDS`):
+  each edge is lost with probability ``msg_loss`` in each step (with ``msg_burst``, in runs: whole blocks of steps
+  per link). The receivers' handling (:data:`RECEIVER_FIELDS`):
   with ``msg_hold = H`` a lost message is replaced by the last one received on that link within ``H`` steps (so
   one link's message can be older than another's: the graph then gives each such edge its own sender row), and
   with ``msg_predict`` every message is moved to the present at the velocity it carries, over its age.
@@ -41,13 +42,13 @@ from ..env.swarm import cast_lidar
 from ..graph import KIND_AGENT, SwarmGraph, agent_features, edge_vectors
 from ..robots import Robot
 from . import draws
-from .spec import CHANNELS, RECEIVER_FIELDS, FaultConfig
+from .spec import CHANNELS, MODIFIER_FIELDS, RECEIVER_FIELDS, FaultConfig
 
 __all__ = ["CHANNELS", "STREAMS", "Sensing", "unread_faults", "unread_fields"]
 
 #: the random streams of the faults (the second number of every draw's address; :mod:`egcbf.faults.draws`)
 STREAMS = {"pos": 1, "vel": 2, "loss": 3, "lidar": 4, "lidar_drop": 5, "gain": 6, "bias": 7, "noncoop": 8,
-           "gust": 9}  # fmt: skip
+           "gust": 9, "burst": 10}  # fmt: skip
 
 
 def unread_faults(controller, faults: FaultConfig) -> tuple[str, ...]:
@@ -150,7 +151,20 @@ class Sensing:
     def message_faults(self) -> bool:
         """Whether messages are lost or late (else every agent hears its neighbours' current estimates, and the
         receivers' handling has nothing to do)."""
-        return any(getattr(self.faults, n) > 0 for n in CHANNELS["messages"] if n not in RECEIVER_FIELDS)
+        inert = (*RECEIVER_FIELDS, *MODIFIER_FIELDS)
+        return any(getattr(self.faults, n) > 0 for n in CHANNELS["messages"] if n not in inert)
+
+    def _arrives(self, address: tuple[Tensor, Tensor, Tensor], t: int) -> Tensor:
+        """Whether the message of step ``t`` on each link ``address = (seed, receiver, sender)`` (local indices)
+        arrives: its draw at ``("loss", seed, t, receiver, sender)`` is ``>= msg_loss``; with ``msg_burst = L >= 2``
+        the draw of the link's block of ``L`` steps instead, ``("loss", seed, (t + phase) // L, receiver, sender)``,
+        ``phase`` uniform in ``0 .. L - 1`` per link (``("burst", seed, receiver, sender)``)."""
+        f = self.faults
+        step: Tensor | int = t
+        if f.msg_burst > 1:
+            phase = (draws.uniform(STREAMS["burst"], *address) * f.msg_burst).long()
+            step = torch.div(t + phase, f.msg_burst, rounding_mode="floor")
+        return draws.uniform(STREAMS["loss"], address[0], step, *address[1:]) >= f.msg_loss
 
     @property
     def delay_age(self) -> int:
@@ -222,9 +236,9 @@ class Sensing:
         if f.msg_loss > 0:
             seeds = self.seeds.to(receivers.device)[receivers // n]
             address = (seeds, receivers % n, senders % n)
-            keep = draws.uniform(STREAMS["loss"], address[0], self.t, *address[1:]) >= f.msg_loss
+            keep = self._arrives(address, self.t)
             for k in range(1, min(f.msg_hold, self.t) + 1):  # the newest message of the last msg_hold steps
-                older = ~keep & (draws.uniform(STREAMS["loss"], address[0], self.t - k, *address[1:]) >= f.msg_loss)
+                older = ~keep & self._arrives(address, self.t - k)
                 held[older] = k
                 keep |= older
         src = senders.to(like.device)

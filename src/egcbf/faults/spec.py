@@ -25,6 +25,7 @@ __all__ = [
     "CHANNELS",
     "DEFAULT_FIELD",
     "HANDLING_FIELDS",
+    "MODIFIER_FIELDS",
     "NONCOOP_MODES",
     "RECEIVER_FIELDS",
     "FaultConfig",
@@ -33,7 +34,8 @@ __all__ = [
 
 #: the perception channels (:class:`egcbf.faults.Sensing`) with the fault fields that act on each; the other faults
 #: act on the state, the commands or the world, and reach every controller
-CHANNELS = {"messages": ("msg_loss", "msg_delay", "msg_hold", "msg_predict"), "lidar": ("lidar_noise", "lidar_drop")}
+CHANNELS = {"messages": ("msg_loss", "msg_burst", "msg_delay", "msg_hold", "msg_predict"),
+            "lidar": ("lidar_noise", "lidar_drop")}  # fmt: skip
 
 #: the receivers' message handling (not faults: what the agents do about lost and late messages; inert without
 #: them)
@@ -41,6 +43,10 @@ RECEIVER_FIELDS = ("msg_hold", "msg_predict")
 
 #: every field that is the agents' handling of a fault rather than a fault (inert without the fault it handles)
 HANDLING_FIELDS = (*RECEIVER_FIELDS, "act_predict", "dist_obs")
+
+#: the fields that shape a fault in time rather than set its level (inert without it): correlated estimation errors,
+#: messages lost in runs
+MODIFIER_FIELDS = ("noise_tau", "msg_burst")
 
 
 #: how a non-cooperative agent flies: ``"hover"`` holds its start position, ``"straight"`` flies the nominal
@@ -53,8 +59,13 @@ class FaultConfig:
     """The fault levels of one evaluation (all zero: the fault-free world).
 
     Sensing (each agent's own estimate, which it also broadcasts to its neighbours):
-        pos_noise: std (m) of the Gaussian error of each position coordinate, drawn fresh every step.
-        vel_noise: std (m/s) of each velocity coordinate's error, drawn fresh every step.
+        pos_noise: std (m) of the Gaussian error of each position coordinate, drawn fresh every step (see
+            ``noise_tau``).
+        vel_noise: std (m/s) of each velocity coordinate's error, likewise.
+        noise_tau: not a level, the errors' memory (s; inert without ``pos_noise`` or ``vel_noise``): 0, the
+            errors are white (fresh every step); ``> 0``, each coordinate's error is a first-order Gauss-Markov
+            process with this time constant and the same std (``e_t = rho e_{t-1} + sqrt(1 - rho^2) std z_t``,
+            ``rho = exp(-dt / noise_tau)``, started from its stationary law), as a real estimator's errors are.
         lidar_noise: std (m) of each LiDAR ray's range error.
         lidar_drop: probability that a LiDAR ray's return is lost (each ray, each step; the scan keeps the closest
             of the returns that arrive).
@@ -62,6 +73,11 @@ class FaultConfig:
     Communication (each agent-to-agent edge of the graph carries the sender's broadcast state):
         msg_loss: probability that the message of an edge is lost in a step (the receiver does not see that
             neighbour in that step).
+        msg_burst: not a level, how losses come (control steps; inert without ``msg_loss``): 0 (or 1), each step's
+            message is lost independently; ``L >= 2``, each link's time is cut into blocks of ``L`` steps (a
+            random phase per link) and each block is lost as a whole with probability ``msg_loss``: the same loss
+            rate, in runs of ``L / (1 - msg_loss)`` steps on average (every run a multiple of ``L`` steps but at an
+            episode's start), as a radio loses messages in bursts.
         msg_delay: control steps a message arrives late (the receiver sees the sender's estimate of ``msg_delay``
             steps ago, placed relative to its own current estimate).
 
@@ -108,9 +124,11 @@ class FaultConfig:
 
     pos_noise: float = 0.0
     vel_noise: float = 0.0
+    noise_tau: float = 0.0
     lidar_noise: float = 0.0
     lidar_drop: float = 0.0
     msg_loss: float = 0.0
+    msg_burst: int = 0
     msg_delay: int = 0
     msg_hold: int = 0
     msg_predict: int = 0
@@ -130,15 +148,17 @@ class FaultConfig:
     def __post_init__(self) -> None:
         wind = tuple(float(w) for w in self.wind)
         object.__setattr__(self, "wind", () if all(w == 0.0 for w in wind) else wind)  # no wind is one config
-        for name in ("pos_noise", "vel_noise", "lidar_noise", "gain", "thrust_gain", "torque_gain", "torque_bias",
-                     "gust"):  # fmt: skip
+        if self.msg_burst == 1 and not isinstance(self.msg_burst, bool):
+            object.__setattr__(self, "msg_burst", 0)  # blocks of one step are independent losses: one config
+        for name in ("pos_noise", "vel_noise", "noise_tau", "lidar_noise", "gain", "thrust_gain", "torque_gain",
+                     "torque_bias", "gust"):  # fmt: skip
             _check(name, getattr(self, name), lambda v: v >= 0, "a finite number >= 0")
         for name in ("lidar_drop", "msg_loss", "noncoop"):
             _check(name, getattr(self, name), lambda v: 0 <= v <= 1, "a probability in [0, 1]")
         for name in ("gain", "thrust_gain", "torque_gain"):
             _check(name, getattr(self, name), lambda v: v < 1, "< 1 (a gain error of 100 % switches a motor off)")
         _check("gust_tau", self.gust_tau, lambda v: v > 0, "> 0")
-        for name in ("msg_delay", "act_delay", "msg_hold"):
+        for name in ("msg_delay", "act_delay", "msg_hold", "msg_burst"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ValueError(f"faults: {name} must be a whole number of control steps >= 0, got {v!r}")
@@ -155,16 +175,18 @@ class FaultConfig:
     @property
     def is_null(self) -> bool:
         """Whether every fault is off (the fault-free world; the agents' handling of faults, :data:`HANDLING_FIELDS`,
-        then changes nothing)."""
+        and the faults' shapes in time, :data:`MODIFIER_FIELDS`, then change nothing)."""
+        inert = (*HANDLING_FIELDS, *MODIFIER_FIELDS)
         zero = dataclasses.replace(FaultConfig(), noncoop_mode=self.noncoop_mode, gust_tau=self.gust_tau,
-                                   **{name: getattr(self, name) for name in HANDLING_FIELDS})  # fmt: skip
+                                   **{name: getattr(self, name) for name in inert})  # fmt: skip
         return self == zero
 
     @property
     def edge_faults(self) -> bool:
         """Whether a fault acts on what the agents perceive of each other and the obstacles (messages, LiDAR): it
         reaches only a controller that reads that channel (:func:`egcbf.faults.sensing.unread_faults`)."""
-        return any(getattr(self, n) > 0 for names in CHANNELS.values() for n in names if n not in RECEIVER_FIELDS)
+        inert = (*RECEIVER_FIELDS, *MODIFIER_FIELDS)
+        return any(getattr(self, n) > 0 for names in CHANNELS.values() for n in names if n not in inert)
 
     def without(self, names) -> FaultConfig:
         """This config with the fault fields ``names`` switched off."""
@@ -212,12 +234,13 @@ ALIASES = {
     "vel": "vel_noise",
     "lidar": "lidar_noise",
     "loss": "msg_loss",
+    "burst": "msg_burst",
     "delay": "msg_delay",
     "hold": "msg_hold",
     "predict": "msg_predict",
 }
 
-_INT_FIELDS = ("msg_delay", "act_delay", "msg_hold", "msg_predict", "act_predict", "dist_obs")
+_INT_FIELDS = ("msg_delay", "act_delay", "msg_hold", "msg_predict", "act_predict", "dist_obs", "msg_burst")
 
 
 def parse_faults(spec: str | Path | FaultConfig | None) -> FaultConfig:

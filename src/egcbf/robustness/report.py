@@ -24,9 +24,13 @@ THRESHOLDS = (0.99, 0.95)
 _FAULTS_TABLE = (
     ("pos_noise", "pos", "m (std per axis)", "each agent's position estimate, fresh every step (also broadcast)"),
     ("vel_noise", "vel", "m/s (std per axis)", "each agent's velocity estimate, likewise"),
+    ("noise_tau", "", "s", "not a level, the estimation errors' memory: 0 white, else a Gauss-Markov process with this "
+     "time constant and the same std"),
     ("lidar_noise", "lidar", "m (std)", "each LiDAR ray's range (cast from the true pose, placed around the estimate)"),
     ("lidar_drop", "", "probability", "each LiDAR ray's return lost, each step, before the closest are kept"),
     ("msg_loss", "loss", "probability", "each directed message (receiver <- sender) lost, each step"),
+    ("msg_burst", "burst", "control steps", "not a level, how losses come: 0 independent, else each link loses whole "
+     "blocks of this many steps (the same rate, in runs)"),
     ("msg_delay", "delay", "control steps", "every message carries the sender's estimate of that many steps ago"),
     ("msg_hold", "hold", "control steps", "not a fault, the receivers' handling: a lost message is replaced by the "
      "link's newest message of that many steps before"),
@@ -171,10 +175,11 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         "whose planner has failed or been told to wait, which holds position on its autopilot (it still "
         "broadcasts its state: the others know of it only through its messages).",
         "",
-        "Every random fault is drawn afresh each step and link (white estimation noise, independent losses). A "
-        "real estimator's errors are correlated in time and a radio loses messages in bursts, which a controller "
-        "averages out less well than the same rates spread evenly: read these results as the optimistic side of "
-        "their rates.",
+        "Every random fault of the sweep is drawn afresh each step and link (white estimation noise, independent "
+        "losses). A real estimator's errors are correlated in time and a radio loses messages in bursts, which a "
+        "controller averages out less well than the same rates spread evenly: read these results as the "
+        "optimistic side of their rates, and measure your own with `noise_tau` and `msg_burst` (e.g. "
+        "`egcbf eval --faults default,noise_tau=0.5,burst=5`).",
         "",
         "The change is the paired difference (the same scenes, episode by episode) with its bootstrap 95 % "
         f"interval over the {cfg.episodes} episodes (an interval of [+0.00, +0.00] means that no episode "

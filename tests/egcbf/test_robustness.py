@@ -313,6 +313,29 @@ def test_an_axis_fix_is_measured_where_the_pick_breaks_and_a_pending_larger_n_is
     assert "95.00 -> 100.00 % safe" in hint, hint  # the mean of breaks, not of a level cCBF-QP holds
 
 
+def test_the_correlated_field_has_its_own_pick_and_says_what_it_costs_the_plain_pick():
+    """``field_correlated`` (the default field conditions with correlated errors and bursty losses) gets its own
+    pick, and the line says how much safety the plain conditions' pick loses there (paired)."""
+    from egcbf.robustness.advice import advice
+
+    cfg = RobustnessConfig(axes=("field", "field_correlated"), controllers=("nominal", "ccbf"), num_agents=(4,),
+                           obstacles=1)  # fmt: skip
+    plain, shaped = axis("field").specs()[1], axis("field_correlated").specs()[1]
+    assert "noise_tau=0.5" in shaped and "msg_burst=5" in shaped
+    good, worse = [1.0] * 8, [1.0] * 4 + [0.96] * 4
+    cells = {}
+    for k in (0, 1):
+        for m in cfg.controllers:
+            cells[m, "none", 4, k] = _with_episodes(good, good)
+        cells["nominal", plain, 4, k] = _with_episodes([0.9] * 8, [0.9] * 8)
+        cells["ccbf", plain, 4, k] = _with_episodes(good, good)
+        cells["nominal", shaped, 4, k] = _with_episodes(good, [0.5] * 8)
+        cells["ccbf", shaped, 4, k] = _with_episodes(worse, worse)
+    line = next(x for x in advice(cfg, cells) if x.startswith("- default field conditions, errors correlated"))
+    assert "N = 4, 0 obstacles: **nominal (no CBF)**" in line, line  # the only one >= 99 % safe there
+    assert "The plain conditions' pick, cCBF-QP: 100.00 -> 98.00 % safe (-2.00 [" in line, line
+
+
 def test_a_filtered_pick_says_which_faults_reach_only_its_policy():
     """The dCBF filter's obstacle rows come from the map: a LiDAR fault reaches the filtered controller's policy
     only, which the advice says where it picks it; message faults reach the filter too, so nothing is said."""

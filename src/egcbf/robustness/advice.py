@@ -14,11 +14,13 @@ from .plan import AXES, Axis, RobustnessConfig, axis
 __all__ = ["advice", "recommended"]
 
 
-def recommended(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> tuple[str, dict, bool] | None:
-    """The controller for the default field conditions at ``n`` agents and ``k`` obstacles: the most successful of
-    those >= 99 % safe (``(method, row, True)``), else the safest (``(method, row, False)``); ``None`` while a
-    controller's cell is missing (a choice among some would be no choice)."""
-    spec = axis("field").specs()[1]
+def recommended(
+    cfg: RobustnessConfig, cells: dict, n: int, k: int, field: str = "field"
+) -> tuple[str, dict, bool] | None:
+    """The controller for the default field conditions (level 1 of axis ``field``) at ``n`` agents and ``k``
+    obstacles: the most successful of those >= 99 % safe (``(method, row, True)``), else the safest (``(method, row,
+    False)``); ``None`` while a controller's cell is missing (a choice among some would be no choice)."""
+    spec = axis(field).specs()[1]
     if any((m, spec, n, k) not in cells for m in cfg.controllers):
         return None
     order, ok = _ranked(cfg, cells, spec, n, k)
@@ -36,25 +38,44 @@ def _ranked(cfg: RobustnessConfig, cells: dict, spec: str, n: int, k: int) -> tu
     return sorted(cfg.controllers, key=lambda m: (rows[m]["safe_rate"], rows[m]["success_rate"]), reverse=True), False
 
 
-def _recommendation(cfg: RobustnessConfig, cells: dict, n: int) -> list[str]:
-    spec = axis("field").specs()[1]
+def _recommendation(cfg: RobustnessConfig, cells: dict, n: int, field: str = "field") -> list[str]:
+    """The pick at the default field conditions of axis ``field`` (level 1) for each obstacle setting; for a variant
+    of them (``field_correlated``) also what it costs the plain conditions' pick (paired)."""
+    a = axis(field)
+    spec = a.specs()[1]
     lines = []
     for k in (0, cfg.obstacles):
-        choice = recommended(cfg, cells, n, k)
+        choice = recommended(cfg, cells, n, k, field)
         if choice is None:
             missing = [LABELS.get(m, m) for m in cfg.controllers if (m, spec, n, k) not in cells]
-            lines.append(f"- default field conditions, N = {n}, {k} obstacles: pending (not computed yet: "
+            lines.append(f"- {a.title}, N = {n}, {k} obstacles: pending (not computed yet: "
                          f"{', '.join(missing)}).")  # fmt: skip
             continue
         pick, row, ok = choice
         why = "the most successful of those >= 99 % safe" if ok else "none reaches 99 % safe; the safest"
         spared = _spared(cfg, pick, spec)
         lines.append(
-            f"- default field conditions, N = {n}, {k} obstacles: **{LABELS.get(pick, pick)}** "
+            f"- {a.title}, N = {n}, {k} obstacles: **{LABELS.get(pick, pick)}** "
             f"({100 * row['safe_rate']:.2f} % safe, {100 * row['success_rate']:.2f} % success; {why}"
-            f"{'; ' + spared if spared else ''})." + _runner_up(cfg, cells, spec, n, k)
+            f"{'; ' + spared if spared else ''})."
+            + _runner_up(cfg, cells, spec, n, k)
+            + (_variant_cost(cfg, cells, field, n, k) if field != "field" else "")
         )
     return lines  # fmt: skip
+
+
+def _variant_cost(cfg: RobustnessConfig, cells: dict, field: str, n: int, k: int) -> str:
+    """`` The plain conditions' pick, X: ...``: what the variant ``field`` of the default field conditions costs the
+    controller picked for the plain ones (variant minus plain, paired over the same scenes)."""
+    plain = recommended(cfg, cells, n, k)
+    if plain is None:
+        return ""
+    m = plain[0]
+    before, after = cells[(m, axis("field").specs()[1], n, k)], cells[(m, axis(field).specs()[1], n, k)]
+    safe = paired_interval(before, after, "safe_rate")
+    change = f"{100 * (after['safe_rate'] - before['safe_rate']):+.2f}" if safe is None else safe.text(100, 2)
+    return (f" The plain conditions' pick, {LABELS.get(m, m)}: {pct(before, 'safe_rate')} -> "
+            f"{pct(after, 'safe_rate')} % safe ({change} points, paired 95 % CI).")  # fmt: skip
 
 
 def _runner_up(cfg: RobustnessConfig, cells: dict, spec: str, n: int, k: int) -> str:
@@ -253,6 +274,7 @@ def advice(cfg: RobustnessConfig, cells: dict) -> list[str]:
     return [
         *(_recommendation(cfg, cells, n_big) or ["- pending: the default field conditions at the largest N are not "
                                                  "computed yet."]),
+        *(_recommendation(cfg, cells, n_big, "field_correlated") if "field_correlated" in cfg.axes else []),
         *_fix_advice(cfg, cells),
         "",
         "Under one fault, pushed further (from the axes below; controllers that do not perceive a fault, n/a in the "

@@ -13,12 +13,15 @@ from .plan import RECEIVER_HOLD, RobustnessConfig, axis
 __all__ = ["fix_rows", "fix_sections"]
 
 
-def fix_rows(cfg: RobustnessConfig, cells: dict, before: str, after: str, what: str) -> list[str]:
+def fix_rows(
+    cfg: RobustnessConfig, cells: dict, before: str, after: str, what: str, change: str = "with the fix"
+) -> list[str]:
     """The table of a fix: every controller the fix reaches, level ``before`` against ``after`` (the same level
-    with the fix; paired over the same scenes), ``what`` naming the level in the header."""
+    with the fix, or another ``change`` of it; paired over the same scenes), ``what`` naming the level in the
+    header."""
     lines = [
-        f"| controller | N | obstacles | safe % ({what}) | safe % ({what}, with the fix) | change, points "
-        f"[95 % CI] | success % ({what}) | success % (with the fix) |",
+        f"| controller | N | obstacles | safe % ({what}) | safe % ({what}, {change}) | change, points "
+        f"[95 % CI] | success % ({what}) | success % ({change}) |",
         "|---|---|---|---|---|---|---|---|",
     ]  # fmt: skip
     for m in cfg.controllers:

@@ -67,8 +67,15 @@ class Axis:
 RECEIVER_HOLD = 5
 RECEIVERS = f"hold={RECEIVER_HOLD},predict=1"
 
+#: the default field conditions' faults shaped as a real swarm has them (the sweep's draws are white and
+#: independent): an estimator's error wanders over about half a second, a crowded radio loses messages in runs of
+#: 5 steps (125 ms) or more; the same levels
+CORRELATED = "noise_tau=0.5,burst=5"
+
 AXES: tuple[Axis, ...] = (
     Axis("field", "default field conditions", "0: none, 1: default", (0, 1), lambda x: "default"),
+    Axis("field_correlated", "default field conditions, errors correlated in time and losses in bursts",
+         "0: none, 1: default", (0, 1), lambda x: f"default,{CORRELATED}"),
     Axis("sensing", "state-estimate noise", "position std, m (velocity std: twice, m/s)",
          (0, 0.005, 0.01, 0.03, 0.1), lambda x: f"pos={x:g},vel={2 * x:g}"),
     Axis("loss", "message loss", "probability", (0, 0.1, 0.3, 0.5, 0.8), lambda x: f"loss={x:g}"),

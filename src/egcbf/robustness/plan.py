@@ -94,6 +94,9 @@ AXES: tuple[Axis, ...] = (
     # neighbour's last message up to RECEIVER_HOLD steps and moving each message on at its velocity over its age
     Axis("field_receivers", "default field conditions, receivers holding and predicting", "0: none, 1: default",
          (0, 1), lambda x: f"default,{RECEIVERS}", fixes="field", compare=1),
+    Axis("field_correlated_receivers", "default field conditions, correlated and bursty, receivers holding and "
+         "predicting", "0: none, 1: default", (0, 1), lambda x: f"default,{CORRELATED},{RECEIVERS}",
+         fixes="field_correlated", compare=1),
     Axis("loss_receivers", "message loss, receivers holding and predicting", "probability",
          (0, 0.1, 0.3, 0.5, 0.8), lambda x: f"loss={x:g},{RECEIVERS}", fixes="loss"),
     Axis("delay_receivers", "message delay, receivers predicting", "control steps", (0, 1, 2, 4, 8),

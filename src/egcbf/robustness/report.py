@@ -86,6 +86,23 @@ def _correlated_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
         "",
         *fix_rows(cfg, cells, before, after, "default", "correlated and bursty"),
         "",
+        *_correlated_fix(cfg, cells),
+    ]
+
+
+def _correlated_fix(cfg: RobustnessConfig, cells: dict) -> list[str]:
+    """The receivers' fix (hold and predict) under the correlated and bursty default field conditions, for every
+    controller that reads messages (``field_correlated_receivers``; paired over the same scenes)."""
+    fix = axis("field_correlated_receivers")
+    if fix.name not in cfg.axes:
+        return []
+    before, after = fix.compared()
+    return [
+        f"A burst outlasts a single lost message; the receivers' fix (`{fix.handling()}`, section \"Fixes: what the "
+        'receivers do about lost and late messages") against the same correlated and bursty conditions without it:',
+        "",
+        *fix_rows(cfg, cells, before, after, "correlated and bursty"),
+        "",
     ]
 
 

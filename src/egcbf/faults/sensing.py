@@ -42,7 +42,7 @@ from ..env.swarm import cast_lidar
 from ..graph import KIND_AGENT, SwarmGraph, agent_features, edge_vectors
 from ..robots import Robot
 from . import draws
-from .spec import CHANNELS, MODIFIER_FIELDS, RECEIVER_FIELDS, FaultConfig
+from .spec import CHANNELS, INERT_FIELDS, FaultConfig
 
 __all__ = ["CHANNELS", "STREAMS", "Sensing", "unread_faults", "unread_fields"]
 
@@ -151,8 +151,7 @@ class Sensing:
     def message_faults(self) -> bool:
         """Whether messages are lost or late (else every agent hears its neighbours' current estimates, and the
         receivers' handling has nothing to do)."""
-        inert = (*RECEIVER_FIELDS, *MODIFIER_FIELDS)
-        return any(getattr(self.faults, n) > 0 for n in CHANNELS["messages"] if n not in inert)
+        return any(getattr(self.faults, n) > 0 for n in CHANNELS["messages"] if n not in INERT_FIELDS)
 
     def _arrives(self, address: tuple[Tensor, Tensor, Tensor], t: int) -> Tensor:
         """Whether the message of step ``t`` on each link ``address = (seed, receiver, sender)`` (local indices)

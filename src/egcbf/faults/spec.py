@@ -25,6 +25,7 @@ __all__ = [
     "CHANNELS",
     "DEFAULT_FIELD",
     "HANDLING_FIELDS",
+    "INERT_FIELDS",
     "MODIFIER_FIELDS",
     "NONCOOP_MODES",
     "RECEIVER_FIELDS",
@@ -47,6 +48,9 @@ HANDLING_FIELDS = (*RECEIVER_FIELDS, "act_predict", "dist_obs")
 #: the fields that shape a fault in time rather than set its level (inert without it): correlated estimation errors,
 #: messages lost in runs
 MODIFIER_FIELDS = ("noise_tau", "msg_burst")
+
+#: every field that is no fault of its own: changes nothing while the faults it handles or shapes are off
+INERT_FIELDS = (*HANDLING_FIELDS, *MODIFIER_FIELDS)
 
 
 #: how a non-cooperative agent flies: ``"hover"`` holds its start position, ``"straight"`` flies the nominal
@@ -176,17 +180,15 @@ class FaultConfig:
     def is_null(self) -> bool:
         """Whether every fault is off (the fault-free world; the agents' handling of faults, :data:`HANDLING_FIELDS`,
         and the faults' shapes in time, :data:`MODIFIER_FIELDS`, then change nothing)."""
-        inert = (*HANDLING_FIELDS, *MODIFIER_FIELDS)
         zero = dataclasses.replace(FaultConfig(), noncoop_mode=self.noncoop_mode, gust_tau=self.gust_tau,
-                                   **{name: getattr(self, name) for name in inert})  # fmt: skip
+                                   **{name: getattr(self, name) for name in INERT_FIELDS})  # fmt: skip
         return self == zero
 
     @property
     def edge_faults(self) -> bool:
         """Whether a fault acts on what the agents perceive of each other and the obstacles (messages, LiDAR): it
         reaches only a controller that reads that channel (:func:`egcbf.faults.sensing.unread_faults`)."""
-        inert = (*RECEIVER_FIELDS, *MODIFIER_FIELDS)
-        return any(getattr(self, n) > 0 for names in CHANNELS.values() for n in names if n not in inert)
+        return any(getattr(self, n) > 0 for names in CHANNELS.values() for n in names if n not in INERT_FIELDS)
 
     def without(self, names) -> FaultConfig:
         """This config with the fault fields ``names`` switched off."""

@@ -100,10 +100,9 @@ def _runner_up(cfg: RobustnessConfig, cells: dict, spec: str, n: int, k: int) ->
 def _spared(cfg: RobustnessConfig, m: str, spec: str) -> str:
     """``"ran without ..."`` when controller ``m`` does not perceive some of level ``spec``'s faults (a centralized
     QP reads no messages: its result at this level is not like for like with those that do), else ``""``."""
-    run = cfg.cell_spec(m, spec)
-    if run is None or run == spec:
+    spared = cfg.unperceived(m, spec)
+    if not spared:
         return ""
-    spared = [k for k in parse_faults(spec).active() if k not in parse_faults(run).active()]
     return f"ran without {', '.join(f'`{k}`' for k in spared)}, which it does not perceive: not like for like"
 
 

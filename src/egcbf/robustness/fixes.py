@@ -71,7 +71,7 @@ def _actuation_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
     if pair is None:
         return []
     before, after = pair
-    delay = _compared_level("act_delay_predict")
+    delay = axis("act_delay_predict").compared_level()
     return [
         "## Fixes: commanding for the state the command will act on",
         "",
@@ -94,12 +94,6 @@ def _actuation_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
         *fix_rows(cfg, cells, before, after, f"`{before}`"),
         "",
     ]  # fmt: skip
-
-
-def _compared_level(name: str) -> float:
-    """The level at which the report compares fix axis ``name`` with the axis it repeats (in the axis' unit)."""
-    a = axis(name)
-    return a.levels[a.compare]
 
 
 def _disturbance_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
@@ -137,8 +131,8 @@ def _disturbance_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
         "command (`dist_obs`: a disturbance observer; `Robot.reject_disturbance` turns the "
         "quadrotor's thrust vector by `-m d`, the attitude loop's own answer to the lowered target, to first "
         "order). The `wind_observer` and `thrust_observer` axes repeat those axes with it; the tables are "
-        f"{_compared_level('wind_observer'):g} m/s^2 of wind (with gusts of half that) and "
-        f"+-{100 * _compared_level('thrust_observer'):g} % thrust gain, without and with it (the same "
+        f"{axis('wind_observer').compared_level():g} m/s^2 of wind (with gusts of half that) and "
+        f"+-{100 * axis('thrust_observer').compared_level():g} % thrust gain, without and with it (the same "
         "scenes; after minus before). It reads velocity estimates, so sensing noise enters it (about "
         f"`vel_noise / {DIST_OBS_TAU:g} s`: "
         f"{DEFAULT_FIELD.vel_noise / DIST_OBS_TAU:.2g} m/s^2 at the default field's "

@@ -55,6 +55,10 @@ class Axis:
         mine, theirs = parse_faults(self.spec(x)).active(), parse_faults(axis(self.fixes).spec(x)).active()
         return ",".join(f"{k}={v}" for k, v in mine.items() if theirs.get(k) != v)
 
+    def compared_level(self) -> float:
+        """The level (in :attr:`unit`) at which the report compares this fix with the axis it repeats."""
+        return self.levels[self.compare]
+
     def compared(self) -> tuple[str, str] | None:
         """``(spec without the fix, spec with it)`` at the level the report compares (``None``: none)."""
         if self.fixes is None or self.compare is None:
@@ -237,3 +241,9 @@ class RobustnessConfig:
             return spec
         run = perceived(method, spec)
         return None if run == "none" else run
+
+    def unperceived(self, method: str, spec: str) -> tuple[str, ...]:
+        """The fault fields of level ``spec`` that ``method`` does not perceive (absent from :meth:`cell_spec`)."""
+        run = self.cell_spec(method, spec)
+        seen = parse_faults(run).active() if run is not None else {}
+        return tuple(k for k in parse_faults(spec).active() if k not in seen)

@@ -62,8 +62,8 @@ def _field_table(cfg: RobustnessConfig, cells: dict) -> list[str]:
     for m in cfg.controllers:
         for n in cfg.num_agents:
             for k in (0, cfg.obstacles):
-                sees = cfg.cell_spec(m, spec)
-                note = "all" if sees == spec else "none" if sees is None else f"not {_unseen(spec, sees)} (`{sees}`)"
+                sees, unseen = cfg.cell_spec(m, spec), _codes(cfg.unperceived(m, spec))
+                note = "all" if sees == spec else "none" if sees is None else f"not {unseen} (`{sees}`)"
                 pair = before_after(cells.get((m, "none", n, k)), cells.get((m, spec, n, k)))
                 lines.append(f"| {LABELS.get(m, m)} | {n} | {k} | {pair} | {note} |")
     return lines
@@ -106,10 +106,8 @@ def _correlated_fix(cfg: RobustnessConfig, cells: dict) -> list[str]:
     ]
 
 
-def _unseen(spec: str, sees: str) -> str:
-    """The fault fields of ``spec`` missing from ``sees`` (what a controller does not perceive), as code."""
-    seen = parse_faults(sees).active()
-    return ", ".join(f"`{k}`" for k in parse_faults(spec).active() if k not in seen)
+def _codes(names) -> str:
+    return ", ".join(f"`{k}`" for k in names)
 
 
 def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list[str]:

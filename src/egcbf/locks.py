@@ -20,6 +20,7 @@ lock, so a refused command leaves nothing behind.
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 __all__ = ["LOCK_NAME", "DirLock", "DirLockedError", "hold_dir"]
@@ -61,8 +62,14 @@ class DirLock:
         try:
             fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
-            file.seek(0)
-            holder = file.read().strip() or "another process"
+            holder = ""
+            for _ in range(20):  # the holder writes its name just after taking the lock: give it a moment
+                file.seek(0)
+                holder = file.read().strip()
+                if holder:
+                    break
+                time.sleep(0.005)
+            holder = holder or "another process"
             file.close()
             raise DirLockedError(
                 f"{self.directory} is being written by {holder}; wait for it to finish, stop it, or choose another "

@@ -94,7 +94,7 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     assert r.exit_code == 0, r.output
     text = report.read_text()
     assert "## Default field conditions" in text and "| nominal (no CBF) | 4 | 0 |" in text
-    assert "(12 of 12 cells computed" in text
+    assert "(all 12 cells computed)" in text
     where = text.split("## Where the cells were computed")[1]  # each stored cell counted once, with its machine
     assert f"| 12 | {machine_text(machine_info())}, torch {torch.__version__}, device cpu |" in where
     assert "| not `msg_loss`, `msg_delay` (" in text  # the nominal controller reads no messages
@@ -110,6 +110,7 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     assert r.exit_code == 0, r.output
     fixes = report.read_text().split("## Fixes")[1].split("## What to choose")[0]
     assert "| dCBF-QP | 4 | 0 | - | - | - |" in fixes and "nominal" not in fixes
+    assert "rerun `egcbf robustness` to compute the rest" in report.read_text()  # a partial sweep says so
     assert (tmp_path / "fig" / "robustness_thrust.png").exists() and "(fig/robustness_thrust.png)" in text
     # the actuation fix: every controller, the two-step level without and with the prediction
     r = CliRunner().invoke(app, [*args, "--axes", "act_delay,act_delay_predict", "--controllers", "nominal"])

@@ -8,7 +8,7 @@ from ..faults import parse_faults
 from ..faults.sensing import unread_fields
 from ..filter_names import FILTER_LABELS
 from ..reproduce.paper import LABELS, method_filter
-from .cells import paired_interval, pct
+from .cells import code_list, paired_interval, pct
 from .plan import AXES, Axis, RobustnessConfig, axis
 
 __all__ = ["advice", "recommended"]
@@ -103,7 +103,7 @@ def _spared(cfg: RobustnessConfig, m: str, spec: str) -> str:
     spared = cfg.unperceived(m, spec)
     if not spared:
         return ""
-    return f"ran without {', '.join(f'`{k}`' for k in spared)}, which it does not perceive: not like for like"
+    return f"ran without {code_list(spared)}, which it does not perceive: not like for like"
 
 
 def _filter_spared(m: str, spec: str) -> str:
@@ -119,7 +119,7 @@ def _filter_spared(m: str, spec: str) -> str:
     if not unread:
         return ""
     label = FILTER_LABELS.get(kind, f"{kind} filter")
-    return f" Its {label} does not read {', '.join(f'`{k}`' for k in unread)}: those faults reach only its policy."
+    return f" Its {label} does not read {code_list(unread)}: those faults reach only its policy."
 
 
 def _fault_axes(cfg: RobustnessConfig) -> list[Axis]:

@@ -96,6 +96,11 @@ def pct(row: dict | None, key: str) -> str:
     return "-" if row is None else f"{100 * row[key]:.2f}"
 
 
+def code_list(names) -> str:
+    """The names as a comma list of inline code (`` `a`, `b` ``), in their order."""
+    return ", ".join(f"`{name}`" for name in names)
+
+
 def paired_interval(before: dict, after: dict, key: str = "safe_rate") -> Interval | None:
     """``after - before`` of the rate ``key`` with its paired 95 % interval (the same scenes, episode by episode;
     the rows' ``per_episode`` values in episode order); ``None`` without two paired episodes."""

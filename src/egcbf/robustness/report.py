@@ -11,7 +11,7 @@ from pathlib import Path
 from ..faults import parse_faults
 from ..reproduce.paper import LABELS
 from .advice import advice
-from .cells import before_after, computed_where, load_records, rate_band, stored_cell
+from .cells import before_after, code_list, computed_where, load_records, rate_band, stored_cell
 from .figures import axis_figure
 from .fixes import fix_rows, fix_sections
 from .plan import CORRELATED, RobustnessConfig, axis
@@ -62,7 +62,7 @@ def _field_table(cfg: RobustnessConfig, cells: dict) -> list[str]:
     for m in cfg.controllers:
         for n in cfg.num_agents:
             for k in (0, cfg.obstacles):
-                sees, unseen = cfg.cell_spec(m, spec), _codes(cfg.unperceived(m, spec))
+                sees, unseen = cfg.cell_spec(m, spec), code_list(cfg.unperceived(m, spec))
                 note = "all" if sees == spec else "none" if sees is None else f"not {unseen} (`{sees}`)"
                 pair = before_after(cells.get((m, "none", n, k)), cells.get((m, spec, n, k)))
                 lines.append(f"| {LABELS.get(m, m)} | {n} | {k} | {pair} | {note} |")
@@ -104,10 +104,6 @@ def _correlated_fix(cfg: RobustnessConfig, cells: dict) -> list[str]:
         *fix_rows(cfg, cells, before, after, "correlated and bursty"),
         "",
     ]
-
-
-def _codes(names) -> str:
-    return ", ".join(f"`{k}`" for k in names)
 
 
 def _breaking_levels(cfg: RobustnessConfig, cells: dict, n: int, k: int) -> list[str]:
@@ -251,7 +247,7 @@ def write_report(cfg: RobustnessConfig, path: str | Path = "docs/robustness.md",
         lines.append(f"### {a.title}")
         lines.append("")
         lines.append(f"Levels: {', '.join(f'{x:g}' for x in a.levels)} ({a.unit}); specs: "
-                     + ", ".join(f"`{s}`" for s in a.specs()[1:]) + ".")  # fmt: skip
+                     + code_list(a.specs()[1:]) + ".")  # fmt: skip
         lines.append("")
         if png is None:
             lines.append("Not computed yet.")

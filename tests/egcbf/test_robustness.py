@@ -131,6 +131,15 @@ def test_robustness_command_computes_cells_and_writes_its_report(tmp_path):
     before = (out / "nominal_obs1" / "N4.json").read_text()
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 0 and (out / "nominal_obs1" / "N4.json").read_text() == before  # reused, not rerun
+    # the README beside the report's folder quotes the pick at the default field conditions, between its markers
+    readme, moved = tmp_path / "README.md", tmp_path / "docs" / "robustness.md"
+    readme.write_text("intro\n<!-- robustness-headline:begin -->\nold\n<!-- robustness-headline:end -->\ntail\n")
+    r = CliRunner().invoke(app, [*args, "--report", str(moved), "--report-only"])
+    assert r.exit_code == 0, r.output
+    quoted = readme.read_text()
+    assert quoted.startswith("intro\n") and quoted.endswith("tail\n") and "old" not in quoted
+    assert "([docs/robustness.md](docs/robustness.md)" in quoted and "0 obstacles: **nominal (no CBF)**" in quoted
+    assert "points against the fault-free run" in quoted and "N = 4, l = 4" in quoted
     bad = CliRunner().invoke(app, ["robustness", "--axes", "nope", "--plan"])
     assert bad.exit_code == 2 and "unknown" in bad.output
 
@@ -158,15 +167,18 @@ def test_failed_cells_do_not_stop_the_others_and_are_named(tmp_path, monkeypatch
 
 def test_the_committed_report_is_generated_from_the_committed_cells(tmp_path, monkeypatch):
     """docs/robustness.md is what `egcbf robustness --report-only` writes from the cells in docs/results/robustness
-    (regenerate it whenever cells are committed)."""
+    (regenerate it whenever cells are committed), and the README quotes its current pick."""
     from pathlib import Path
 
     from egcbf.robustness import write_report
 
     root = Path(__file__).resolve().parents[2]
     monkeypatch.chdir(root)
-    path = write_report(RobustnessConfig(), tmp_path / "robustness.md", tmp_path / "figures")
+    readme = tmp_path / "README.md"
+    readme.write_text((root / "README.md").read_text())
+    path = write_report(RobustnessConfig(), tmp_path / "docs" / "robustness.md", tmp_path / "docs" / "figures")
     assert path.read_text() == (root / "docs" / "robustness.md").read_text()
+    assert readme.read_text() == (root / "README.md").read_text()
 
 
 def _with_episodes(safe: list[float], success: list[float]) -> dict:

@@ -8,10 +8,10 @@ from ..faults import parse_faults
 from ..faults.sensing import unread_fields
 from ..filter_names import FILTER_LABELS
 from ..reproduce.paper import LABELS, method_filter
-from .cells import code_list, paired_interval, pct
+from .cells import code_list, paired_change, paired_interval, pct
 from .plan import AXES, Axis, RobustnessConfig, axis
 
-__all__ = ["advice", "recommended"]
+__all__ = ["advice", "headline", "recommended"]
 
 
 def recommended(
@@ -282,3 +282,27 @@ def advice(cfg: RobustnessConfig, cells: dict) -> list[str]:
         "",
         *(_axis_choices(cfg, cells) or ["- pending: no axis is computed for every controller yet."]),
     ]  # fmt: skip
+
+
+def headline(cfg: RobustnessConfig, cells: dict) -> str | None:
+    """One sentence for the pages that quote the report (the README): the pick at the default field conditions at
+    the largest N in each obstacle setting, its safe rate with the change against the fault-free run (paired 95 %
+    CI), and its safe rate with the agents' fixes on (``field_fixes``, where planned and computed); ``None`` while
+    a pick is pending."""
+    n, field = max(cfg.num_agents), axis("field").specs()[1]
+    fixed = axis("field_fixes") if "field_fixes" in cfg.axes else None
+    parts = []
+    for k in (0, cfg.obstacles):
+        choice = recommended(cfg, cells, n, k)
+        if choice is None:
+            return None
+        pick, row, _ = choice
+        clean = cells.get((pick, "none", n, k))
+        change = "" if clean is None else f", {paired_change(clean, row)} points against the fault-free run"
+        with_fix = cells.get((pick, fixed.specs()[1], n, k)) if fixed else None
+        fix = "" if with_fix is None else f"; {pct(with_fix, 'safe_rate')} % with the agents' fixes on"
+        parts.append(f"{k} obstacles: **{LABELS.get(pick, pick)}**, {pct(row, 'safe_rate')} % safe{change}{fix}")
+    fixes = f" (the fixes: `{fixed.handling()}`)" if fixed else ""
+    return (f"under the default field conditions (`--faults default`: `{field}`), N = {n}, l = {cfg.area:g}, the "
+            f"controller to choose: " + "; ".join(parts) + f"{fixes}; {cfg.episodes} episodes per cell, evaluation "
+            f"seed {cfg.seed}, paired 95 % CIs.")  # fmt: skip

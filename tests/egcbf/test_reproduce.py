@@ -982,3 +982,15 @@ def test_an_unreadable_sweep_history_is_moved_aside_not_overwritten(tmp_path):
     aside = list(tmp_path.glob("sweep.json.unreadable-*"))
     assert len(aside) == 1 and aside[0].read_text().startswith('[{"command": "egcbf reproduce"')
     assert read_invocations(tmp_path) == [{"command": "new", "status": "running"}]
+
+
+def test_pending_seeds_of_two_methods_are_one_note():
+    """A difference of two methods, each with pending training seeds, says so once, naming both."""
+    from egcbf.reproduce.plan import SweepConfig
+    from egcbf.reproduce.stats import Stat, so_far
+
+    cfg = SweepConfig(train_seeds=(0, 1, 2))
+    one, three = Stat([0.9], [0]), Stat([0.9, 0.8, 0.7], [0, 1, 2])
+    assert so_far(one, cfg, "egcbf+", (one, "gcbf+")) == " (1 of 3 seeds of EGCBF+, 1 of 3 of GCBF+ so far)"
+    assert so_far(three, cfg, "egcbf+", (one, "gcbf+")) == " (1 of 3 seeds of GCBF+ so far)"
+    assert so_far(three, cfg, "egcbf+", (three, "gcbf+")) == ""

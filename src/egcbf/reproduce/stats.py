@@ -105,10 +105,15 @@ def partial(done: int, planned: int) -> str:
     return f" [{done} of {planned} seeds]" if 0 < done < planned else ""
 
 
-def so_far(st: Stat, cfg: SweepConfig, method: str) -> str:
-    """`` (1 of 3 seeds of EGCBF+ so far)`` while some of ``method``'s training seeds are pending, else ``""``."""
-    planned = len(cfg.seeds_for(method))
-    return f" ({st.n} of {planned} seeds of {LABELS[method]} so far)" if st.n < planned else ""
+def so_far(st: Stat, cfg: SweepConfig, method: str, *more: tuple[Stat, str]) -> str:
+    """`` (1 of 3 seeds of EGCBF+ so far)`` while some of ``method``'s training seeds are pending, else ``""``; with
+    ``more`` (stat, method) pairs, one note for all of them (`` (1 of 3 seeds of EGCBF+, 1 of 3 of GCBF+ so far)``)."""
+    parts = []
+    for s, m in ((st, method), *more):
+        planned = len(cfg.seeds_for(m))
+        if s.n < planned:
+            parts.append(f"{s.n} of {planned} {'seeds of ' if not parts else 'of '}{LABELS[m]}")
+    return f" ({', '.join(parts)} so far)" if parts else ""
 
 
 def setting_text(cfg: SweepConfig, num_agents: int, scale: bool) -> str:

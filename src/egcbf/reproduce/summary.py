@@ -143,8 +143,7 @@ def _differences(cfg: SweepConfig, records: dict[Cell, dict]) -> list[str]:
             diffs.append(
                 f"{setting_text(cfg, n, s)}: {100 * (a.mean - b.mean):+.1f}"
                 + _spread_note(cfg, records, equi, plain, a, b, n, s)
-                + so_far(a, cfg, equi)
-                + so_far(b, cfg, plain)
+                + so_far(a, cfg, equi, (b, plain))
             )
         if diffs:
             each = "; one training seed each" if seeds == {(1, 1)} else ""

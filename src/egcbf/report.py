@@ -24,6 +24,8 @@ __all__ = [
     "metrics_markdown",
     "number",
     "pct",
+    "quote_section",
+    "relative_link",
     "replace_block",
     "replace_section",
     "section_block",
@@ -175,3 +177,21 @@ def replace_section(path: str | Path, name: str, body: str, heading: str | None 
     text = path.read_text() if path.exists() else ""
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, replace_block(text, name, body, heading))
+
+
+def quote_section(page: str | Path, name: str, body: str) -> bool:
+    """Rewrite the block ``name`` of ``page`` with ``body`` only where the page exists and has the markers (a page
+    quoting a report opts in with them; one without is left alone), atomically; whether it was rewritten."""
+    page = Path(page)
+    if not page.exists():
+        return False
+    text = page.read_text()
+    if f"<!-- {name}:begin -->" not in text or f"<!-- {name}:end -->" not in text:
+        return False
+    write_text_atomic(page, replace_block(text, name, body))
+    return True
+
+
+def relative_link(path: str | Path, page: str | Path) -> str:
+    """``path`` relative to the folder of the markdown ``page`` that links to it, with ``/`` separators."""
+    return Path(os.path.relpath(path, Path(page).parent)).as_posix()

@@ -994,3 +994,19 @@ def test_pending_seeds_of_two_methods_are_one_note():
     assert so_far(one, cfg, "egcbf+", (one, "gcbf+")) == " (1 of 3 seeds of EGCBF+, 1 of 3 of GCBF+ so far)"
     assert so_far(three, cfg, "egcbf+", (one, "gcbf+")) == " (1 of 3 seeds of GCBF+ so far)"
     assert so_far(three, cfg, "egcbf+", (three, "gcbf+")) == ""
+
+
+def test_a_quoted_block_is_rewritten_only_where_the_page_has_its_markers(tmp_path):
+    """`quote_section` rewrites the block between a page's markers, leaves a page without them (or no page) alone;
+    `relative_link` is the path from the page's folder."""
+    from egcbf.report import quote_section, relative_link
+
+    page, bare = tmp_path / "README.md", tmp_path / "plain.md"
+    page.write_text("intro\n<!-- x:begin -->\nold\n<!-- x:end -->\ntail\n")
+    bare.write_text("no markers\n")
+    assert quote_section(page, "x", "new")
+    assert page.read_text() == "intro\n<!-- x:begin -->\nnew\n<!-- x:end -->\ntail\n"
+    assert not quote_section(bare, "x", "new") and bare.read_text() == "no markers\n"
+    assert not quote_section(tmp_path / "absent.md", "x", "new") and not (tmp_path / "absent.md").exists()
+    assert relative_link(tmp_path / "docs" / "r.md", page) == "docs/r.md"
+    assert relative_link(tmp_path / "docs" / "fig.png", tmp_path / "docs" / "r.md") == "fig.png"

@@ -5,9 +5,9 @@ GCBF+. A figure that cannot be drawn leaves a sentence saying why, never a lost 
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
+from ..report import relative_link
 from .paper import LABELS, LEARNED, METHODS, base_method, method_filter
 from .plan import Cell, SweepConfig
 from .stats import episodes_text, label, scale_text, seed_rows, stat
@@ -97,17 +97,14 @@ def scalability_figure(cfg: SweepConfig, records: dict[Cell, dict], out_png: str
     return out
 
 
-def _rel(path: Path, report: Path) -> str:
-    return Path(os.path.relpath(path, report.parent)).as_posix()
-
-
 def scalability_section(cfg: SweepConfig, records: dict[Cell, dict], report: Path, figures: Path) -> str:
     """The rates-against-N figure and its caption."""
     if not records:
         return "No cells computed yet."
     png = scalability_figure(cfg, records, figures / f"{report.stem}_scalability.png")
     text = (
-        f"![safety and success rate against N]({_rel(png, report)})\n\nSafety and success rates against the number "
+        f"![safety and success rate against N]({relative_link(png, report)})\n\n"
+        "Safety and success rates against the number "
         f"of agents: at l = {cfg.area:g} m up to N = {max(cfg.num_agents)} (the density grows with N, Table I)"
     )
     if cfg.scale_cells():
@@ -156,7 +153,7 @@ def convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
     except Exception as err:  # a figure must not lose a finished sweep's report
         return f"Training curves failed: `{type(err).__name__}: {err}`."
     return (
-        f"![training curves]({_rel(png, report)})\n\nSafe, reach and success rates of the validation rollouts "
+        f"![training curves]({relative_link(png, report)})\n\nSafe, reach and success rates of the validation rollouts "
         "during training, against update (top) and wall time (bottom); several training seeds are drawn as their "
         "mean with a min-max band, a single run with a circle at the shipped checkpoint."
         + (
@@ -187,6 +184,7 @@ def contour_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
         return f"CBF contour figure failed: `{type(err).__name__}: {err}`."
     gaps = ", ".join(f"{k}: {v:.2e}" for k, v in (diffs or {}).items())
     return (
-        f"![CBF contour]({_rel(png, report)})\n\nThe learned CBF of one agent (training seed 0) over the horizontal "
+        f"![CBF contour]({relative_link(png, report)})\n\n"
+        "The learned CBF of one agent (training seed 0) over the horizontal "
         f"plane in a scene G and in its transformed copy phi_g(G) (`egcbf.contour`); max |h(g . G) - h(G)|: {gaps}."
     )

@@ -199,7 +199,8 @@ def edge_qp_commands(
 
     Returns the accelerations ``(B, N, 3)`` float64 and counts: ``num_slack`` (agents whose QP needed slack above
     ``slack_tol``), ``num_failed`` (agents given the braking fallback ``a = -brake_gain v``), ``max_slack``,
-    ``rows_dropped``."""
+    ``rows_dropped``, and per agent ``slack_mask`` / ``failed_mask`` ``(B, N)`` numpy bool (the agents counted in
+    ``num_slack`` / ``num_failed``)."""
     penalty = penalty or SlackPenalty()
     b, n = x.shape[:2]
     m = b * n
@@ -223,5 +224,7 @@ def edge_qp_commands(
         "num_failed": int((~good).sum()),
         "max_slack": float(slack.max(initial=0.0)),
         "rows_dropped": rows.dropped,
+        "slack_mask": (slack > slack_tol).reshape(b, n),
+        "failed_mask": (~good).reshape(b, n),
     }
     return torch.as_tensor(a, dtype=torch.float64, device=a_ref.device).view(b, n, 3), info

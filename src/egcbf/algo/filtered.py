@@ -178,7 +178,8 @@ class FilteredController:
 
     ``info``: ``u_ref`` (the nominal controller's control, for the reward as for the policy alone), ``qp_ms``,
     ``num_slack`` (agents whose QP needed slack), ``num_failed`` (agents given the braking fallback),
-    ``num_active`` (agents whose command the filter changed by more than ``active_tol``), ``num_agents``.
+    ``num_active`` (agents whose command the filter changed by more than ``active_tol``), ``num_agents``, and per
+    agent ``slack_mask`` / ``failed_mask`` ``(B, N)`` numpy bool (its QP needed slack / it braked).
     """
 
     name = "filtered"
@@ -236,6 +237,8 @@ class FilteredController:
             u, qinfo = self._dcbf.filter(state, env_config, a_pi.cpu().numpy(), self.config.lookahead, accel)
             a = torch.as_tensor(qinfo["a_safe"], dtype=torch.float64, device=a_pi.device)
             info = {k: qinfo[k] for k in ("num_slack", "num_failed", "max_slack")}
+            info["slack_mask"] = qinfo["slack"] > self._dcbf.config.slack_tol
+            info["failed_mask"] = qinfo["failed"]
         else:
             a, info = self._filter(graph, s, itf, a_pi)
             u = itf.apply(s.x, (a / itf.accel_unit).to(s.x.dtype))

@@ -1,6 +1,7 @@
 """Command line: ``egcbf eval`` (evaluate a controller over swarm sizes), ``egcbf train`` (learn a graph CBF and
 policy), ``egcbf demo`` (the main job), ``egcbf reproduce`` (Table I and the scalability study), ``egcbf study``
-(the equivariance study), ``egcbf robustness`` (every controller under real-world faults), ``egcbf average`` (weight
+(the equivariance study), ``egcbf robustness`` (every controller under real-world faults), ``egcbf certify``
+(the learned CBFs measured as certificates), ``egcbf average`` (weight
 averaging of two checkpoints) and ``egcbf export`` (one agent's controller as a TorchScript or ONNX file), one
 module per command; :mod:`~egcbf.cli.root` holds the command group and :func:`main`, :mod:`~egcbf.cli.checks` the
 input checks and :mod:`~egcbf.cli.choices` the fixed choices.
@@ -15,7 +16,7 @@ exit code 2 (:mod:`egcbf.cli.checks`); ``EGCBF_DEBUG=1`` shows the traceback ins
 checked before any work starts, and ``eval`` writes each swarm size's results as soon as it is finished.
 """
 
-from . import average, demo, eval, export, reproduce, robustness, study, train  # noqa: F401  (each registers its command on app, in this order)
+from . import average, certify, demo, eval, export, reproduce, robustness, study, train  # noqa: F401  (each registers its command on app, in this order)
 from .root import app, main
 
 __all__ = ["app", "main"]

@@ -10,7 +10,7 @@ the reference. Controllers: ``policy`` (the checkpoint's policy alone), ``policy
 The default plan (:class:`CertifyConfig`): the quadrotor's EGCBF+ and GCBF+ of every shipped training seed, at
 N = 64 (l = 2) and N = 512 (l = 4) (the training density, 8 agents per m^3), with 0 and 8 obstacles; each robot of
 the GCBF+ benchmark suite (its GCBF+ and EGCBF+), policy alone and nominal, at N = 64 and 256 in that suite's arenas
-(docs/gcbfplus.md), with 0 and 8 obstacles. Evaluation seed 0 (Table I's); never a training or validation seed.
+(docs/gcbfplus.md), and the planar unicycle at N = 64 and 128 in its own (l = 16), with 0 and 8 obstacles. Evaluation seed 0 (Table I's); never a training or validation seed.
 """
 
 from __future__ import annotations
@@ -30,12 +30,14 @@ __all__ = ["CONTROLLERS", "Cell", "CertifyConfig", "Learned", "run_cell"]
 CONTROLLERS = ("policy", "policy:cbf", "policy:prior", "policy:dcbf", "nominal", "nominal:dcbf")
 #: the hand-crafted reference barrier's name
 REFERENCE = "dcbf"
-#: (N, arena side l) of the GCBF+ suite's robots: that suite's arenas (docs/gcbfplus.md)
+#: (N, arena side l) of the other robots: the GCBF+ suite's in that suite's arenas (docs/gcbfplus.md), the planar
+#: unicycle's in its own (docs/robots.md)
 SUITE_SIZES = {
     "double_integrator": ((64, 11.3), (256, 16.0)),
     "single_integrator": ((64, 11.3), (256, 22.6)),
     "dubins_car": ((64, 11.3), (256, 22.6)),
     "linear_drone": ((64, 4.0), (256, 6.35)),
+    "unicycle": ((64, 16.0), (128, 16.0)),
 }
 
 

@@ -173,7 +173,7 @@ def certificate_figure(cells: list[tuple[Cell, dict]], names: list[str], window:
     if not drawn:
         return None
     for ax in (ax_share, ax_h):
-        ax.set_xlabel(f"steps to the next collision (0: in collision; {window + 1}: none within {window})")
+        ax.set_xlabel(f"steps to the next collision ({window + 1}: none in {window})")
         ax.axvline(0.5, color="0.7", lw=0.8)
         ax.grid(alpha=0.3)
     ax_share.set_ylabel("states with h ≥ 0 (%)")
@@ -271,8 +271,8 @@ def write_report(cfg: CertifyConfig, path: str | Path = "docs/certificate.md",
         lines += ["## h against the time to collision", "",
                   f"![h against time to collision]({relative_link(figure, path)})", "",
                   "Pooled over every cell each barrier was scored in. Left: the share of states with h ≥ 0 by how "
-                  "many steps away the agent's next collision is (a certificate would be 0 % left of the grey line "
-                  "and below it, and high at the right); right: the median h with its 10-90 % band.", ""]  # fmt: skip
+                  "many steps away the agent's next collision is (0: in collision now; a certificate would be 0 % "
+                  "from 0 to W and high at the right); right: the median h with its 10-90 % band.", ""]  # fmt: skip
     lines += ["## Every cell", ""]
     rows = []
     for c, s in cells:

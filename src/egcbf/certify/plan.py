@@ -10,7 +10,8 @@ the reference. Controllers: ``policy`` (the checkpoint's policy alone), ``policy
 The default plan (:class:`CertifyConfig`): the quadrotor's EGCBF+ and GCBF+ of every shipped training seed, at
 N = 64 (l = 2) and N = 512 (l = 4) (the training density, 8 agents per m^3), with 0 and 8 obstacles; each robot of
 the GCBF+ benchmark suite (its GCBF+ and EGCBF+), policy alone and nominal, at N = 64 and 256 in that suite's arenas
-(docs/gcbfplus.md), and the planar unicycle at N = 64 and 128 in its own (l = 16), with 0 and 8 obstacles. Evaluation seed 0 (Table I's); never a training or validation seed.
+(docs/gcbfplus.md), and the planar unicycle at N = 64 and 128 in its own (l = 16), with 0 and 8 obstacles.
+Evaluation seed 0 (Table I's); never a training or validation seed.
 """
 
 from __future__ import annotations

@@ -36,9 +36,11 @@ the ablation that shows what the policy adds. docs/safety_filters.md has the mea
 
 Under faults (:mod:`egcbf.faults`) the policy and the ``cbf`` / ``prior`` rows read the agent's graph, which carries
 the messages and the LiDAR scan as the agent receives them; the ``dcbf`` rows read the same messages
-(:class:`~.dcbf_qp.DecentralizedCBFQP`) but the obstacle map, not the scan. ``reads_sensing`` says what the whole
-controller perceives (:func:`filter_reads_sensing`): every channel with a policy (its graph) and for ``cbf`` and
-``prior``; the messages for the ``dcbf`` filter of the nominal command (``READS_SENSING``).
+(:class:`~.dcbf_qp.DecentralizedCBFQP`) and the obstacle map, or with ``FilterConfig.obstacle_sensing = "lidar"``
+the agent's own scan, every hit a point obstacle (the sensing of the learned controllers). ``reads_sensing`` says
+what the whole controller perceives (:func:`filter_reads_sensing`): every channel with a policy (its graph) and for
+``cbf`` and ``prior``; the messages (and with LiDAR-only sensing the LiDAR) for the ``dcbf`` filter of the nominal
+command (``READS_SENSING``).
 
 Every piece is an invariant or an equivariant of the agent's frame (edge vectors rotate with the scene, the box
 turns with the agent, the policy is equivariant for EGCBF+), so the filtered controller of EGCBF+ stays SE2xR
@@ -68,6 +70,7 @@ from ..filter_names import FILTERS
 from ..graph import SwarmGraph, build_graph
 from ..nn.models import CBFNet, ModelConfig, PolicyNet
 from ..robots.quadrotor.barriers import BarrierConfig
+from ..robots.quadrotor.cbf_qp import OBSTACLE_SENSING
 from ..robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 from .edge_qp import BRAKE_GAIN, SLACK_TOL, EdgeRows, edge_qp_commands, edge_rows
 from .interface import AccelInterface, make_interface
@@ -123,6 +126,9 @@ class FilterConfig:
         lookahead: (s) the ``dcbf`` filter's barriers read every agent ``lookahead`` seconds ahead under the
             acceleration it realized over the last step (:meth:`~.dcbf_qp.DecentralizedCBFQP.filter`;
             ``DCBF_FILTER_LOOKAHEAD``; 0: the current state; ``cbf`` and ``prior`` ignore it).
+        obstacle_sensing: where the ``dcbf`` filter's obstacle rows come from: ``"map"`` (the obstacle map's spheres,
+            default) or ``"lidar"`` (each agent's own LiDAR hits as point obstacles: the sensing of ``cbf`` and
+            ``prior``, whose rows always read the LiDAR).
     """
 
     kind: str = "cbf"
@@ -134,16 +140,21 @@ class FilterConfig:
     active_tol: float = 1e-3
     barrier: BarrierConfig = DCBF_FILTER_BARRIER
     lookahead: float = DCBF_FILTER_LOOKAHEAD
+    obstacle_sensing: str = "map"
 
     @classmethod
-    def for_kind(cls, kind: str, alpha: float | None = None, margin: float | None = None) -> FilterConfig:
+    def for_kind(
+        cls, kind: str, alpha: float | None = None, margin: float | None = None, obstacle_sensing: str = "map"
+    ) -> FilterConfig:
         """The filter ``kind`` with its defaults, ``alpha`` and ``margin`` overriding its class-K gain and its
-        clearance: ``alpha``, ``margin`` for ``cbf`` and ``prior``; the barrier's ``gamma``, ``margin`` for ``dcbf``."""
+        clearance: ``alpha``, ``margin`` for ``cbf`` and ``prior``; the barrier's ``gamma``, ``margin`` for ``dcbf``;
+        ``obstacle_sensing`` the ``dcbf`` filter's obstacle rows (``"map"`` or ``"lidar"``)."""
         if kind != "dcbf":
-            return cls(kind=kind, **{k: v for k, v in (("alpha", alpha), ("margin", margin)) if v is not None})
+            return cls(kind=kind, obstacle_sensing=obstacle_sensing,
+                       **{k: v for k, v in (("alpha", alpha), ("margin", margin)) if v is not None})  # fmt: skip
         changes = {k: v for k, v in (("gamma", alpha), ("margin", margin)) if v is not None}
         try:
-            return cls(kind=kind, barrier=replace(DCBF_FILTER_BARRIER, **changes))
+            return cls(kind=kind, barrier=replace(DCBF_FILTER_BARRIER, **changes), obstacle_sensing=obstacle_sensing)
         except ValueError as err:  # name the filter's fields, not the barrier's
             raise ValueError(str(err).replace("BarrierConfig.gamma", "FilterConfig.alpha").replace(
                 "BarrierConfig.margin", "FilterConfig.margin")) from None  # fmt: skip
@@ -153,7 +164,8 @@ class FilterConfig:
         and clearance as the filter reads them (the barrier's for ``dcbf``)."""
         if self.kind == "dcbf":
             b = self.barrier
-            return {"barrier": b.kind, "gamma": b.gamma, "margin": b.margin, "brake_accel": b.brake_accel}
+            lidar = {"obstacle_sensing": "lidar"} if self.obstacle_sensing == "lidar" else {}
+            return {"barrier": b.kind, "gamma": b.gamma, "margin": b.margin, "brake_accel": b.brake_accel, **lidar}
         return {"alpha": self.alpha, "margin": self.margin}
 
     def __post_init__(self) -> None:
@@ -163,6 +175,9 @@ class FilterConfig:
             raise ValueError(f"FilterConfig.alpha must be positive and finite, got {self.alpha!r}")
         if not math.isfinite(self.margin):
             raise ValueError(f"FilterConfig.margin must be finite, got {self.margin!r}")
+        if self.obstacle_sensing not in OBSTACLE_SENSING:
+            raise ValueError(f"FilterConfig.obstacle_sensing must be one of {OBSTACLE_SENSING}, got "
+                             f"{self.obstacle_sensing!r}")  # fmt: skip
         if not (math.isfinite(self.lookahead) and self.lookahead >= 0):
             raise ValueError(f"FilterConfig.lookahead must be >= 0, got {self.lookahead!r}")
         for name in ("brake_gain", "slack_tol", "active_tol"):
@@ -211,8 +226,11 @@ class FilteredController:
         self.reads_sensing = filter_reads_sensing(config.kind, policy is not None)
         if config.kind == "dcbf":
             self._dcbf = DecentralizedCBFQP(
-                barrier=config.barrier, penalty=config.penalty, brake_gain=config.brake_gain
-            )
+                barrier=config.barrier, penalty=config.penalty, brake_gain=config.brake_gain,
+                obstacle_sensing=config.obstacle_sensing,
+            )  # fmt: skip
+            if policy is None:  # the nominal command behind it perceives what its rows read
+                self.reads_sensing = self._dcbf.reads_sensing
 
     @torch.no_grad()
     def __call__(self, state: SwarmState, env_config: EnvConfig) -> tuple[Tensor, dict]:

@@ -153,6 +153,7 @@ def run_eval(
     max_travel: float | None = None,
     faults: str = "none",
     resume: bool = False,
+    obstacle_sensing: str = "map",
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -181,9 +182,13 @@ def run_eval(
     filter_config = None
     require(filter != "none" or (filter_alpha is None and filter_margin is None),
             "--filter-alpha and --filter-margin set a run-time filter's barrier: pass --filter KIND too")  # fmt: skip
+    from ..robots.quadrotor.cbf_qp import OBSTACLE_SENSING
+
+    require(obstacle_sensing in OBSTACLE_SENSING,
+            f"--obstacle-sensing must be one of {list(OBSTACLE_SENSING)}, got {obstacle_sensing!r}")  # fmt: skip
     if filter != "none":
         try:
-            filter_config = FilterConfig.for_kind(filter, filter_alpha, filter_margin)
+            filter_config = FilterConfig.for_kind(filter, filter_alpha, filter_margin, obstacle_sensing)
         except ValueError as err:
             usage_error(str(err).replace("FilterConfig.alpha", "--filter-alpha").replace("FilterConfig.margin",
                         "--filter-margin"), err)  # fmt: skip
@@ -218,6 +223,13 @@ def run_eval(
             controller = join_method("nominal", filter)
     robot = robot or "quadrotor"
     require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
+    qp_options = {}
+    if obstacle_sensing == "lidar":  # what reads the obstacle map must read the LiDAR instead
+        require(robot == "quadrotor", f"--obstacle-sensing lidar is the quadrotor's dcbf QP and filter; not a {robot}")
+        require(controller != "ccbf", "--obstacle-sensing lidar: the centralized CBF-QP reads the obstacle map; use "
+                "--controller dcbf (each agent's own LiDAR hits as point obstacles)")  # fmt: skip
+        if controller == "dcbf" and filter_config is None:
+            qp_options["obstacle_sensing"] = "lidar"
     affine_qp = controller in ("ccbf", "dcbf") and robot in POINT_MASSES and filter_config is None
     if (controller in ("ccbf", "dcbf") or filter_config is not None) and robot != "quadrotor" and not affine_qp:
         usage_error(
@@ -231,7 +243,7 @@ def run_eval(
             probe = filtered_nominal
         else:
             try:
-                probe = make_controller(controller, robot=robot)
+                probe = make_controller(controller, robot=robot, **qp_options)
             except ValueError as err:
                 usage_error(f"--controller {controller}: {err}", err)
         why = fault_support_error(probe, fault_config, name=controller)
@@ -266,6 +278,7 @@ def run_eval(
         **({"scene": scene, "scene_yaw": float(scene_yaw)} if scene != "uniform" or scene_yaw != 0 else {}),
         **({"max_travel": float(max_travel)} if max_travel is not None else {}),
         **({"faults": fault_config.to_dict()} if not fault_config.is_null else {}),
+        **({"obstacle_sensing": obstacle_sensing} if obstacle_sensing != "map" else {}),
         "episodes": episodes,
         "seed": seed,
         "max_steps": max_steps,
@@ -309,7 +322,7 @@ def run_eval(
             if checkpoint is not None
             else (lambda cfg: filtered_nominal)
             if filter_config is not None
-            else (lambda cfg: make_controller(controller, robot=robot)),
+            else (lambda cfg: make_controller(controller, robot=robot, **qp_options)),
             sizes,
             area_size=area,
             num_obstacles=obstacles,
@@ -423,6 +436,13 @@ def eval_cmd(
         float | None,
         typer.Option(help="clearance (m): the barrier offset of cbf and prior (default 0); dcbf's margin (0.02)"),
     ] = None,
+    obstacle_sensing: Annotated[
+        str,
+        typer.Option(
+            help="map | lidar: where the dcbf QP and the dcbf filter read obstacles (lidar: each agent's own "
+            "hits as point obstacles, as the learned policies and the cbf / prior filters do)"
+        ),
+    ] = "map",
     scene: Annotated[
         SceneName,
         typer.Option(
@@ -477,4 +497,5 @@ def eval_cmd(
             max_travel=max_travel,
             faults=faults,
             resume=resume,
+            obstacle_sensing=obstacle_sensing,
         )

@@ -44,6 +44,7 @@ __all__ = [
     "agent_pairs",
     "bound_rows",
     "build_constraints",
+    "hit_constraints",
     "obstacle_constraints",
     "pair_constraints",
     "perceived_constraints",
@@ -264,6 +265,21 @@ def obstacle_constraints(
         return Constraints.empty()
     D = radii[k] + cfg.agent_radius + cfg.margin
     n, rhs, h, d = _rows_from_geometry(dp_all[i, k], vel[i], D, cfg, cfg.brake_accel)
+    return Constraints(i.astype(np.int64), np.full(i.shape[0], -1, dtype=np.int64), n, rhs, h, d, D, 0)
+
+
+def hit_constraints(pos: np.ndarray, vel: np.ndarray, points: np.ndarray, valid: np.ndarray,
+                    cfg: BarrierConfig) -> Constraints:  # fmt: skip
+    """Agent-point rows ``n . a_i >= b`` for every agent's own LiDAR hits, each a point obstacle (radius 0: the
+    agent keeps ``D = r + margin`` from it), as the obstacle rows of :func:`obstacle_constraints` read spheres.
+
+    ``pos, vel`` ``(M, 3)``; ``points`` ``(M, H, 3)`` world-frame hits, ``valid`` ``(M, H)`` bool (the
+    :class:`egcbf.env.lidar.LidarScan` of the agents, flattened). Each agent's rows read only its own scan."""
+    i, k = np.nonzero(valid)
+    if i.size == 0:
+        return Constraints.empty()
+    D = np.full(i.shape[0], cfg.agent_radius + cfg.margin)
+    n, rhs, h, d = _rows_from_geometry(pos[i] - points[i, k], vel[i], D, cfg, cfg.brake_accel)
     return Constraints(i.astype(np.int64), np.full(i.shape[0], -1, dtype=np.int64), n, rhs, h, d, D, 0)
 
 

@@ -57,6 +57,7 @@ from .nominal import (
 )
 
 __all__ = [
+    "OBSTACLE_SENSING",
     "CBFQPConfig",
     "CentralizedCBFQP",
     "brake_acceleration",
@@ -102,6 +103,10 @@ def brake_acceleration(v: np.ndarray, bounds: AccelBounds, gain: float) -> np.nd
 
 
 # ------------------------------------------------------------------------------------------------ config
+#: where the hand-crafted QPs read obstacles from (``CBFQPConfig.obstacle_sensing``)
+OBSTACLE_SENSING = ("map", "lidar")
+
+
 @dataclass(frozen=True)
 class CBFQPConfig:
     """Configuration shared by the centralized and decentralized CBF-QP baselines.
@@ -125,6 +130,9 @@ class CBFQPConfig:
             after ``max_rounds`` rounds the full QP is solved.
         warm_start: start the constraint generation from the rows (nearly) active at the previous call's solution
             (per environment; cleared at ``state.t == 0``). Only the work changes, not the optimum.
+        obstacle_sensing: where the obstacle rows come from: ``"map"`` (the spheres of the obstacle map within range,
+            default) or ``"lidar"`` (each agent's own LiDAR hits as point obstacles,
+            :func:`~egcbf.robots.quadrotor.barriers.hit_constraints`; the decentralized QP only).
         polish: refine each centralized solution by an active-set KKT solve (:func:`egcbf.control.qp.polish_sparse`),
             kept only when it is provably the exact optimum; makes the result independent of the solver's tolerance.
     """
@@ -146,8 +154,12 @@ class CBFQPConfig:
     max_rounds: int = 6
     polish: bool = True
     warm_start: bool = True
+    obstacle_sensing: str = "map"
 
     def __post_init__(self) -> None:
+        if self.obstacle_sensing not in OBSTACLE_SENSING:
+            raise ValueError(f"CBFQPConfig.obstacle_sensing must be one of {OBSTACLE_SENSING}, got "
+                             f"{self.obstacle_sensing!r}")  # fmt: skip
         # an unknown or missing solver fails here, with how to install it, not at the first QP of an episode
         for name in (self.solver, self.fallback_solver):
             if name is not None:
@@ -256,6 +268,12 @@ class CentralizedCBFQP(_CBFQPBase):
     """
 
     name = "ccbf"
+
+    def __init__(self, config: CBFQPConfig | None = None, **overrides):
+        super().__init__(config, **overrides)
+        if self.config.obstacle_sensing != "map":
+            raise ValueError("the centralized CBF-QP reads the obstacle map (obstacle_sensing = 'map'); LiDAR-only "
+                             "sensing is the decentralized QP's (dcbf)")  # fmt: skip
 
     def _solve_full(self, prep: _Prepared, e: int, cons: Constraints):
         """Solve the QP with rows ``cons``: ``(a, s, status, retried, qp, x)``; ``a`` is None if every solver failed

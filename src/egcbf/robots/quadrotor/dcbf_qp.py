@@ -20,8 +20,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ...control.constraints import Constraints
 from ...control.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm, verified
-from .barriers import agent_pairs, build_constraints, perceived_constraints, split_for_agents
+from .barriers import (
+    agent_pairs,
+    build_constraints,
+    hit_constraints,
+    perceived_constraints,
+    prune_redundant,
+    split_for_agents,
+)
 from .cbf_qp import _CBFQPBase, _Prepared
 
 __all__ = ["DecentralizedCBFQP"]
@@ -49,6 +57,11 @@ class DecentralizedCBFQP(_CBFQPBase):
     #: the channels of ``state.sensing`` it perceives (:data:`egcbf.faults.sensing.CHANNELS`): the messages; its
     #: obstacle rows read the obstacle map, not a LiDAR scan
     reads_sensing = frozenset({"messages"})
+
+    def __init__(self, config=None, **overrides):
+        super().__init__(config, **overrides)
+        if self.config.obstacle_sensing == "lidar":  # its obstacle rows then read each agent's own scan
+            self.reads_sensing = frozenset({"messages", "lidar"})
 
     def __call__(self, state, env_config) -> tuple[Tensor, dict]:
         return self.filter(state, env_config)
@@ -84,7 +97,8 @@ class DecentralizedCBFQP(_CBFQPBase):
         m = b * n
         batch = np.repeat(np.arange(b), n)
         has_obs = any(c is not None and len(c) for c in prep.centers)
-        obstacles = (prep.centers, prep.radii) if has_obs else (None, None)
+        from_map = has_obs and cfg.obstacle_sensing == "map"
+        obstacles = (prep.centers, prep.radii) if from_map else (None, None)
         links = None
         if sensing is None:
             cons = build_constraints(
@@ -98,6 +112,10 @@ class DecentralizedCBFQP(_CBFQPBase):
                 batch=batch, bounds=prep.bounds,
             )  # fmt: skip
             owner, normal, rhs = split_for_agents(cons, num_agents=m)
+        if has_obs and not from_map:
+            hits = self._hit_rows(state, env_config, prep, m)
+            owner, normal, rhs = (np.concatenate(t) for t in zip((owner, normal, rhs), hits))
+            cons = Constraints.cat([cons, hits[3]])
         bC = prep.bC.reshape(m, *prep.bC.shape[2:])
         blo, bhi = prep.blo.reshape(m, -1), prep.bhi.reshape(m, -1)
         qps = assemble_decentralized(prep.a_nom.reshape(m, 3), owner, normal, rhs, bC, blo, bhi, cfg.penalty)
@@ -135,6 +153,24 @@ class DecentralizedCBFQP(_CBFQPBase):
         if links is not None:
             info["links"] = links
         return u, info
+
+    @staticmethod
+    def _hit_rows(state, env_config, prep, m: int):
+        """Every agent's rows from its own LiDAR hits (``obstacle_sensing = "lidar"``): the scan as the agents get
+        it (under LiDAR faults, :meth:`egcbf.faults.Sensing.scan`), each hit a point obstacle, read at the
+        (look-ahead) state of the barriers; ``(owner, normal, rhs, constraints)``, redundant rows pruned."""
+        from ...env.swarm import cast_lidar  # at call time: the environment imports the robots
+
+        sensing = state.sensing
+        if sensing is not None:
+            scan = sensing.scan(env_config)
+        else:
+            scan = cast_lidar(env_config, state.positions, state.robot.heading(state.x), state.obstacles)
+        points = scan.points.detach().to(torch.float64).cpu().numpy().reshape(m, -1, 3)
+        valid = scan.valid.detach().cpu().numpy().reshape(m, -1)
+        cons = prune_redundant(hit_constraints(prep.p.reshape(m, 3), prep.v.reshape(m, 3), points, valid,
+                                               prep.barrier), prep.bounds)  # fmt: skip
+        return cons.i, cons.normal, cons.rhs, cons
 
     @staticmethod
     def _perceived(

@@ -25,13 +25,13 @@ PAPER_TARGET = ROOT / "results" / "paper-target"
 DOC = ROOT / "safety_filters.md"
 #: the reproduction's controllers shown beside the filtered ones: (label, cell folder, runs averaged). The filtered
 #: evaluations of docs/results/filters ran the policies trained with the paper's QP target (checkpoints/paper-target),
-#: whose cells are in docs/results/paper-target; the shipped, per-edge fine-tuned policies' cells are in
+#: whose cells are in docs/results/paper-target; the shipped policies' (weight averages) cells are in
 #: docs/results/reproduction (shown where computed).
 BESIDE = (
     ("EGCBF+ policy alone, paper's target (3 seeds)", PAPER_TARGET, ("egcbf+", "egcbf+-s1", "egcbf+-s2")),
     ("GCBF+ policy alone, paper's target (3 seeds)", PAPER_TARGET, ("gcbf+", "gcbf+-s1", "gcbf+-s2")),
-    ("EGCBF+ policy alone, shipped: per-edge fine-tuned (3 seeds)", REPRODUCTION, ("egcbf+", "egcbf+-s1", "egcbf+-s2")),
-    ("GCBF+ policy alone, shipped: per-edge fine-tuned (3 seeds)", REPRODUCTION, ("gcbf+", "gcbf+-s1", "gcbf+-s2")),
+    ("EGCBF+ policy alone, shipped (3 seeds)", REPRODUCTION, ("egcbf+", "egcbf+-s1", "egcbf+-s2")),
+    ("GCBF+ policy alone, shipped (3 seeds)", REPRODUCTION, ("gcbf+", "gcbf+-s1", "gcbf+-s2")),
     ("dCBF-QP", REPRODUCTION, ("dcbf",)),
     ("cCBF-QP", REPRODUCTION, ("ccbf",)),
     ("nominal", REPRODUCTION, ("nominal",)),

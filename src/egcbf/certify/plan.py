@@ -204,7 +204,7 @@ def run_cell(task: CellTask) -> dict:
     """Roll the cell's episodes out and count every barrier's rates: the cell file's content but its key."""
     from ..env import EnvConfig
     from ..evaluate import episode_seed
-    from .rates import count_rates
+    from .rates import count_rates, pool_counts
     from .rollout import roll_out
 
     saved = torch.get_num_threads()
@@ -225,8 +225,6 @@ def run_cell(task: CellTask) -> dict:
             for name, b in barriers.items():
                 counts[name].append(count_rates(traj, name, b.kappa, window=cfg.window, stride=cfg.stride))
             ever.append(traj.collision.any(0).double().mean().item())
-        from .rates import pool_counts
-
         return {
             "barriers": {k: pool_counts(v) for k, v in counts.items()},
             "safe_rate": 1.0 - sum(ever) / len(ever),

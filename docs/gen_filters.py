@@ -161,6 +161,12 @@ def _ci(row: dict, key: str) -> str:
     return f"{pct(iv.estimate)} [{pct(iv.low)}, {pct(iv.high)}]"
 
 
+def _hits(run: dict) -> str:
+    """What the dcbf rows of a LiDAR-only run made of each hit: ``run.json``'s ``lidar_hits`` (runs written before
+    the option existed read every hit as a point obstacle)."""
+    return f"LiDAR hits as {run.get('lidar_hits', 'point')}s"
+
+
 def _lidar(rows: list[dict]) -> str:
     """The LiDAR-only rows (``docs/results/filters/lidar``) beside the reproduction's cells of the same case, safe and
     success with 95 % intervals over episodes."""
@@ -173,8 +179,8 @@ def _lidar(rows: list[dict]) -> str:
         for r in (
             r for r in rows if (r["run"]["obstacles"], r["num_agents"], r["run"]["seed"]) == (obstacles, n, seed)
         ):
-            lines.append(f"| {case} | **{r['row']}** | LiDAR hits | {r['num_episodes']} | {_ci(r, 'safe_rate')} | "
-                         f"{_ci(r, 'success_rate')} |")  # fmt: skip
+            lines.append(f"| {case} | **{r['row']}** | {_hits(r['run'])} | {r['num_episodes']} | "
+                         f"{_ci(r, 'safe_rate')} | {_ci(r, 'success_rate')} |")  # fmt: skip
         if seed != 0:
             continue
         for label, run in LIDAR_BESIDE:
@@ -183,8 +189,9 @@ def _lidar(rows: list[dict]) -> str:
                 seen = "LiDAR hits" if run.endswith("_cbf") else "obstacle map"
                 lines.append(f"| {case} | {label} | {seen} | {cell['num_episodes']} | {_ci(cell, 'safe_rate')} | "
                              f"{_ci(cell, 'success_rate')} |")  # fmt: skip
-    lines += ["", "Bold: `egcbf eval --obstacle-sensing lidar` on the shipped checkpoint (`<method>-s<training seed>-"
-              "dcbf-lidar`) or the nominal controller; the other rows are the reproduction's cells "
+    lines += ["", "Bold: `egcbf eval --obstacle-sensing lidar --lidar-hits plane|point` on the shipped checkpoint "
+              "(`<method>-s<training seed>-dcbf-lidar[-plane]`; the rows without a suffix read hits as points) or "
+              "the nominal controller; the other rows are the reproduction's cells "
               "(docs/results/reproduction, the same seed, episodes and arena). Intervals: 95 % bootstrap over "
               "episodes (`egcbf.bootstrap.mean_ci`, one training seed)."]  # fmt: skip
     return "\n".join(lines)

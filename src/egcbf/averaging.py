@@ -25,6 +25,7 @@ import torch
 from .checkpoint import (
     CheckpointError,
     check_identity,
+    check_sizes,
     find_checkpoint,
     read_config,
     read_tensors,
@@ -32,7 +33,7 @@ from .checkpoint import (
     write_checkpoint_dir,
 )
 
-__all__ = ["average_checkpoints", "average_weights"]
+__all__ = ["average_checkpoints", "average_weights", "related"]
 
 
 def average_weights(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor], lam: float) -> dict[str, torch.Tensor]:
@@ -52,12 +53,25 @@ def average_weights(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor], lam:
     return out
 
 
-def average_checkpoints(a: str | Path, b: str | Path, lam: float, out: str | Path) -> Path:
+def related(ca: Path, cfg_a, cb: Path, cfg_b) -> bool:
+    """Whether checkpoints ``ca`` and ``cb`` (configs ``cfg_a``, ``cfg_b``) share a training lineage, as their
+    configs record it (``init_sha256``: the weights a run was warm-started from): one was fine-tuned from the other,
+    or both from the same weights. Averaging is meant for such pairs (module doc); two independent runs sit in
+    different basins, and their average is neither."""
+    sha_a, sha_b = sha256(ca / "model.safetensors"), sha256(cb / "model.safetensors")
+    start_a, start_b = cfg_a.init_sha256, cfg_b.init_sha256
+    return start_a == sha_b or start_b == sha_a or (start_a is not None and start_a == start_b)
+
+
+def average_checkpoints(
+    a: str | Path, b: str | Path, lam: float, out: str | Path, allow_unrelated: bool = False
+) -> Path:
     """Write the checkpoint directory ``out`` (``config.json``, ``model.safetensors``, ``state.json``, atomically)
     holding ``lam`` x the weights of checkpoint ``a`` + ``(1 - lam)`` x those of ``b``. ``a`` and ``b`` are checkpoint
-    or run directories (a run's ``best/``) of the same method, group, interface and network shapes; anything else
-    raises :class:`~egcbf.checkpoint.CheckpointError` before anything is written, as does an ``out`` that exists
-    but is not a checkpoint directory, or that is or holds one of the inputs. Returns ``out``."""
+    or run directories (a run's ``best/``) of the same method, group, interface and network shapes, and of one
+    training lineage (:func:`related`; ``allow_unrelated`` lifts that); anything else raises
+    :class:`~egcbf.checkpoint.CheckpointError` before anything is written, as does an ``out`` that exists but is not
+    a checkpoint directory, or that is or holds one of the inputs. Returns ``out``."""
     from .algo.learner import GraphCBFLearner
 
     if not 0.0 <= lam <= 1.0:
@@ -69,8 +83,16 @@ def average_checkpoints(a: str | Path, b: str | Path, lam: float, out: str | Pat
     if (cfg_a.algo, cfg_a.group, cfg_a.model) != (cfg_b.algo, cfg_b.group, cfg_b.model):
         raise CheckpointError(f"{ca} and {cb} are not the same model ({cfg_a.algo}/{cfg_a.group} and "
                               f"{cfg_b.algo}/{cfg_b.group}, or different network settings)")  # fmt: skip
+    if not allow_unrelated and not related(ca, cfg_a, cb, cfg_b):
+        raise CheckpointError(
+            f"{ca} and {cb} are not one training lineage (neither was fine-tuned from the other, nor both from the "
+            "same weights: their configs' init_sha256); averaging two independent runs gives neither policy "
+            "(pass --allow-unrelated to average them anyway)"
+        )
+    wa = read_tensors(ca / "model.safetensors")
+    check_sizes(ca, cfg_a, wa)
     try:
-        mixed = average_weights(read_tensors(ca / "model.safetensors"), read_tensors(cb / "model.safetensors"), lam)
+        mixed = average_weights(wa, read_tensors(cb / "model.safetensors"), lam)
     except ValueError as err:
         raise CheckpointError(f"{ca} and {cb}: {err}") from None
     out = Path(out)

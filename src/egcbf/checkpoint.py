@@ -56,6 +56,7 @@ __all__ = [
     "CheckpointError",
     "best_metrics",
     "check_identity",
+    "check_sizes",
     "checkpoint_step",
     "find_checkpoint",
     "identity",
@@ -81,7 +82,9 @@ __all__ = [
 #: carries the identity in its own header (:func:`weights_identity`).
 FORMAT_VERSION = 2
 #: What a checkpoint's weights are: the keys of :func:`identity` compared on load.
-IDENTITY_KEYS = ("algo", "group", "interface")
+IDENTITY_KEYS = ("algo", "group", "interface", "robot")
+#: The keys every format-1+ checkpoint records (``robot`` came later: compared where recorded)
+_REQUIRED_KEYS = ("algo", "group", "interface")
 #: The subdirectory of a run directory holding its ``step_XXXXXX`` checkpoints.
 CHECKPOINTS_DIR = "checkpoints"
 _STEP_DIR = re.compile(r"step_(\d+)")
@@ -99,12 +102,14 @@ def identity(config: TrainConfig) -> dict:
         "algo": config.algo,
         "group": config.group,
         "interface": config.model.interface,
+        "robot": config.robot,
     }
 
 
 def weights_identity(path: Path) -> dict:
     """The identity stored in the header of a ``model.safetensors`` (format 2: ``format_version``, ``algo``,
-    ``group``, ``interface``, as strings); ``{}`` for weights written before format 2."""
+    ``group``, ``interface``, and in weights written since it was added ``robot``, as strings); ``{}`` for weights
+    written before format 2."""
     try:
         with safe_open(str(path), "pt") as f:
             meta = f.metadata() or {}
@@ -197,6 +202,8 @@ def check_identity(ckpt: Path, config: TrainConfig, state: dict | None = None) -
         )
     want = identity(config)
     for key in IDENTITY_KEYS if stored else ():
+        if key not in stored and key not in _REQUIRED_KEYS:  # older format-2 weights: state.json's then
+            continue
         if stored.get(key) != str(want[key]):
             raise CheckpointError(
                 f"{weights} holds weights of {key} {stored.get(key)!r} but {ckpt / 'config.json'} says "
@@ -210,7 +217,7 @@ def check_identity(ckpt: Path, config: TrainConfig, state: dict | None = None) -
             f"{state_path} has checkpoint format {version!r}; this egcbf reads up to {FORMAT_VERSION} (upgrade egcbf)"
         )
     keys = IDENTITY_KEYS if version >= 1 else ("algo",)
-    if version >= 1 and not stored and not all(k in state for k in keys):
+    if version >= 1 and not stored and not all(k in state for k in _REQUIRED_KEYS):
         raise CheckpointError(f"{state_path} does not say what the weights are (missing {keys}); it was edited")
     for key in keys:
         if key in state and state[key] != want[key]:
@@ -402,6 +409,25 @@ def _load_state_dict(ckpt: Path, load, name: str = "model.safetensors") -> None:
         ) from None
 
 
+#: the fields of ``ModelConfig`` that size the networks' tensors (each appears as a dimension of some weight)
+_SIZE_FIELDS = ("hidden", "head_hidden", "heads")
+
+
+def check_sizes(ckpt: Path, cfg: TrainConfig, weights: dict[str, torch.Tensor]) -> None:
+    """Raise :class:`CheckpointError` if a size field of ``cfg.model`` (``hidden``, ...) exceeds every dimension of
+    every tensor in ``weights``: such a config cannot describe these weights, and building its networks first
+    could try to allocate far more memory than the machine has (an edited ``config.json``)."""
+    largest = max((max(t.shape, default=1) for t in weights.values()), default=0)
+    for name in _SIZE_FIELDS:
+        value = getattr(cfg.model, name)
+        if value > largest:
+            raise CheckpointError(
+                f"{ckpt / 'config.json'} says model.{name} = {value!r}, but no tensor of {ckpt / 'model.safetensors'} "
+                f"has a dimension above {largest}: the config does not describe these weights (edited, or from "
+                "another run; copy the whole checkpoint directory)"
+            )
+
+
 def _optim_to(learner: GraphCBFLearner, device) -> None:
     for opt in (learner.opt_cbf, learner.opt_policy):
         for st in opt.state.values():
@@ -419,6 +445,7 @@ def load_learner(path: str | Path, device=None, dtype=None, config: TrainConfig 
     cfg = config or read_config(ckpt)
     weights = read_tensors(ckpt / "model.safetensors")
     check_identity(ckpt, cfg)
+    check_sizes(ckpt, cfg, weights)
     learner = GraphCBFLearner(cfg, device=device, dtype=dtype)
     _load_state_dict(
         ckpt, lambda: learner.load_weights({k: v.to(learner.device, learner.dtype) for k, v in weights.items()})
@@ -492,6 +519,7 @@ def load_network(
     cfg = read_config(ckpt)
     weights = read_tensors(ckpt / "model.safetensors")
     check_identity(ckpt, cfg)
+    check_sizes(ckpt, cfg, weights)
     net = nets[part](cfg.model)
     prefix = part + "."
     _load_state_dict(

@@ -149,6 +149,10 @@ class AgentController:
 
     def __post_init__(self) -> None:
         env = self.env_config
+        m = self.max_neighbours
+        if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+            raise ValueError(f"AgentController.max_neighbours must be an integer >= 1 (a controller that hears no "
+                             f"neighbour would not avoid them), got {m!r}")  # fmt: skip
         self.module = AgentPolicy(self.policy, self.model_config, env.make_robot(), env.comm_radius,
                                   self.max_neighbours, self.max_hits, env.resolved_lidar_range)  # fmt: skip
         if self.max_hits > env.lidar_max_hits:
@@ -193,6 +197,10 @@ class AgentController:
         for name, t in (("state", state), ("goal", goal)):
             if not bool(torch.isfinite(t).all()):
                 raise ValueError(f"{name} holds NaN or inf")
+        try:  # the simulator's own check: a quadrotor's attitude must be a rotation (not zeros, not 2 I)
+            self.robot.check_state(state[None].to(torch.float64))
+        except ValueError as err:
+            raise ValueError(f"state: {err}") from None
 
     def pad(self, state: Tensor, goal: Tensor, neighbours: Tensor, hits: Tensor) -> tuple[Tensor, ...]:
         """The fixed-shape inputs of :attr:`module`: ``(state, goal, neighbours (max_neighbours, S),

@@ -232,8 +232,14 @@ class CanonicalizedLayer(nn.Module):
 
     def _finish(self, out: Any, frames: Tensor) -> Any:
         rest = ()
-        if isinstance(out, tuple):
+        if isinstance(out, tuple) and out:
             out, *rest = out
+        if not isinstance(out, Tensor):
+            what = f"a tuple whose first item is {type(out).__name__}" if rest else type(out).__name__
+            raise TypeError(
+                f"{type(self.layer).__name__} returned {what}; a wrapped layer must return a tensor of out_type's "
+                f"{self.spec.out_type.dim} channels, or a tuple whose first item is one"
+            )
         if out.shape[-1] != self.spec.out_type.dim:
             raise ValueError(
                 f"{type(self.layer).__name__} returned {out.shape[-1]} channels, but out_type has dim "

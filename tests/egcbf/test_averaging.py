@@ -21,8 +21,11 @@ from groupcanon import FieldType
 from groupcanon.features import Vector
 from groupcanon.testing import strategies as gst
 
-ROOT = Path(__file__).resolve().parents[2] / "checkpoints" / "paper-target"
-A, B, OTHER = ROOT / "egcbf+", ROOT / "seeds" / "egcbf+-s1", ROOT / "gcbf+"
+CKPTS = Path(__file__).resolve().parents[2] / "checkpoints"
+ROOT = CKPTS / "paper-target"
+# A fine-tuned from B (A's config records B's weights as its start); UNRELATED: another run of the same model
+A, B, OTHER = CKPTS / "fine-tuned" / "egcbf+", ROOT / "egcbf+", ROOT / "gcbf+"
+UNRELATED = ROOT / "seeds" / "egcbf+-s1"
 
 pytestmark = pytest.mark.skipif(not A.exists() or not B.exists(), reason="no paper-target checkpoints")
 
@@ -88,6 +91,10 @@ def test_bad_inputs_are_refused(tmp_path):
         average_checkpoints(A, B, 0.5, keep)
     assert (keep / "important").is_dir()  # nothing was deleted
     assert not (tmp_path / "x").exists()
+    with pytest.raises(CheckpointError, match=r"not one training lineage.*--allow-unrelated"):
+        average_checkpoints(A, UNRELATED, 0.5, tmp_path / "x")
+    assert not (tmp_path / "x").exists()
+    assert (average_checkpoints(A, UNRELATED, 0.5, tmp_path / "x", allow_unrelated=True) / "model.safetensors").exists()
     with pytest.raises(ValueError, match="different tensors"):
         average_weights({"w": torch.zeros(2)}, {"v": torch.zeros(2)}, 0.5)
     with pytest.raises(ValueError, match="cannot average"):
@@ -108,3 +115,7 @@ def test_the_command(tmp_path):
         app, ["average", "--a", str(A), "--b", str(OTHER), "--lam", "0.5", "--out", str(tmp_path / "z")]
     )
     assert res.exit_code == 2 and "not the same model" in res.output
+    unrelated = ["average", "--a", str(A), "--b", str(UNRELATED), "--lam", "0.5", "--out", str(tmp_path / "u")]
+    res = CliRunner().invoke(app, unrelated, env={"COLUMNS": "400"})
+    assert res.exit_code == 2 and "not one training lineage" in res.output and not (tmp_path / "u").exists()
+    assert CliRunner().invoke(app, [*unrelated, "--allow-unrelated"]).exit_code == 0

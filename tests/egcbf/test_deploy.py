@@ -123,7 +123,7 @@ def test_bad_observations_are_named():
         agent(x, goal, x.new_zeros(18), x.new_zeros(0, 3))
     with pytest.raises(ValueError, match="goal holds NaN or inf"):
         agent(x, torch.full((3,), float("nan"), dtype=F64), x.new_zeros(0, 18), x.new_zeros(0, 3))
-    with pytest.raises(ValueError, match="max_neighbours must be an integer >= 0"):
+    with pytest.raises(ValueError, match="max_neighbours must be an integer >= 1"):
         AgentController(agent.policy, agent.model_config, agent.env_config, max_neighbours=-1)
 
 

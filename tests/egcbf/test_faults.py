@@ -582,5 +582,5 @@ def test_velocity_faults_are_refused_for_a_robot_without_velocity_state():
     FaultProcess(FaultConfig(pos_noise=0.01, msg_loss=0.1), cfg, robot, [1])  # these act on it
     for faults, name in ((FaultConfig(vel_noise=0.1), "vel_noise"), (FaultConfig(msg_delay=1, msg_predict=1),
                          "msg_predict"), (FaultConfig(wind=(1.0, 0.0)), "wind")):  # fmt: skip
-        with pytest.raises(ValueError, match=f"{name} act on a velocity the single_integrator does not have"):
+        with pytest.raises(ValueError, match=f"{name} acts on a velocity the single_integrator does not have"):
             FaultProcess(faults, cfg, robot, [1])

@@ -1,7 +1,9 @@
 """LiDAR-only obstacle sensing of the hand-crafted dCBF-QP and the dcbf filter (``obstacle_sensing = "lidar"``):
-each agent's hits as point obstacles. The rows equal sphere rows of radius zero, the QP stays SE2xR equivariant
-(hypothesis, float64 within 1e-7 m/s^2) and decentralized (an obstacle beyond an agent's LiDAR range changes nothing
-of its command), the controllers declare that they perceive the LiDAR, and the CLI takes and refuses what it should."""
+each agent's hits as planes (default) or point obstacles. Point rows equal sphere rows of radius zero; beside a
+sphere seen along its normal, the plane row demands at least what the sphere's row does and the point row at most;
+the QP stays SE2xR equivariant (hypothesis, float64 within 1e-7 m/s^2) and decentralized (an obstacle beyond an
+agent's LiDAR range changes nothing of its command), the controllers declare that they perceive the LiDAR, and the
+CLI takes and refuses what it should."""
 
 import json
 
@@ -28,13 +30,13 @@ from groupcanon.features import Vector
 from groupcanon.testing import strategies as gst
 
 
-def test_hit_rows_are_sphere_rows_of_radius_zero():
+def test_point_hit_rows_are_sphere_rows_of_radius_zero():
     rng = np.random.default_rng(0)
     pos, vel = rng.normal(size=(4, 3)), rng.normal(size=(4, 3))
     points = pos[:, None] + rng.normal(scale=0.3, size=(4, 2, 3))
     valid = np.array([[True, False], [True, True], [False, False], [False, True]])
     cfg = DCBF_FILTER_BARRIER
-    rows = hit_constraints(pos, vel, points, valid, cfg)
+    rows = hit_constraints(pos, vel, points, valid, cfg, "point")
     assert rows.i.tolist() == [0, 1, 1, 3] and (rows.j == -1).all()
     for r, (i, k) in enumerate(zip(*np.nonzero(valid))):
         one = obstacle_constraints(pos[i : i + 1], vel[i : i + 1], points[i, k][None], np.zeros(1),
@@ -42,6 +44,35 @@ def test_hit_rows_are_sphere_rows_of_radius_zero():
         assert np.allclose(rows.normal[r], one.normal[0]) and np.isclose(rows.rhs[r], one.rhs[0])
         assert np.isclose(rows.D[r], cfg.agent_radius + cfg.margin)
     assert len(hit_constraints(pos, vel, points, np.zeros_like(valid), cfg)) == 0
+    with pytest.raises(ValueError, match="model must be one of"):
+        hit_constraints(pos, vel, points, valid, cfg, "sphere")
+
+
+@given(
+    radius=st.floats(0.05, 2.0),
+    gap=st.floats(0.08, 0.6),
+    direction=st.lists(st.floats(-1, 1), min_size=3, max_size=3),
+    velocity=st.lists(st.floats(-1.5, 1.5), min_size=3, max_size=3),
+)
+@settings(max_examples=60, deadline=None)
+def test_plane_row_demands_at_least_the_sphere_row_and_point_row_at_most(radius, gap, direction, velocity):
+    u = np.asarray(direction)
+    if np.linalg.norm(u) < 1e-3:
+        u = np.array([1.0, 0.0, 0.0])
+    u = u / np.linalg.norm(u)
+    center = np.zeros(3)
+    pos = (radius + gap) * u[None]  # the agent, ``gap`` from the surface
+    vel = np.asarray(velocity)[None]
+    hit = (radius * u)[None, None]  # the return along the normal: the surface point nearest the agent
+    valid = np.ones((1, 1), dtype=bool)
+    cfg = DCBF_FILTER_BARRIER.__class__(**{**DCBF_FILTER_BARRIER.__dict__, "cull_radius": 10.0})
+    sphere = obstacle_constraints(pos, vel, center[None], np.array([radius]), cfg)
+    plane, point = (hit_constraints(pos, vel, hit, valid, cfg, m) for m in ("plane", "point"))
+    for rows in (plane, point):  # the same normal, distance and barrier value: only d'' differs
+        assert np.allclose(rows.normal, sphere.normal) and np.allclose(rows.h, sphere.h)
+    assert plane.rhs[0] >= sphere.rhs[0] - 1e-12 >= point.rhs[0] - 2e-12
+    turning = (vel**2).sum() - (vel @ u) ** 2
+    assert np.isclose(plane.rhs[0] - point.rhs[0], turning / gap)
 
 
 def _scene(seed, obstacles=3):
@@ -97,6 +128,22 @@ def test_what_the_controllers_perceive_and_refuse():
         FilterConfig.for_kind("dcbf", obstacle_sensing="sonar")
     with pytest.raises(ValueError, match="centralized"):
         CentralizedCBFQP(obstacle_sensing="lidar")
+    assert FilterConfig.for_kind("dcbf", obstacle_sensing="lidar", lidar_hits="point").settings()["lidar_hits"] == (
+        "point"
+    )
+    with pytest.raises(ValueError, match="lidar_hits = 'point' needs obstacle_sensing = 'lidar'"):
+        FilterConfig.for_kind("dcbf", lidar_hits="point")
+    with pytest.raises(ValueError, match="lidar_hits must be one of"):
+        DecentralizedCBFQP(obstacle_sensing="lidar", lidar_hits="sphere")
+
+
+def test_the_hit_model_reaches_the_qp():
+    """``lidar_hits`` reaches the QP: in a scene of agents moving past obstacles, point and plane rows (which differ
+    by the turning term only) give different commands."""
+    state, cfg = _scene(3)
+    u_plane, _ = DecentralizedCBFQP(obstacle_sensing="lidar")(state, cfg)
+    u_point, _ = DecentralizedCBFQP(obstacle_sensing="lidar", lidar_hits="point")(state, cfg)
+    assert not torch.equal(u_plane, u_point)
 
 
 def test_eval_flag(tmp_path):
@@ -106,7 +153,10 @@ def test_eval_flag(tmp_path):
     res = runner.invoke(app, [*common, "--controller", "dcbf", "--obstacle-sensing", "lidar", "--out",
                               str(tmp_path / "d")])  # fmt: skip
     assert res.exit_code == 0, res.output
-    assert json.loads((tmp_path / "d" / "run.json").read_text())["obstacle_sensing"] == "lidar"
+    run = json.loads((tmp_path / "d" / "run.json").read_text())
+    assert run["obstacle_sensing"] == "lidar" and run["lidar_hits"] == "plane"
+    res = runner.invoke(app, [*common, "--controller", "dcbf", "--lidar-hits", "point", "--out", str(tmp_path / "p")])
+    assert res.exit_code == 2 and "--obstacle-sensing lidar" in res.output
     res = runner.invoke(app, [*common, "--controller", "ccbf", "--obstacle-sensing", "lidar", "--out",
                               str(tmp_path / "c")])  # fmt: skip
     assert res.exit_code == 2 and "centralized" in res.output

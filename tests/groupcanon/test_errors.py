@@ -291,3 +291,34 @@ def test_without_check_finite_nan_propagates_only_to_receivers(make):
     out = eq(x, ei, frames=f_bad)
     bad_rows = ~torch.isfinite(out).all(-1)
     assert bad_rows.nonzero().flatten().tolist() == [4]
+
+
+class _Returns(nn.Module):
+    """A node layer that returns ``make(out)`` of a linear map's output."""
+
+    def __init__(self, make):
+        super().__init__()
+        self.lin, self.make = nn.Linear(T_IN.dim, T_OUT.dim).double(), make
+
+    def forward(self, x):
+        return self.make(self.lin(x))
+
+
+@pytest.mark.parametrize(
+    "make, says",
+    [
+        (lambda y: [y], "returned list"),
+        (lambda y: {"out": y}, "returned dict"),
+        (lambda y: None, "returned NoneType"),
+        (lambda y: (None, y), "returned a tuple whose first item is NoneType"),
+        (lambda y: (), "returned tuple"),
+    ],
+    ids=["list", "dict", "None", "tuple-of-None", "empty-tuple"],
+)
+def test_a_layer_output_that_is_not_a_tensor_is_named(setup, make, says):
+    _, x, _, frames = setup
+    node = Canonicalize(G, T_IN, T_OUT)(_Returns(make))
+    with pytest.raises(TypeError, match=rf"_Returns {says}; a wrapped layer must return a tensor"):
+        node(x, frames=frames)
+    ok = Canonicalize(G, T_IN, T_OUT)(_Returns(lambda y: (y, "extra")))(x, frames=frames)
+    assert isinstance(ok, tuple) and ok[1] == "extra"

@@ -267,3 +267,30 @@ def test_a_path_of_the_wrong_type_names_the_function_and_argument(load, bad):
         load(bad)
     with pytest.raises(TypeError, match=r"^load_network\(\) argument path"):
         load_network(bad, "policy")
+
+
+def test_point_mass_weights_under_the_other_robots_config_are_refused(cli, tmp_path):
+    """The single and double integrator's weights have the same shapes; what robot they drive is recorded beside
+    them (state.json, and the weights' header for new checkpoints), so another robot's config.json is refused."""
+    import shutil
+    from pathlib import Path
+
+    from rel_helpers import assert_usage_error
+    from safetensors.torch import load_file
+
+    from egcbf.checkpoint import CheckpointError, check_identity, read_config, save_weights, weights_identity
+
+    root = Path(__file__).resolve().parents[2] / "checkpoints"
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(root / "double_integrator" / "egcbf+", ckpt)
+    shutil.copy(root / "single_integrator" / "egcbf+" / "config.json", ckpt / "config.json")
+    res = cli("eval", "--checkpoint", ckpt, "--num-agents", "4", "--episodes", "1", "--max-steps", "2",
+              "--no-progress", "--out", tmp_path / "out")  # fmt: skip
+    assert_usage_error(res, "robot", "double_integrator", "single_integrator")
+    # weights written now carry the robot in their own header: caught without state.json too
+    cfg = read_config(root / "double_integrator" / "egcbf+")
+    save_weights(load_file(str(ckpt / "model.safetensors")), ckpt / "model.safetensors", cfg)
+    assert weights_identity(ckpt / "model.safetensors")["robot"] == "double_integrator"
+    (ckpt / "state.json").unlink()
+    with pytest.raises(CheckpointError, match="robot 'double_integrator'"):
+        check_identity(ckpt, read_config(ckpt))

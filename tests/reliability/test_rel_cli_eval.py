@@ -193,3 +193,38 @@ def test_truncated_checkpoint_weights_are_named(cli, tmp_path, tiny_run):
     f = ck / "model.safetensors"
     f.write_bytes(f.read_bytes()[: f.stat().st_size // 3])
     assert_usage_error(_eval(cli, tmp_path / "ev", "--checkpoint", ck), "model.safetensors", "truncated")
+
+
+def test_eval_resume_refuses_weights_that_changed_at_the_same_path(cli, tmp_path):
+    """run.json records the sha256 of the weights evaluated; --resume after they changed at the same checkpoint path
+    is refused (its metrics.json would hold sizes of two different policies)."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(Path(__file__).resolve().parents[2] / "checkpoints" / "egcbf+", ckpt)
+    out = tmp_path / "out"
+    args = ["eval", "--checkpoint", ckpt, "--num-agents", "4,6", "--area", "2", "--episodes", "1", "--max-steps", "3",
+            "--no-progress", "--out", out]  # fmt: skip
+    assert cli(*args).exit_code == 0
+    run = json.loads((out / "run.json").read_text())
+    assert len(run["weights_sha256"]) == 64
+    (out / "run.json").write_text(json.dumps({**run, "finished": [4], "complete": False}))
+    rows = json.loads((out / "metrics.json").read_text())
+    (out / "metrics.json").write_text(json.dumps(rows[:1]))
+    shutil.rmtree(ckpt)  # another policy, whole and consistent, at the same path
+    shutil.copytree(Path(__file__).resolve().parents[2] / "checkpoints" / "seeds" / "egcbf+-s1", ckpt)
+    res = cli(*args, "--resume")
+    assert_usage_error(res, "other weights", "--overwrite")
+    assert json.loads((out / "metrics.json").read_text()) == rows[:1]
+
+
+def test_a_noncooperative_fraction_that_rounds_to_no_agent_is_refused(cli, tmp_path):
+    res = cli("eval", "--faults", "noncoop=0.05", "--num-agents", "8", "--episodes", "1", "--max-steps", "2",
+              "--no-progress", "--out", tmp_path / "out")  # fmt: skip
+    assert_usage_error(res, "noncoop=0.05", "--num-agents 8", "rounds to no non-cooperative agent", "0.0625")
+    assert not (tmp_path / "out" / "run.json").exists()
+    ok = cli("eval", "--faults", "noncoop=0.0625", "--num-agents", "8", "--episodes", "1", "--max-steps", "2",
+             "--no-progress", "--out", tmp_path / "ok")  # fmt: skip
+    assert ok.exit_code == 0, ok.output

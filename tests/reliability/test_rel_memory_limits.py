@@ -172,3 +172,46 @@ def test_a_run_that_does_not_fit_under_ulimit_v_is_refused_naming_it(tmp_path, t
     assert "--num-agents 256" in errors[0] and "address-space limit (ulimit -v, RLIMIT_AS)" in errors[0], errors[0]
     assert re.search(r"more than the [\d.]+ MiB left under", errors[0]) and "(VmSize)" in errors[0], errors[0]
     assert not (out / "metrics.json").exists()
+
+
+RUN_EXPORT_UNDER_RLIMIT_AS = """
+import re, resource, sys
+from egcbf.cli import main
+vmsize = int(re.search(r"VmSize:\\s+(\\d+)", open("/proc/self/status").read()).group(1)) * 1024
+resource.setrlimit(resource.RLIMIT_AS, (vmsize + (16 << 20), resource.getrlimit(resource.RLIMIT_AS)[1]))
+main()
+"""
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="needs /proc (Linux)")
+def test_export_out_of_address_space_is_one_line_and_writes_nothing(tmp_path):
+    """A command that runs out of memory anywhere (here ``export``, in its lazy imports, 16 MiB of address space
+    left) prints one ``Error:`` line naming the cause and the limit, exit 2, and writes nothing."""
+    out = tmp_path / "ctrl.pt"
+    ckpt = Path(SRC).parent / "checkpoints" / "egcbf+"
+    env = {**os.environ, "PYTHONPATH": SRC, "OMP_NUM_THREADS": "1"}
+    env.pop("EGCBF_DEBUG", None)
+    res = subprocess.run([sys.executable, "-c", RUN_EXPORT_UNDER_RLIMIT_AS, "export", "--checkpoint", str(ckpt),
+                          "--format", "torchscript", "--out", str(out)],
+                         env=env, capture_output=True, text=True, timeout=120)  # fmt: skip
+    errors = [line for line in res.stderr.splitlines() if line.startswith("Error:")]
+    assert res.returncode == 2 and len(errors) == 1, res.stderr[-3000:]
+    assert "Traceback" not in res.stderr and "out of memory" in errors[0] and "ulimit -v" in errors[0]
+    assert not out.exists() and not out.with_name("ctrl.pt.json").exists()
+
+
+def test_a_config_far_larger_than_its_weights_is_refused_before_allocating(cli, tmp_path):
+    """``model.hidden: 1e9`` in an edited config.json would allocate tens of GB before the weights are compared:
+    refused first, naming the field (eval, export and average alike)."""
+    import json
+    import shutil
+
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(Path(SRC).parent / "checkpoints" / "egcbf+", ckpt)
+    cfg = json.loads((ckpt / "config.json").read_text())
+    cfg["model"]["hidden"] = 10**9
+    (ckpt / "config.json").write_text(json.dumps(cfg))
+    for args in (["eval", "--checkpoint", ckpt, "--num-agents", "4", "--episodes", "1", "--out", tmp_path / "ev"],
+                 ["export", "--checkpoint", ckpt, "--format", "torchscript", "--out", tmp_path / "c.pt"],
+                 ["average", "--a", ckpt, "--b", ckpt, "--lam", "0.5", "--out", tmp_path / "avg"]):  # fmt: skip
+        assert_usage_error(cli(*args), "model.hidden = 1000000000", "does not describe these weights")

@@ -70,7 +70,7 @@ from ..filter_names import FILTERS
 from ..graph import SwarmGraph, build_graph
 from ..nn.models import CBFNet, ModelConfig, PolicyNet
 from ..robots.quadrotor.barriers import BarrierConfig
-from ..robots.quadrotor.cbf_qp import OBSTACLE_SENSING
+from ..robots.quadrotor.cbf_qp import OBSTACLE_SENSING, check_lidar_hits
 from ..robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 from .edge_qp import BRAKE_GAIN, SLACK_TOL, EdgeRows, edge_qp_commands, edge_rows
 from .interface import AccelInterface, make_interface
@@ -129,6 +129,9 @@ class FilterConfig:
         obstacle_sensing: where the ``dcbf`` filter's obstacle rows come from: ``"map"`` (the obstacle map's spheres,
             default) or ``"lidar"`` (each agent's own LiDAR hits as point obstacles: the sensing of ``cbf`` and
             ``prior``, whose rows always read the LiDAR).
+        lidar_hits: with ``obstacle_sensing = "lidar"``, what each hit stands for in the ``dcbf`` filter's rows:
+            ``"plane"`` (default, the plane through the hit normal to the ray) or ``"point"`` (a point obstacle)
+            (:func:`~egcbf.robots.quadrotor.barriers.hit_constraints`; docs/safety_filters.md measures both).
     """
 
     kind: str = "cbf"
@@ -141,20 +144,28 @@ class FilterConfig:
     barrier: BarrierConfig = DCBF_FILTER_BARRIER
     lookahead: float = DCBF_FILTER_LOOKAHEAD
     obstacle_sensing: str = "map"
+    lidar_hits: str = "plane"
 
     @classmethod
     def for_kind(
-        cls, kind: str, alpha: float | None = None, margin: float | None = None, obstacle_sensing: str = "map"
+        cls,
+        kind: str,
+        alpha: float | None = None,
+        margin: float | None = None,
+        obstacle_sensing: str = "map",
+        lidar_hits: str = "plane",
     ) -> FilterConfig:
         """The filter ``kind`` with its defaults, ``alpha`` and ``margin`` overriding its class-K gain and its
         clearance: ``alpha``, ``margin`` for ``cbf`` and ``prior``; the barrier's ``gamma``, ``margin`` for ``dcbf``;
-        ``obstacle_sensing`` the ``dcbf`` filter's obstacle rows (``"map"`` or ``"lidar"``)."""
+        ``obstacle_sensing`` the ``dcbf`` filter's obstacle rows (``"map"`` or ``"lidar"``) and ``lidar_hits`` what
+        one LiDAR hit stands for in them (``"plane"`` or ``"point"``)."""
+        sensing = {"obstacle_sensing": obstacle_sensing, "lidar_hits": lidar_hits}
         if kind != "dcbf":
-            return cls(kind=kind, obstacle_sensing=obstacle_sensing,
+            return cls(kind=kind, **sensing,
                        **{k: v for k, v in (("alpha", alpha), ("margin", margin)) if v is not None})  # fmt: skip
         changes = {k: v for k, v in (("gamma", alpha), ("margin", margin)) if v is not None}
         try:
-            return cls(kind=kind, barrier=replace(DCBF_FILTER_BARRIER, **changes), obstacle_sensing=obstacle_sensing)
+            return cls(kind=kind, barrier=replace(DCBF_FILTER_BARRIER, **changes), **sensing)
         except ValueError as err:  # name the filter's fields, not the barrier's
             raise ValueError(str(err).replace("BarrierConfig.gamma", "FilterConfig.alpha").replace(
                 "BarrierConfig.margin", "FilterConfig.margin")) from None  # fmt: skip
@@ -164,7 +175,9 @@ class FilterConfig:
         and clearance as the filter reads them (the barrier's for ``dcbf``)."""
         if self.kind == "dcbf":
             b = self.barrier
-            lidar = {"obstacle_sensing": "lidar"} if self.obstacle_sensing == "lidar" else {}
+            lidar = (
+                {"obstacle_sensing": "lidar", "lidar_hits": self.lidar_hits} if self.obstacle_sensing == "lidar" else {}
+            )
             return {"barrier": b.kind, "gamma": b.gamma, "margin": b.margin, "brake_accel": b.brake_accel, **lidar}
         return {"alpha": self.alpha, "margin": self.margin}
 
@@ -178,6 +191,7 @@ class FilterConfig:
         if self.obstacle_sensing not in OBSTACLE_SENSING:
             raise ValueError(f"FilterConfig.obstacle_sensing must be one of {OBSTACLE_SENSING}, got "
                              f"{self.obstacle_sensing!r}")  # fmt: skip
+        check_lidar_hits("FilterConfig", self.obstacle_sensing, self.lidar_hits)
         if not (math.isfinite(self.lookahead) and self.lookahead >= 0):
             raise ValueError(f"FilterConfig.lookahead must be >= 0, got {self.lookahead!r}")
         for name in ("brake_gain", "slack_tol", "active_tol"):
@@ -227,7 +241,7 @@ class FilteredController:
         if config.kind == "dcbf":
             self._dcbf = DecentralizedCBFQP(
                 barrier=config.barrier, penalty=config.penalty, brake_gain=config.brake_gain,
-                obstacle_sensing=config.obstacle_sensing,
+                obstacle_sensing=config.obstacle_sensing, lidar_hits=config.lidar_hits,
             )  # fmt: skip
             if policy is None:  # the nominal command behind it perceives what its rows read
                 self.reads_sensing = self._dcbf.reads_sensing

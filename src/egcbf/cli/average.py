@@ -18,6 +18,10 @@ def average_cmd(
     lam: Annotated[float, typer.Option(help="weight of A, in [0, 1]; B gets 1 - lam")],
     out: Annotated[Path, typer.Option(help="the checkpoint directory to write")],
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace OUT if it holds a checkpoint")] = False,
+    allow_unrelated: Annotated[
+        bool,
+        typer.Option("--allow-unrelated", help="average two runs of no common training lineage (refused otherwise)"),
+    ] = False,
 ) -> None:
     """Write OUT = lam x the weights of A + (1 - lam) x those of B (CBF, target CBF and policy), with A's config and
     both inputs recorded in OUT/state.json."""
@@ -30,7 +34,7 @@ def average_cmd(
         f"--out {out} already holds a checkpoint; pass --overwrite to replace it",
     )
     try:
-        path = average_checkpoints(a, b, lam, out)
+        path = average_checkpoints(a, b, lam, out, allow_unrelated=allow_unrelated)
     except (FileNotFoundError, CheckpointError) as err:
         usage_error(str(err), err)
     typer.echo(f"wrote {path} = {lam:g} x {a} + {1 - lam:g} x {b}")

@@ -263,6 +263,32 @@ def check_training_memory(cfg, device: torch.device) -> None:
         )
 
 
+def holding_checkpoint(path: Path) -> Path | None:
+    """The checkpoint or training-run directory that ``path`` (a file to write) would land in, or ``None``: the
+    nearest ancestor holding ``model.safetensors`` or ``state.json`` (a checkpoint), or ``checkpoints/`` beside a
+    ``config.json`` (a training run). Commands write there only when that is their job (``train``, ``average``)."""
+    for parent in Path(os.path.abspath(path)).parents:
+        if (parent / "model.safetensors").exists() or (parent / "state.json").exists():
+            return parent
+        if (parent / "checkpoints").is_dir() and (parent / "config.json").exists():
+            return parent
+    return None
+
+
+def check_output_file(out: Path, overwrite: bool, companions: Sequence[str] = (), flag: str = "--out") -> None:
+    """Refuse (usage error) to write the file ``out`` and its ``companions`` (suffixes appended to its name, e.g.
+    ``".json"``) when one is a directory, lands inside a checkpoint or training run (:func:`holding_checkpoint`;
+    even with ``overwrite``), or exists without ``overwrite``. Checked before any work starts."""
+    targets = [out, *(out.with_name(out.name + c) for c in companions)]
+    for path in targets:
+        require(not path.is_dir(), f"{flag} {out}: {path} is a directory; name the file to write")
+    home = holding_checkpoint(out)
+    require(home is None, f"{flag} {out} is inside the checkpoint or training run {home}; write it elsewhere (it "
+            "would sit beside, or replace, the files that checkpoint loads from)")  # fmt: skip
+    for path in targets:
+        require(overwrite or not path.exists(), f"{flag} {out}: {path} exists; pass --overwrite to replace it")
+
+
 def prepare_out(
     out: Path,
     overwrite: bool,

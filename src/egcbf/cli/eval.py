@@ -154,6 +154,7 @@ def run_eval(
     faults: str = "none",
     resume: bool = False,
     obstacle_sensing: str = "map",
+    lidar_hits: str = "plane",
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -182,13 +183,16 @@ def run_eval(
     filter_config = None
     require(filter != "none" or (filter_alpha is None and filter_margin is None),
             "--filter-alpha and --filter-margin set a run-time filter's barrier: pass --filter KIND too")  # fmt: skip
-    from ..robots.quadrotor.cbf_qp import OBSTACLE_SENSING
+    from ..robots.quadrotor.cbf_qp import LIDAR_HITS, OBSTACLE_SENSING
 
     require(obstacle_sensing in OBSTACLE_SENSING,
             f"--obstacle-sensing must be one of {list(OBSTACLE_SENSING)}, got {obstacle_sensing!r}")  # fmt: skip
+    require(lidar_hits in LIDAR_HITS, f"--lidar-hits must be one of {list(LIDAR_HITS)}, got {lidar_hits!r}")
+    require(lidar_hits == "plane" or obstacle_sensing == "lidar",
+            f"--lidar-hits {lidar_hits} reads LiDAR hits: pass --obstacle-sensing lidar too")  # fmt: skip
     if filter != "none":
         try:
-            filter_config = FilterConfig.for_kind(filter, filter_alpha, filter_margin, obstacle_sensing)
+            filter_config = FilterConfig.for_kind(filter, filter_alpha, filter_margin, obstacle_sensing, lidar_hits)
         except ValueError as err:
             usage_error(str(err).replace("FilterConfig.alpha", "--filter-alpha").replace("FilterConfig.margin",
                         "--filter-margin"), err)  # fmt: skip
@@ -199,6 +203,20 @@ def run_eval(
     except ValueError as err:
         usage_error(f"--faults: {err}", err)
     sizes = parse_sizes(num_agents)
+    from ..faults import given_fields
+    from ..faults.process import noncooperative_count
+
+    noncoop_agents = {}
+    for n in sizes if fault_config.noncoop > 0 else ():  # a fraction of non-cooperative agents, in agents
+        try:
+            noncoop_agents[n] = noncooperative_count(fault_config, n)
+        except ValueError as err:
+            usage_error(f"--faults {faults} at --num-agents {n}: {str(err).removeprefix('faults: ')}", err)
+        if noncoop_agents[n] == 0:
+            why = (f"noncoop={fault_config.noncoop:g} of {n} agents rounds to no non-cooperative agent (noncoop >= "
+                   f"{0.5 / n:g} makes one)")  # fmt: skip
+            require("noncoop" not in given_fields(faults), f"--faults {faults} at --num-agents {n}: {why}")
+            typer.echo(f"--faults {faults}: at N = {n} {why}; that size runs without them", err=True)
     dev = parse_device(device)
     env_overrides, ckpt = None, None
     if checkpoint is not None:  # a learned policy: everything it needs is in the checkpoint directory
@@ -223,13 +241,24 @@ def run_eval(
             controller = join_method("nominal", filter)
     robot = robot or "quadrotor"
     require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
+    from ..faults.process import for_robot
+
+    try:  # the default field conditions mean something for every robot: what it cannot take is left out, and said
+        fault_config, left_out = for_robot(fault_config, ROBOTS[robot](), given_fields(faults))
+    except ValueError as err:
+        usage_error(f"--faults {faults}: {str(err).removeprefix('faults: ')}", err)
+    if left_out:
+        typer.echo(
+            f"--faults {faults} on the {robot}: left out " + "; ".join(f"{n} ({w})" for n, w in left_out.items()),
+            err=True,
+        )
     qp_options = {}
     if obstacle_sensing == "lidar":  # what reads the obstacle map must read the LiDAR instead
         require(robot == "quadrotor", f"--obstacle-sensing lidar is the quadrotor's dcbf QP and filter; not a {robot}")
         require(controller != "ccbf", "--obstacle-sensing lidar: the centralized CBF-QP reads the obstacle map; use "
-                "--controller dcbf (each agent's own LiDAR hits as point obstacles)")  # fmt: skip
+                "--controller dcbf (each agent's own LiDAR hits)")  # fmt: skip
         if controller == "dcbf" and filter_config is None:
-            qp_options["obstacle_sensing"] = "lidar"
+            qp_options.update(obstacle_sensing="lidar", lidar_hits=lidar_hits)
     affine_qp = controller in ("ccbf", "dcbf") and robot in POINT_MASSES and filter_config is None
     if (controller in ("ccbf", "dcbf") or filter_config is not None) and robot != "quadrotor" and not affine_qp:
         usage_error(
@@ -268,6 +297,7 @@ def run_eval(
         "controller": controller,
         "robot": robot,
         "checkpoint": None if ckpt is None else str(ckpt),
+        **({} if ckpt is None else {"weights_sha256": _weights_sha256(ckpt)}),
         "filter": filter,
         "filter_config": None if filter_config is None else filter_config.settings(),
         "num_agents": sizes,
@@ -278,7 +308,9 @@ def run_eval(
         **({"scene": scene, "scene_yaw": float(scene_yaw)} if scene != "uniform" or scene_yaw != 0 else {}),
         **({"max_travel": float(max_travel)} if max_travel is not None else {}),
         **({"faults": fault_config.to_dict()} if not fault_config.is_null else {}),
-        **({"obstacle_sensing": obstacle_sensing} if obstacle_sensing != "map" else {}),
+        **({"faults_left_out": sorted(left_out)} if left_out else {}),
+        **({"noncoop_agents": {str(n): k for n, k in noncoop_agents.items()}} if noncoop_agents else {}),
+        **({"obstacle_sensing": obstacle_sensing, "lidar_hits": lidar_hits} if obstacle_sensing != "map" else {}),
         "episodes": episodes,
         "seed": seed,
         "max_steps": max_steps,
@@ -314,32 +346,40 @@ def run_eval(
         meta.update(finished=[r["num_agents"] for r in rows], wall_s=round(time.time() - t0, 1))
         write_json_atomic(out / "run.json", meta)
 
-    rows, _ = (
-        ([], None)
-        if not sizes
-        else evaluate(
-            (lambda cfg: learned)
-            if checkpoint is not None
-            else (lambda cfg: filtered_nominal)
-            if filter_config is not None
-            else (lambda cfg: make_controller(controller, robot=robot, **qp_options)),
-            sizes,
-            area_size=area,
-            num_obstacles=obstacles,
-            episodes=episodes,
-            seed=seed,
-            batch=batch,
-            max_steps=max_steps,
-            device=dev,
-            dtype=DTYPES[dtype],
-            record=render or record,
-            show_progress=progress,
-            env_overrides=env_overrides,
-            on_size=save_size,
-            robot=robot,
-            faults=fault_config,
+    def _evaluate_sizes():
+        return (
+            ([], None)
+            if not sizes
+            else evaluate(
+                (lambda cfg: learned)
+                if checkpoint is not None
+                else (lambda cfg: filtered_nominal)
+                if filter_config is not None
+                else (lambda cfg: make_controller(controller, robot=robot, **qp_options)),
+                sizes,
+                area_size=area,
+                num_obstacles=obstacles,
+                episodes=episodes,
+                seed=seed,
+                batch=batch,
+                max_steps=max_steps,
+                device=dev,
+                dtype=DTYPES[dtype],
+                record=render or record,
+                show_progress=progress,
+                env_overrides=env_overrides,
+                on_size=save_size,
+                robot=robot,
+                faults=fault_config,
+            )
         )
-    )
+
+    try:
+        rows, _ = _evaluate_sizes()
+    except BaseException:
+        if previous is None and not meta["finished"]:  # nothing finished: a failed run leaves nothing behind
+            (out / "run.json").unlink(missing_ok=True)
+        raise
     rows = [*done_rows, *rows]
     meta.update(complete=True, wall_s=round(time.time() - t0, 1))
     write_json_atomic(out / "run.json", meta)
@@ -365,10 +405,21 @@ def _previous_run(out: Path) -> dict:
     return previous
 
 
+def _weights_sha256(ckpt: Path) -> str:
+    """The sha256 of the checkpoint's ``model.safetensors``: what ``run.json`` records of the weights evaluated."""
+    from ..checkpoint import sha256
+
+    return sha256(Path(ckpt) / "model.safetensors")
+
+
 def _resumable(previous: dict, meta: dict, out: Path) -> list[dict]:
     """The finished rows of ``out``'s run if it was made with ``meta``'s settings, or a usage error naming the
     settings that differ."""
     now = json.loads(json.dumps(meta))  # tuples as lists, as run.json stores them
+    was, is_now = previous.get("weights_sha256"), now.get("weights_sha256")
+    require(was == is_now, f"--resume: {out} was made from other weights than {now.get('checkpoint')}'s now "
+            f"(model.safetensors sha256 {str(was)[:12]} then, {str(is_now)[:12]} now); its sizes would mix two "
+            "policies: rerun with --overwrite")  # fmt: skip
     differ = sorted(k for k in set(now) | set(previous) if k not in _RESUME_FREE and now.get(k) != previous.get(k))
     require(not differ, f"--resume: {out} was made with other settings ({', '.join(differ)}); pass the same flags, "
             "or --overwrite to start again")  # fmt: skip
@@ -440,9 +491,16 @@ def eval_cmd(
         str,
         typer.Option(
             help="map | lidar: where the dcbf QP and the dcbf filter read obstacles (lidar: each agent's own "
-            "hits as point obstacles, as the learned policies and the cbf / prior filters do)"
+            "hits, as the learned policies and the cbf / prior filters do)"
         ),
     ] = "map",
+    lidar_hits: Annotated[
+        str,
+        typer.Option(
+            help="plane | point: with --obstacle-sensing lidar, what one hit stands for in the dcbf rows (plane: the "
+            "plane through the hit normal to the ray; point: a point obstacle, optimistic beside large obstacles)"
+        ),
+    ] = "plane",
     scene: Annotated[
         SceneName,
         typer.Option(
@@ -498,4 +556,5 @@ def eval_cmd(
             faults=faults,
             resume=resume,
             obstacle_sensing=obstacle_sensing,
+            lidar_hits=lidar_hits,
         )

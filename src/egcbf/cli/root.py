@@ -40,6 +40,14 @@ class _OneLineErrors(TyperGroup):
         except typer.Abort:
             typer.echo("Aborted!", err=True)
             sys.exit(1)
+        except (MemoryError, ImportError) as err:  # anywhere in any command: one line, not a deep traceback
+            if _debug() or (isinstance(err, ImportError) and "failed to map segment" not in str(err)):
+                raise  # an ImportError that is not the loader running out of address space
+            why = type(err).__name__ if isinstance(err, MemoryError) else "a library could not be mapped into memory"
+            typer.echo(f"Error: out of memory ({why}); "
+                       "free memory, raise the limit (ulimit -v, the cgroup's), or ask for less (fewer agents, "
+                       "episodes or --batch)", err=True)  # fmt: skip
+            sys.exit(2)
         except Exception as err:  # click's ClickException and UsageError (typer vendors click: duck-typed)
             if _debug() or not (hasattr(err, "format_message") and isinstance(getattr(err, "exit_code", None), int)):
                 raise

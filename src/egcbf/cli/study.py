@@ -30,7 +30,7 @@ def study_cmd(
 ) -> None:
     """Train, evaluate and report the equivariance study (docs/equivariance.md): what SE(2)xR equivariance buys,
     claim by claim, with seeds and 95 % intervals. Everything resumes: rerun the same command."""
-    from ..study import ARMS, arm, evaluate_arm, pending_runs, train_runs, write_report
+    from ..study import ARMS, arm, evaluate_arm, pending_cells, pending_runs, train_runs, write_report
     from ..study.report import default_quote_targets
 
     require(jobs >= 1, f"--jobs must be >= 1, got {jobs}")
@@ -41,13 +41,18 @@ def study_cmd(
     require(chosen, f"--arms {arms!r} names no arm; choose from {', '.join(a.name for a in ARMS)} (or all)")
     if plan:
         missing = set(pending_runs(chosen, root))
+        cells = 0
         for a in chosen:
             runs_text = ", ".join(f"{r.name}{' (to train)' if r in missing else ''}" for r in a.all_runs())
+            todo = pending_cells(a, root)
+            cells += todo
             typer.echo(
                 f"{a.name}: {a.claim}; preset {a.preset} {a.overrides or ''}, {a.minutes:g} min a run: {runs_text}"
+                + (f"; {todo} cell(s) to evaluate" if todo else "")
             )
         hours = sum(a.minutes for a in chosen for r in a.all_runs() if r in missing) / 60 / jobs
-        typer.echo(f"{len(missing)} run(s) to train: about {hours:.1f} h of wall time with --jobs {jobs}")
+        typer.echo(f"{len(missing)} run(s) to train: about {hours:.1f} h of wall time with --jobs {jobs}; "
+                   f"{cells} cell(s) of trained runs to evaluate")  # fmt: skip
         return
     if not report_only:
         if train:

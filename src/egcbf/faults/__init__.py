@@ -12,7 +12,7 @@ them), :mod:`~egcbf.faults.draws` (counter-based random draws, independent of ba
 
 from .process import FaultProcess, noncooperative_mask
 from .sensing import Sensing
-from .spec import ALIASES, DEFAULT_FIELD, NONCOOP_MODES, FaultConfig, parse_faults
+from .spec import ALIASES, DEFAULT_FIELD, NONCOOP_MODES, FaultConfig, given_fields, parse_faults
 
 __all__ = [
     "ALIASES",
@@ -21,6 +21,7 @@ __all__ = [
     "FaultConfig",
     "FaultProcess",
     "Sensing",
+    "given_fields",
     "noncooperative_mask",
     "parse_faults",
 ]

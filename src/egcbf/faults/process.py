@@ -18,6 +18,7 @@ the tests check that the closed loop under faults stays equivariant (isotropic n
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from collections.abc import Sequence
@@ -33,7 +34,55 @@ from . import draws
 from .sensing import STREAMS, Sensing
 from .spec import FaultConfig
 
-__all__ = ["FaultProcess", "noncooperative_mask"]
+__all__ = ["FaultProcess", "for_robot", "noncooperative_count", "noncooperative_mask", "unsupported_faults"]
+
+
+def unsupported_faults(faults: FaultConfig, robot) -> dict[str, str]:
+    """``{field: why}`` for every fault of ``faults`` that ``robot`` (a :class:`~egcbf.robots.base.Robot`) cannot
+    take: a wind of another dimension, a velocity fault on a kinematic robot (its velocity is its command, so the
+    fault would silently do nothing), an actuator group's gain or bias on a robot without that group. Empty: all of
+    them act. :class:`FaultProcess` refuses any; ``egcbf eval --faults default`` leaves out those that came from
+    ``default`` and says so (:func:`for_robot`)."""
+    why = {}
+    if faults.wind and len(faults.wind) != robot.dim:
+        why["wind"] = f"wind needs {robot.dim} numbers for the {robot.name}, got {faults.wind}"
+    if robot.kinematic:
+        for name in ("vel_noise", "msg_predict", "gust") + (("wind",) if faults.wind else ()):
+            if (getattr(faults, name) if name != "wind" else faults.wind) and name not in why:
+                why[name] = (f"{name} acts on a velocity the {robot.name} does not have (its velocity is its "
+                             "command, not its state): it would silently do nothing")  # fmt: skip
+    groups = robot.actuator_groups
+    for name, group in (("thrust_gain", "thrust"), ("torque_gain", "torque"), ("torque_bias", "torque")):
+        if getattr(faults, name) > 0 and group not in groups:
+            why[name] = (f"{name} needs the robot's {group!r} channels; the {robot.name} has "
+                         f"{sorted(groups) or 'no named actuator groups'} (use gain= for every channel)")  # fmt: skip
+    return why
+
+
+def for_robot(faults: FaultConfig, robot, given: frozenset[str]) -> tuple[FaultConfig, dict[str, str]]:
+    """``faults`` as ``robot`` can take them: the faults it cannot take (:func:`unsupported_faults`) that the spec
+    did not set itself (``given``, :func:`egcbf.faults.spec.given_fields`: they came from ``default``) are reset to
+    none; returns the faults and ``{left-out field: why}``. Raises ``ValueError`` for one the spec set itself."""
+    why = unsupported_faults(faults, robot)
+    own = [n for n in why if n in given]
+    if own:
+        raise ValueError(f"faults: {why[own[0]]}")
+    if not why:
+        return faults, {}
+    zero = FaultConfig()
+    return dataclasses.replace(faults, **{n: getattr(zero, n) for n in why}), why
+
+
+def noncooperative_count(faults: FaultConfig, num_agents: int) -> int:
+    """How many of ``num_agents`` agents ``faults.noncoop`` makes non-cooperative: ``noncoop * N`` rounded half up
+    (a small fraction of a small swarm may round to none: ``egcbf eval`` refuses that for a fraction it was given,
+    and says it for the default's). Raises ``ValueError`` when it leaves no cooperative agent (nothing to
+    measure)."""
+    k = math.floor(faults.noncoop * num_agents + 0.5)
+    if num_agents > 0 and k >= num_agents:
+        raise ValueError(f"faults: noncoop={faults.noncoop:g} of {num_agents} agents leaves no cooperative agent "
+                         f"to measure; use a smaller fraction")  # fmt: skip
+    return k
 
 
 def noncooperative_mask(faults: FaultConfig, seeds: Tensor, num_agents: int) -> Tensor:
@@ -41,10 +90,7 @@ def noncooperative_mask(faults: FaultConfig, seeds: Tensor, num_agents: int) -> 
     (the ones with the smallest draws of their episode; a pure function of the episode seed). Raises
     ``ValueError`` when that leaves no cooperative agent (there would be nothing to measure)."""
     b = seeds.shape[0]
-    k = math.floor(faults.noncoop * num_agents + 0.5)
-    if num_agents > 0 and k >= num_agents:
-        raise ValueError(f"faults: noncoop={faults.noncoop:g} of {num_agents} agents leaves no cooperative agent "
-                         f"to measure; use a smaller fraction")  # fmt: skip
+    k = noncooperative_count(faults, num_agents)
     mask = torch.zeros(b, num_agents, dtype=torch.bool, device=seeds.device)
     if k > 0:
         u = draws.uniform(STREAMS["noncoop"], seeds.view(b, 1), torch.arange(num_agents, device=seeds.device))
@@ -74,22 +120,9 @@ class FaultProcess:
         dtype: torch.dtype = torch.float32,
         rotation: Tensor | None = None,
     ):
-        if faults.wind and len(faults.wind) != robot.dim:
-            raise ValueError(f"faults: wind needs {robot.dim} numbers for the {robot.name}, got {faults.wind}")
-        if robot.kinematic:  # its velocity is its command, not its state: these faults would do nothing (or less)
-            moot = [n for n in ("vel_noise", "msg_predict", "gust") if getattr(faults, n) > 0] + (
-                ["wind"] if faults.wind else []
-            )
-            if moot:
-                raise ValueError(f"faults: {', '.join(moot)} act on a velocity the {robot.name} does not have (its "
-                                 "velocity is its command, not its state): they would silently do nothing")  # fmt: skip
-        groups = robot.actuator_groups
-        for name, group in (("thrust_gain", "thrust"), ("torque_gain", "torque"), ("torque_bias", "torque")):
-            if getattr(faults, name) > 0 and group not in groups:
-                raise ValueError(
-                    f"faults: {name} needs the robot's {group!r} channels; the {robot.name} has "
-                    f"{sorted(groups) or 'no named actuator groups'} (use gain= for every channel)"
-                )
+        why = unsupported_faults(faults, robot)
+        if why:
+            raise ValueError(f"faults: {next(iter(why.values()))}")
         self.faults, self.config, self.robot = faults, env_config, robot
         self.device, self.dtype = torch.device(device), dtype
         self.seeds = torch.as_tensor([int(s) for s in seeds], dtype=torch.int64, device=self.device)

@@ -30,6 +30,7 @@ __all__ = [
     "NONCOOP_MODES",
     "RECEIVER_FIELDS",
     "FaultConfig",
+    "given_fields",
     "parse_faults",
 ]
 
@@ -261,7 +262,10 @@ def parse_faults(spec: str | Path | FaultConfig | None) -> FaultConfig:
             raise ValueError(f"faults: cannot read {text}: {err}") from err
         if not isinstance(fields, dict):
             raise ValueError(f"faults: {text} must hold a JSON object of FaultConfig fields")
-        return _build({}, fields, text)
+        named = {ALIASES.get(k, k) for k in fields}
+        if len(named) < len(fields):
+            raise ValueError(f"faults: {text} names a field twice (a short name and its field name)")
+        return _build({}, {ALIASES.get(k, k): v for k, v in fields.items()}, text)
     if text in ("", "none"):
         return FaultConfig()
     base, pairs = {}, [p.strip() for p in text.split(",") if p.strip()]
@@ -275,6 +279,20 @@ def parse_faults(spec: str | Path | FaultConfig | None) -> FaultConfig:
         name = ALIASES.get(key.strip(), key.strip())
         fields[name] = value.strip()
     return _build(base, fields, text)
+
+
+def given_fields(spec: str | Path | FaultConfig | None) -> frozenset[str]:
+    """The :class:`FaultConfig` fields a spec sets itself (short names resolved), not through its leading
+    ``default``: every set field of a :class:`FaultConfig` or JSON file, the ``key=value`` pairs of a string."""
+    if spec is None:
+        return frozenset()
+    if isinstance(spec, FaultConfig):
+        return frozenset(spec.active())
+    text = str(spec).strip()
+    if text.endswith(".json") or Path(text).suffix == ".json":
+        return frozenset(parse_faults(text).active())
+    pairs = [p.strip() for p in text.split(",") if p.strip() and p.strip() not in ("default", "none")]
+    return frozenset(ALIASES.get(k.strip(), k.strip()) for k, _, _ in (p.partition("=") for p in pairs))
 
 
 def _is_number(v) -> bool:

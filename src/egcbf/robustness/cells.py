@@ -9,7 +9,7 @@ from ..bootstrap import Interval, mean_ci
 from ..reproduce.paper import BASELINES, base_method
 from ..reproduce.plan import Cell
 from ..reproduce.provenance import machine_text
-from ..reproduce.store import made_with, read_json
+from ..reproduce.store import find_method_checkpoint, made_with, read_json
 from .plan import RobustnessConfig, axis
 
 __all__ = [
@@ -21,6 +21,7 @@ __all__ = [
     "paired_change",
     "pct",
     "rate_band",
+    "stale_records",
     "stored_cell",
 ]
 
@@ -29,12 +30,38 @@ def _cell(method: str, spec: str, n: int, obstacles: int) -> Cell:
     return Cell(method, obstacles, n, None if base_method(method) in BASELINES else 0, None, spec)
 
 
+def _current_shas(cfg: RobustnessConfig) -> dict[str, str | None]:
+    """``{learned method: sha256 of its checkpoint now under cfg.checkpoints}`` (training seed 0; ``None`` where
+    none can be read there, e.g. regenerating the report without the checkpoints)."""
+    shas = {}
+    for m in {base_method(m) for m in cfg.controllers} - set(BASELINES):
+        try:
+            shas[m] = find_method_checkpoint(cfg.checkpoints, m, 0).sha256
+        except (FileNotFoundError, ValueError):
+            shas[m] = None
+    return shas
+
+
+def stale_records(cfg: RobustnessConfig, records: dict) -> dict[tuple[str, str, int, int], str]:
+    """The keys of ``records`` (:func:`load_records`) whose cell was computed with another checkpoint than the one
+    now under ``cfg.checkpoints``: ``{key: stored sha256}`` (none where the current checkpoint cannot be read)."""
+    shas = _current_shas(cfg)
+    out = {}
+    for key, rec in records.items():
+        now = shas.get(base_method(key[0]))
+        stored = rec["key"].get("checkpoint_sha256")
+        if now is not None and stored is not None and stored != now:
+            out[key] = stored
+    return out
+
+
 def load_records(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]:
     """``{(method, axis-level spec, N, obstacles): record}`` of every computed cell, the whole stored record (``row``
     and ``meta``); the level spec as the axis names it, a controller that does not read messages looked up under
     the level's state-level spec (so one stored cell can stand under several keys). Only cells made with ``cfg``'s
     settings count (episodes, seed, area, episode length, results version: :func:`egcbf.reproduce.store.made_with`);
-    the others show as pending."""
+    the others show as pending. Cells of another checkpoint than the current one are kept here; the report leaves
+    them out as stale (:func:`stale_records`)."""
     out = {}
     for a in (axis(n) for n in cfg.axes):
         for spec in a.specs():

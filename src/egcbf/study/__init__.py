@@ -11,7 +11,7 @@ equivariance buys, tested with training seeds and confidence intervals.
     egcbf study --report-only                  # only rewrite the report from the committed results
 """
 
-from .driver import evaluate_arm, pending_runs, train_command, train_runs
+from .driver import evaluate_arm, pending_cells, pending_runs, train_command, train_runs
 from .plan import ARMS, ROOT, Arm, RotatedCell, Run, arm, rotated_cells
 from .report import verdict, write_report
 
@@ -23,6 +23,7 @@ __all__ = [
     "Run",
     "arm",
     "evaluate_arm",
+    "pending_cells",
     "pending_runs",
     "rotated_cells",
     "train_command",

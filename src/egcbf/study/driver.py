@@ -25,7 +25,15 @@ from pathlib import Path
 from ..atomic import write_json_atomic
 from .plan import EVAL_SEED, ROOT, Arm, RotatedCell, Run, rotated_cells
 
-__all__ = ["evaluate_arm", "evaluate_rotated", "evaluate_rotated_many", "pending_runs", "train_command", "train_runs"]
+__all__ = [
+    "evaluate_arm",
+    "evaluate_rotated",
+    "evaluate_rotated_many",
+    "pending_cells",
+    "pending_runs",
+    "train_command",
+    "train_runs",
+]
 
 RUNS = Path("runs/equivariance")
 DONE = "study_done.json"
@@ -54,6 +62,28 @@ def train_command(run: Run, arm: Arm, runs_dir: str | Path = RUNS) -> list[str]:
 def pending_runs(arms: Sequence[Arm], root: str | Path = ROOT) -> list[Run]:
     """The runs of ``arms`` whose checkpoint is not in ``root`` yet."""
     return [r for a in arms for r in a.all_runs() if not (r.checkpoint_dir(root) / "model.safetensors").exists()]
+
+
+def pending_cells(arm: Arm, root: str | Path = ROOT) -> int:
+    """How many evaluation cells of ``arm``'s trained runs have no up-to-date stored result in ``root`` (missing, or
+    made with other settings or weights): what ``egcbf study`` would evaluate. Runs not trained yet count none
+    (:func:`pending_runs` names them)."""
+    from ..checkpoint import sha256
+
+    missing = set(pending_runs([arm], root))
+    if arm.evaluation == "rotated":
+        cells = rotated_cells()
+        return sum(
+            not _rotated_stored(run, c, root, sha256(run.checkpoint_dir(root) / "model.safetensors"))
+            for run in arm.all_runs() if run not in missing for c in cells
+        )  # fmt: skip
+    if missing:
+        return 0
+    from ..reproduce import validate
+    from ..reproduce.store import pending_cells as sweep_pending
+
+    cfg = sweep_config(arm, root)
+    return len(sweep_pending(cfg, validate(cfg)))
 
 
 def _collect(run: Run, runs_dir: Path, root: Path) -> None:

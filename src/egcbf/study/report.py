@@ -9,6 +9,7 @@ computed. The sections between ``<!-- name:begin/end -->`` markers are regenerat
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -300,6 +301,7 @@ def write_report(
     bodies = {"status": _status(root), "generalization": gen, "convergence": conv, "rotated": rot,
               "ablation": _ablation(root)}  # fmt: skip
     text = report.read_text() if report.exists() else _TEMPLATE
+    text = _SOURCE.sub(f"from the result files under `{root.as_posix().rstrip('/')}/`", text, count=1)
     for name, heading in _SECTIONS:
         text = replace_block(text, name, bodies[name], heading=heading)
     summary = "\n".join(f"- **{k}**: {v}" for k, v in verdicts.items())
@@ -335,6 +337,9 @@ def _quote(target: Path, report: Path, verdicts: dict, evidence: dict) -> None:
             "95 % intervals over training seeds and episodes): " + "; ".join(items) + ".")  # fmt: skip
     quote_section(target, "equivariance-verdicts", body)
 
+
+#: the header's "from the result files under `ROOT/`", rewritten to the root the report was generated from
+_SOURCE = re.compile(r"from the result files under `[^`]*`")
 
 _TEMPLATE = """# What equivariance buys: the paper's three claims, tested
 

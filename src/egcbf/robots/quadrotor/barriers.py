@@ -39,6 +39,7 @@ from scipy.spatial import cKDTree
 from ...control.constraints import Constraints
 
 __all__ = [
+    "LIDAR_HITS",
     "AccelBounds",
     "BarrierConfig",
     "agent_pairs",
@@ -55,6 +56,8 @@ __all__ = [
 ]
 
 GRAVITY = 9.81
+#: how the rows of :func:`hit_constraints` read one LiDAR return: ``"plane"`` (default) or ``"point"``
+LIDAR_HITS = ("plane", "point")
 
 
 @dataclass(frozen=True)
@@ -200,10 +203,12 @@ def agent_pairs(pos: np.ndarray, cfg: BarrierConfig, batch: np.ndarray | None = 
     return np.stack((key // num, key % num))
 
 
-def _rows_from_geometry(dp, dv, D, cfg: BarrierConfig, brake_sum: float):
+def _rows_from_geometry(dp, dv, D, cfg: BarrierConfig, brake_sum: float, curvature: bool = True):
     """Normal, right-hand side and barrier value for rows with relative position ``dp``, velocity ``dv``.
 
     ``brake_sum`` is the total deceleration the pair can spend (``2 A`` for two agents, ``A`` for an obstacle).
+    ``curvature = False`` drops the term ``(|dv|^2 - d'^2) / d`` of ``d''`` (the turning of ``n`` as the point
+    moves past): the row of a plane through the point, normal to ``dp``, held fixed over the step.
     """
     d = np.sqrt((dp * dp).sum(-1))
     d_safe = np.maximum(d, 1e-9)
@@ -225,7 +230,8 @@ def _rows_from_geometry(dp, dv, D, cfg: BarrierConfig, brake_sum: float):
     gap = np.maximum(d - D, 1e-6)  # at or inside the safety distance: the barrier is singular; clamp (see docs)
     s = np.sqrt(2.0 * brake_sum * gap)
     h = s + ddot
-    rhs = -cfg.gamma * h**3 - (dv2 - ddot * ddot) / d_safe - brake_sum * ddot / s
+    turning = (dv2 - ddot * ddot) / d_safe if curvature else 0.0
+    rhs = -cfg.gamma * h**3 - turning - brake_sum * ddot / s
     return n, rhs, h, d
 
 
@@ -269,17 +275,27 @@ def obstacle_constraints(
 
 
 def hit_constraints(pos: np.ndarray, vel: np.ndarray, points: np.ndarray, valid: np.ndarray,
-                    cfg: BarrierConfig) -> Constraints:  # fmt: skip
-    """Agent-point rows ``n . a_i >= b`` for every agent's own LiDAR hits, each a point obstacle (radius 0: the
-    agent keeps ``D = r + margin`` from it), as the obstacle rows of :func:`obstacle_constraints` read spheres.
+                    cfg: BarrierConfig, model: str = "plane") -> Constraints:  # fmt: skip
+    """Agent rows ``n . a_i >= b`` for every agent's own LiDAR hits, as the obstacle rows of
+    :func:`obstacle_constraints` read spheres; the agent keeps ``D = r + margin`` from each hit.
+
+    ``model`` (:data:`LIDAR_HITS`) is what one return stands for. ``"point"``: a point obstacle (radius 0). Its row
+    credits the agent with the turning of the line of sight as it moves past the point, ``(|v|^2 - d'^2) / d`` in
+    ``d''``, which a surface behind the point does not give: next to a sphere of radius ``rho`` the true term is
+    ``(|v_t|^2) / (d + rho)``, so an agent sliding along a large obstacle is allowed to close on it (measured in
+    docs/safety_filters.md). ``"plane"`` (default): the plane through the hit normal to the ray, fixed over the step
+    (``d'' = n . a``, no turning term): for a convex obstacle seen along its normal the row is at least as
+    demanding as the true surface's. Both read the same distance and closing speed; only ``d''`` differs.
 
     ``pos, vel`` ``(M, 3)``; ``points`` ``(M, H, 3)`` world-frame hits, ``valid`` ``(M, H)`` bool (the
     :class:`egcbf.env.lidar.LidarScan` of the agents, flattened). Each agent's rows read only its own scan."""
+    if model not in LIDAR_HITS:
+        raise ValueError(f"hit_constraints: model must be one of {LIDAR_HITS}, got {model!r}")
     i, k = np.nonzero(valid)
     if i.size == 0:
         return Constraints.empty()
     D = np.full(i.shape[0], cfg.agent_radius + cfg.margin)
-    n, rhs, h, d = _rows_from_geometry(pos[i] - points[i, k], vel[i], D, cfg, cfg.brake_accel)
+    n, rhs, h, d = _rows_from_geometry(pos[i] - points[i, k], vel[i], D, cfg, cfg.brake_accel, model == "point")
     return Constraints(i.astype(np.int64), np.full(i.shape[0], -1, dtype=np.int64), n, rhs, h, d, D, 0)
 
 

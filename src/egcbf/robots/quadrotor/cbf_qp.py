@@ -42,6 +42,7 @@ from torch import Tensor
 from ...control.constraints import Constraints
 from ...control.qp import SlackPenalty, assemble_centralized, polish_sparse, require_solver, solve_sparse
 from .barriers import (
+    LIDAR_HITS,
     AccelBounds,
     BarrierConfig,
     bound_rows,
@@ -57,6 +58,7 @@ from .nominal import (
 )
 
 __all__ = [
+    "LIDAR_HITS",
     "OBSTACLE_SENSING",
     "CBFQPConfig",
     "CentralizedCBFQP",
@@ -107,6 +109,16 @@ def brake_acceleration(v: np.ndarray, bounds: AccelBounds, gain: float) -> np.nd
 OBSTACLE_SENSING = ("map", "lidar")
 
 
+def check_lidar_hits(owner: str, obstacle_sensing: str, lidar_hits: str) -> None:
+    """Raise ``ValueError`` (naming ``owner``'s fields) unless ``lidar_hits`` is one of :data:`LIDAR_HITS`, and
+    ``"point"`` only with ``obstacle_sensing = "lidar"`` (the map's rows read spheres, not hits)."""
+    if lidar_hits not in LIDAR_HITS:
+        raise ValueError(f"{owner}.lidar_hits must be one of {LIDAR_HITS}, got {lidar_hits!r}")
+    if lidar_hits != "plane" and obstacle_sensing != "lidar":
+        raise ValueError(f"{owner}.lidar_hits = {lidar_hits!r} needs obstacle_sensing = 'lidar' (with the map the "
+                         "obstacle rows read spheres, not LiDAR hits)")  # fmt: skip
+
+
 @dataclass(frozen=True)
 class CBFQPConfig:
     """Configuration shared by the centralized and decentralized CBF-QP baselines.
@@ -131,8 +143,11 @@ class CBFQPConfig:
         warm_start: start the constraint generation from the rows (nearly) active at the previous call's solution
             (per environment; cleared at ``state.t == 0``). Only the work changes, not the optimum.
         obstacle_sensing: where the obstacle rows come from: ``"map"`` (the spheres of the obstacle map within range,
-            default) or ``"lidar"`` (each agent's own LiDAR hits as point obstacles,
+            default) or ``"lidar"`` (each agent's own LiDAR hits,
             :func:`~egcbf.robots.quadrotor.barriers.hit_constraints`; the decentralized QP only).
+        lidar_hits: with ``obstacle_sensing = "lidar"``, what one hit stands for (:data:`LIDAR_HITS`): ``"plane"``
+            (default: the plane through the hit normal to the ray) or ``"point"`` (a point obstacle, which lets an
+            agent sliding along a large obstacle close on it); must stay ``"plane"`` with the map.
         polish: refine each centralized solution by an active-set KKT solve (:func:`egcbf.control.qp.polish_sparse`),
             kept only when it is provably the exact optimum; makes the result independent of the solver's tolerance.
     """
@@ -155,11 +170,13 @@ class CBFQPConfig:
     polish: bool = True
     warm_start: bool = True
     obstacle_sensing: str = "map"
+    lidar_hits: str = "plane"
 
     def __post_init__(self) -> None:
         if self.obstacle_sensing not in OBSTACLE_SENSING:
             raise ValueError(f"CBFQPConfig.obstacle_sensing must be one of {OBSTACLE_SENSING}, got "
                              f"{self.obstacle_sensing!r}")  # fmt: skip
+        check_lidar_hits("CBFQPConfig", self.obstacle_sensing, self.lidar_hits)
         # an unknown or missing solver fails here, with how to install it, not at the first QP of an episode
         for name in (self.solver, self.fallback_solver):
             if name is not None:

@@ -113,7 +113,7 @@ class DecentralizedCBFQP(_CBFQPBase):
             )  # fmt: skip
             owner, normal, rhs = split_for_agents(cons, num_agents=m)
         if has_obs and not from_map:
-            hits = self._hit_rows(state, env_config, prep, m)
+            hits = self._hit_rows(state, env_config, prep, m, cfg.lidar_hits)
             owner, normal, rhs = (np.concatenate(t) for t in zip((owner, normal, rhs), hits))
             cons = Constraints.cat([cons, hits[3]])
         bC = prep.bC.reshape(m, *prep.bC.shape[2:])
@@ -155,10 +155,11 @@ class DecentralizedCBFQP(_CBFQPBase):
         return u, info
 
     @staticmethod
-    def _hit_rows(state, env_config, prep, m: int):
+    def _hit_rows(state, env_config, prep, m: int, lidar_hits: str):
         """Every agent's rows from its own LiDAR hits (``obstacle_sensing = "lidar"``): the scan as the agents get
-        it (under LiDAR faults, :meth:`egcbf.faults.Sensing.scan`), each hit a point obstacle, read at the
-        (look-ahead) state of the barriers; ``(owner, normal, rhs, constraints)``, redundant rows pruned."""
+        it (under LiDAR faults, :meth:`egcbf.faults.Sensing.scan`), each hit read as ``lidar_hits`` says (a plane
+        or a point, :func:`~egcbf.robots.quadrotor.barriers.hit_constraints`) at the (look-ahead) state of the
+        barriers; ``(owner, normal, rhs, constraints)``, redundant rows pruned."""
         from ...env.swarm import cast_lidar  # at call time: the environment imports the robots
 
         sensing = state.sensing
@@ -169,7 +170,7 @@ class DecentralizedCBFQP(_CBFQPBase):
         points = scan.points.detach().to(torch.float64).cpu().numpy().reshape(m, -1, 3)
         valid = scan.valid.detach().cpu().numpy().reshape(m, -1)
         cons = prune_redundant(hit_constraints(prep.p.reshape(m, 3), prep.v.reshape(m, 3), points, valid,
-                                               prep.barrier), prep.bounds)  # fmt: skip
+                                               prep.barrier, lidar_hits), prep.bounds)  # fmt: skip
         return cons.i, cons.normal, cons.rhs, cons
 
     @staticmethod

@@ -1,0 +1,36 @@
+"""``egcbf study`` tells the truth about where its report comes from and what is left to do: ``--report-only --root
+COPY`` names COPY as its source, and ``--plan`` counts the cells whose stored result is gone."""
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2] / "docs" / "results" / "equivariance"
+
+
+@pytest.fixture(scope="module")
+def copy(tmp_path_factory):
+    dst = tmp_path_factory.mktemp("study") / "copy"
+    shutil.copytree(ROOT, dst)
+    return dst
+
+
+def test_the_report_names_the_root_it_was_generated_from(cli, copy, tmp_path):
+    report = tmp_path / "equivariance.md"
+    res = cli("study", "--report-only", "--root", copy, "--report", report)
+    assert res.exit_code == 0, res.output
+    text = report.read_text()
+    assert f"from the result files under `{copy.as_posix()}/`" in text
+    assert "docs/results/equivariance/`" not in text
+
+
+def test_the_plan_counts_a_deleted_cell(cli, copy):
+    res = cli("study", "--plan", "--root", copy)
+    assert res.exit_code == 0 and "0 cell(s) of trained runs to evaluate" in res.output, res.output
+    rotated = sorted((copy / "rotated").rglob("*.json"))[0]
+    table = sorted((copy / "cells").rglob("N*.json"))[0]
+    rotated.unlink()
+    table.unlink()
+    res = cli("study", "--plan", "--root", copy)
+    assert res.exit_code == 0 and "2 cell(s) of trained runs to evaluate" in res.output, res.output

@@ -5,6 +5,7 @@ Profiles: ``default`` (25 examples, used in CI) and ``thorough`` (200 examples):
 
 import os
 
+import pytest
 import torch
 from hypothesis import HealthCheck, settings
 
@@ -22,3 +23,21 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 ATOL = {torch.float64: 1e-10, torch.float32: 1e-4}
 
 torch.set_num_threads(1)  # tests run under pytest-xdist (-n 2) on 2 cores
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--device",
+        default="cpu",
+        help="where the tests marked `device` run their float32 computations (cpu | cuda | cuda:N); they compare "
+        "them with float64 on the CPU (benchmarks/gpu_check.sh runs them with --device cuda)",
+    )
+
+
+@pytest.fixture(scope="session")
+def device(request) -> torch.device:
+    """The ``--device`` of the run (tests marked ``device``); a CUDA device that is not there fails, not skips."""
+    dev = torch.device(request.config.getoption("--device"))
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        pytest.fail(f"--device {dev}: torch {torch.__version__} sees no CUDA device")
+    return dev

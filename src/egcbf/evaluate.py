@@ -135,6 +135,9 @@ def run_episodes(
     agents' corrupted perception, its commands reach the rotors corrupted, wind pushes the agents; the metrics read
     the true states and count the cooperative agents only. ``fault_rotation`` rotates the faults' world-frame draws
     (:class:`egcbf.faults.FaultProcess`; the equivariance tests)."""
+    seeds = list(seeds)
+    if not seeds:
+        raise ValueError("run_episodes: seeds is empty; give at least one episode seed")
     single = dataclasses.replace(config, num_envs=1)
     env1 = SwarmEnv(single, device=device, dtype=dtype)
     state = concat_states([env1.reset(s) for s in seeds])

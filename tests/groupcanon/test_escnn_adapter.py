@@ -279,3 +279,32 @@ def test_gradient_wrt_group_element(name):
 
     fd = (f(h) - f(-h)) / (2 * h)
     torch.testing.assert_close(t.grad, fd, atol=1e-6, rtol=1e-6)
+
+
+# --- escnn's SO(3) basis, as docs/escnn.md states it ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("l", [0, 1, 2, 3, 4, 5, 6])
+def test_so3_irrep_l_acts_on_the_stated_real_harmonics(l):
+    """escnn's (and so the adapter's) degree-``l`` irrep is ``S_l``: ``y_l(R x) = psi_l(R) y_l(x)`` for the real
+    spherical harmonics without the Condon-Shortley phase, ordered ``m = -l..l`` (``real_harmonics``)."""
+    from real_harmonics import harmonic_matrix
+
+    g = SO3().sample(5, generator=torch.Generator().manual_seed(l), dtype=F64)
+    ours = from_escnn(SO3_E.irrep(l)).matrix(g).numpy()
+    for k, rotation in enumerate(SO3().rotation(g).numpy()):
+        np.testing.assert_allclose(ours[k], harmonic_matrix(l, rotation), atol=1e-10, rtol=0)
+
+
+def test_so3_irrep1_is_vector_in_yzx_order():
+    """``psi_1(R) = P R P^T`` with ``P`` the rows (e_y, e_z, e_x); ``change_basis(irrep(1), P^T)`` is ``Vector(3)``."""
+    from real_harmonics import YZX
+
+    G = SO3()
+    g = G.sample(64, generator=torch.Generator().manual_seed(3), dtype=F64)
+    P = torch.from_numpy(YZX)
+    x = torch.randn(64, 3, dtype=F64)
+    vector = FieldType(G, [Vector(3)]).act(g, x)
+    torch.testing.assert_close(feature("SO3_l1").act(g, x @ P.T), vector @ P.T, atol=1e-12, rtol=0)
+    in_xyz = from_escnn(eg.change_basis(SO3_E.irrep(1), YZX.T, "so3_l1_xyz"))
+    torch.testing.assert_close(in_xyz.act(g, x), vector, atol=1e-12, rtol=0)

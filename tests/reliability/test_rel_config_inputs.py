@@ -72,6 +72,30 @@ def test_cli_obstacles_that_leave_no_room_are_a_usage_error(tmp_path):
     assert not (tmp_path / "o" / "metrics.json").exists()
 
 
+@pytest.mark.parametrize(
+    ("extra", "match"),
+    [
+        (["--scene", "crossing", "--num-agents", "512", "--area", "2"], "crossing scene's start region of --area 2"),
+        (["--num-agents", "1500", "--area", "2"], "no room for --num-agents 1500 in --area 2"),
+    ],
+)
+def test_cli_swarms_below_the_packing_bound_that_cannot_be_sampled_are_a_usage_error(tmp_path, extra, match):
+    """The packing bound passes these (it is necessary only); rejection sampling cannot place them: refused up
+    front, one line, nothing written."""
+    from typer.testing import CliRunner
+
+    from egcbf.cli import app
+
+    res = CliRunner().invoke(
+        app,
+        ["eval", "--controller", "nominal", *extra, "--episodes", "1", "--out", str(tmp_path / "o"), "--no-progress"],
+    )
+    assert res.exit_code == 2, res.output
+    assert match in res.output and "Traceback" not in res.output
+    assert [line for line in res.output.splitlines() if line.startswith("Error:")] == [res.output.splitlines()[-1]]
+    assert not (tmp_path / "o").exists()
+
+
 def test_cli_area_too_large_is_a_usage_error(tmp_path):
     from typer.testing import CliRunner
 
@@ -126,3 +150,11 @@ def test_train_names_an_argument_of_the_wrong_type(tmp_path):
     with pytest.raises(TypeError, match=r"argument out must be a run directory .*got ''"):
         train(TrainConfig.preset("egcbf+", "tiny"), "")
     assert not any(tmp_path.iterdir())  # refused before anything was written
+
+
+def test_run_episodes_with_no_seeds_names_the_cause():
+    from egcbf.control.controllers import NominalController
+    from egcbf.evaluate import run_episodes
+
+    with pytest.raises(ValueError, match="seeds is empty"):
+        run_episodes(NominalController(), EnvConfig(num_agents=2, area_size=2.0), [])

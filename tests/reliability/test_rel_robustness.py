@@ -32,3 +32,18 @@ def test_cells_of_another_checkpoint_are_stale_and_left_out_of_the_report(tmp_pa
     report = write_report(cfg, tmp_path / "robustness.md", tmp_path / "fig").read_text()
     assert "0 of 4 cells computed; 1 more computed with a checkpoint other than the one now in" in report
     assert "left out as stale" in report and "all 4 cells computed" not in report
+
+
+def test_report_only_names_a_corrupt_cell_file(cli, tmp_path):
+    cfg = RobustnessConfig(axes=("field",), controllers=("egcbf+",), num_agents=(4,), episodes=2,
+                           out=tmp_path / "cells", checkpoints=CHECKPOINTS)  # fmt: skip
+    spec = axis("field").specs()[0]
+    _store(cfg, spec, find_method_checkpoint(CHECKPOINTS, "egcbf+", 0).sha256)
+    path = _cell("egcbf+", spec, 4, 0).path(cfg.out)
+    path.write_text(path.read_text()[:25])  # truncated
+    res = cli("robustness", "--report-only", "--axes", "field", "--controllers", "egcbf+", "--num-agents", "4",
+              "--episodes", "2", "--out", cfg.out, "--checkpoints", CHECKPOINTS, "--report", tmp_path / "r.md",
+              "--figures", tmp_path / "fig")  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert "Warning: 1 cell file(s) cannot be read" in res.output and str(path) in res.output, res.output
+    assert "0 of 4 cells computed" in (tmp_path / "r.md").read_text()

@@ -34,3 +34,20 @@ def test_the_plan_counts_a_deleted_cell(cli, copy):
     table.unlink()
     res = cli("study", "--plan", "--root", copy)
     assert res.exit_code == 0 and "2 cell(s) of trained runs to evaluate" in res.output, res.output
+
+
+def test_report_only_names_corrupt_cell_files(cli, tmp_path):
+    """A truncated zero-shot cell and a corrupted rotated-world cell are named on one warning line each run; the
+    report still comes out (they show as pending) and nothing raises."""
+    root = tmp_path / "copy"
+    shutil.copytree(ROOT, root)
+    rotated = sorted((root / "rotated").rglob("*.json"))[0]
+    table = sorted((root / "cells").rglob("N*.json"))[0]
+    rotated.write_bytes(b"\xff\xfe not json")
+    table.write_text(table.read_text()[:40])
+    res = cli("study", "--report-only", "--root", root, "--report", tmp_path / "equivariance.md")
+    assert res.exit_code == 0, res.output
+    warning = [line for line in res.output.splitlines() if line.startswith("Warning:")]
+    assert len(warning) == 1 and "2 cell file(s) cannot be read" in warning[0], res.output
+    assert str(rotated) in warning[0] and str(table) in warning[0]
+    assert "Traceback" not in res.output

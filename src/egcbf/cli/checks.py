@@ -51,6 +51,18 @@ def usage_error(message: str, cause: BaseException | None = None) -> NoReturn:
     raise typer.Exit(2)
 
 
+def warn_unreadable(paths, command: str) -> None:
+    """One ``Warning:`` line on stderr naming the result files that exist but cannot be read (truncated or
+    corrupted; at most five named): they show as pending, and ``command`` recomputes them."""
+    if not paths:
+        return
+    import typer
+
+    names = ", ".join(str(p) for p in paths[:5]) + (" ..." if len(paths) > 5 else "")
+    typer.echo(f"Warning: {len(paths)} cell file(s) cannot be read (truncated or corrupted): {names}; they show as "
+               f"pending ({command} recomputes them)", err=True)  # fmt: skip
+
+
 def require(ok: bool, message: str) -> None:
     """``usage_error(message)`` unless ``ok``."""
     if not ok:
@@ -134,17 +146,21 @@ def check_env_flags(
                 f"--num-agents {n} cannot be placed in --area {area:g} (agents {sep:g} m apart: at most "
                 f"{max_agents(area, sep, cfg.dim)} fit); use a larger --area or fewer agents"
             )
-        if obstacles:  # one trial placement (milliseconds): obstacles can crowd out the agents' starts and goals
-            from ..env import SwarmEnv
+        # one trial placement (milliseconds; 0.2 s at N = 4096): the packing bound is necessary, not sufficient
+        # (rejection sampling stalls well below it), and obstacles can crowd out the agents' starts and goals
+        from ..env import SwarmEnv
 
-            try:
-                SwarmEnv(replace(cfg, num_envs=1)).reset(0)
-            except ValueError as err:
-                usage_error(
-                    f"--obstacles {obstacles} leave no room for --num-agents {n} in --area {area:g} ({err}); use "
-                    "fewer obstacles or a larger --area",
-                    err,
-                )
+        try:
+            SwarmEnv(replace(cfg, num_envs=1)).reset(0)
+        except ValueError as err:
+            where = f"the {cfg.scene} scene's start region of " if boxes is not None else ""
+            cause = f"--obstacles {obstacles} leave no room for" if obstacles else "there is no room for"
+            usage_error(
+                f"{cause} --num-agents {n} in {where}--area {area:g} ({err}); use "
+                + ("fewer obstacles, " if obstacles else "")
+                + "fewer agents or a larger --area",
+                err,
+            )
         configs.append(cfg)
     return configs
 

@@ -17,6 +17,7 @@ from .checks import (
     parse_sizes,
     prepare_out,
     usage_error,
+    warn_unreadable,
 )
 from .choices import (
     Backend,
@@ -205,11 +206,7 @@ def reproduce(
     prepare_out(report.parent, True, (), flag="--report", lock=False)
     if report_only:
         records = load_cells(cfg)
-        unreadable = unreadable_cells(cfg)
-        if unreadable:
-            names = ", ".join(str(p) for p in unreadable[:5]) + (" ..." if len(unreadable) > 5 else "")
-            typer.echo(f"Warning: {len(unreadable)} cell file(s) cannot be read (truncated or corrupted): {names}; "
-                       "they show as pending (run the sweep to recompute them)", err=True)  # fmt: skip
+        warn_unreadable(unreadable_cells(cfg), "the sweep")
         stale = mismatched_cells(cfg)
         if stale and not records:
             usage_error(describe_mismatch(cfg, stale) + "; pass the flags of the sweep that made them")

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .checks import check_env_flags, parse_device, parse_sizes, prepare_out, require, usage_error
+from .checks import check_env_flags, parse_device, parse_sizes, prepare_out, require, usage_error, warn_unreadable
 from .choices import Backend
 from .root import app
 
@@ -108,6 +108,10 @@ def robustness_cmd(
             failed = err
         except (ValueError, RuntimeError) as err:  # stored cells of other settings; another sweep holds the lock
             usage_error(str(err), err)
+    if report_only:
+        from ..robustness.cells import unreadable_files
+
+        warn_unreadable(unreadable_files(cfg), "egcbf robustness without --report-only")
     typer.echo(f"wrote {write_report(cfg, report, figures)}")
     if failed is not None:
         typer.echo(f"Error: {failed} (every other cell was computed)", err=True)

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from .checks import require
+from .checks import require, warn_unreadable
 from .root import app
 
 
@@ -60,6 +60,10 @@ def study_cmd(
         if evaluate:
             for a in chosen:
                 evaluate_arm(a, root, workers=jobs, log=typer.echo)
+    if report_only:
+        from ..study.results import unreadable_cells
+
+        warn_unreadable(unreadable_cells(ARMS, root), "egcbf study without --report-only")  # the report reads every arm
     path, verdicts = write_report(report, root, quote_in=default_quote_targets(report))
     for claim, v in verdicts.items():
         typer.echo(f"{claim}: {v}")

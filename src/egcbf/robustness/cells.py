@@ -79,6 +79,14 @@ def load_records(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]
     return out
 
 
+def unreadable_files(cfg: RobustnessConfig) -> list:
+    """The cell files of every sweep of ``cfg`` that exist but cannot be read (:func:`egcbf.reproduce.store.
+    unreadable_cells`; each once, sorted): the report shows them as pending, the command line names them."""
+    from ..reproduce.store import unreadable_cells
+
+    return sorted({p for _, _, sw in cfg.sweeps() for p in unreadable_cells(sw)})
+
+
 def load_cells(cfg: RobustnessConfig) -> dict[tuple[str, str, int, int], dict]:
     """``{(method, axis-level spec, N, obstacles): row}`` of every computed cell (:func:`load_records`' rows)."""
     return {key: rec["row"] for key, rec in load_records(cfg).items()}

@@ -14,7 +14,6 @@ evaluating them, resumably.
 
 from __future__ import annotations
 
-import json
 import shutil
 import subprocess
 import sys
@@ -182,8 +181,10 @@ def _rotated_key(run: Run, cell: RotatedCell, sha: str) -> dict:
 
 
 def _rotated_stored(run: Run, cell: RotatedCell, root: str | Path, sha: str) -> bool:
-    path = cell.path(run, root)
-    return path.exists() and json.loads(path.read_text()).get("key") == _rotated_key(run, cell, sha)
+    from ..reproduce.store import read_json
+
+    rec = read_json(cell.path(run, root))  # None for a missing or unreadable file: (re)computed
+    return isinstance(rec, dict) and rec.get("key") == _rotated_key(run, cell, sha)
 
 
 def evaluate_rotated(

@@ -19,6 +19,7 @@ __all__ = [
     "difference",
     "per_episode",
     "rotated_rows",
+    "unreadable_cells",
     "updates_to",
 ]
 
@@ -67,12 +68,35 @@ def method_mean(cells: dict, algo: str, seeds: Sequence[int], n: int, scale: boo
 # ------------------------------------------------------------------------------------------------------ rotated
 def rotated_rows(run: Run, root: str | Path = ROOT) -> dict[RotatedCell, dict]:
     """``{cell: metrics row}`` of the run's computed rotated-world cells."""
+    from ..reproduce.store import read_json
+
     out = {}
     for cell in rotated_cells():
-        path = cell.path(run, root)
-        if path.exists():
-            out[cell] = json.loads(path.read_text())["row"]
+        rec = read_json(cell.path(run, root))
+        if isinstance(rec, dict) and "row" in rec:
+            out[cell] = rec["row"]
     return out
+
+
+def unreadable_cells(arms: Sequence[Arm], root: str | Path = ROOT) -> list[Path]:
+    """The arms' cell files (zero-shot and rotated-world) that exist but cannot be read (truncated or corrupted):
+    the report shows them as pending, the study recomputes them, the command line names them."""
+    from ..reproduce.store import read_json
+    from ..reproduce.store import unreadable_cells as unreadable_sweep_cells
+    from .driver import sweep_config
+
+    bad: set[Path] = set()
+    for arm in arms:
+        cfg = sweep_config(arm, root)
+        if cfg.out.exists():
+            bad.update(unreadable_sweep_cells(cfg))
+        for run in arm.all_runs():
+            for cell in rotated_cells():
+                path = cell.path(run, root)
+                rec = read_json(path) if path.exists() else {"row": None}
+                if not (isinstance(rec, dict) and "row" in rec):
+                    bad.add(path)
+    return sorted(bad)
 
 
 # ------------------------------------------------------------------------------------------------------- curves

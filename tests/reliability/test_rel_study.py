@@ -51,3 +51,18 @@ def test_report_only_names_corrupt_cell_files(cli, tmp_path):
     assert len(warning) == 1 and "2 cell file(s) cannot be read" in warning[0], res.output
     assert str(rotated) in warning[0] and str(table) in warning[0]
     assert "Traceback" not in res.output
+
+
+def test_report_only_leaves_out_cells_of_replaced_weights_and_says_so(cli, tmp_path):
+    """A checkpoint replaced by another training run (here: another arm's EGCBF+): its cells were computed with
+    other weights, so the report leaves them out (pending) and the command names them."""
+    root = tmp_path / "copy"
+    shutil.copytree(ROOT, root)
+    target = root / "checkpoints" / "no-closest" / "egcbf+"
+    shutil.rmtree(target)
+    shutil.copytree(root / "checkpoints" / "cpu-20" / "egcbf+", target)
+    res = cli("study", "--report-only", "--root", root, "--report", tmp_path / "equivariance.md")
+    assert res.exit_code == 0, res.output
+    warning = [line for line in res.output.splitlines() if "computed with other weights" in line]
+    assert len(warning) == 1 and str(root / "cells" / "no-closest") in warning[0], res.output
+    assert "cpu-20" not in warning[0]

@@ -61,9 +61,15 @@ def study_cmd(
             for a in chosen:
                 evaluate_arm(a, root, workers=jobs, log=typer.echo)
     if report_only:
-        from ..study.results import unreadable_cells
+        from ..study.results import stale_cells, unreadable_cells
 
-        warn_unreadable(unreadable_cells(ARMS, root), "egcbf study without --report-only")  # the report reads every arm
+        # the report reads every arm, whichever --arms chose
+        warn_unreadable(unreadable_cells(ARMS, root), "egcbf study without --report-only")
+        stale = stale_cells(ARMS, root)
+        if stale:
+            names = ", ".join(str(p) for p in stale[:5]) + (" ..." if len(stale) > 5 else "")
+            typer.echo(f"Warning: {len(stale)} cell(s) were computed with other weights than the checkpoints now "
+                       f"under {root}: {names}; left out of the report (pending)", err=True)  # fmt: skip
     path, verdicts = write_report(report, root, quote_in=default_quote_targets(report))
     for claim, v in verdicts.items():
         typer.echo(f"{claim}: {v}")

@@ -19,21 +19,70 @@ __all__ = [
     "difference",
     "per_episode",
     "rotated_rows",
+    "stale_cells",
     "unreadable_cells",
     "updates_to",
 ]
 
 
-def arm_cells(arm: Arm, root: str | Path = ROOT) -> dict[tuple[str, int, int, bool], dict]:
-    """``{(algo, seed, N, scale): metrics row}`` of the arm's computed zero-shot cells (``scale``: a cell of the
-    fixed-density study past N = 512)."""
+def _stored_cells(arm: Arm, root: str | Path) -> list[tuple]:
+    """``[(cell, record, stale)]`` of the arm's stored zero-shot cells; ``stale``: computed with other weights than
+    the checkpoint now under the arm's checkpoints (never where that checkpoint cannot be read)."""
     from ..reproduce import load_cells
+    from ..reproduce.store import find_method_checkpoint
     from .driver import sweep_config
 
     cfg = sweep_config(arm, root)
     if not cfg.out.exists():
-        return {}
-    return {(c.method, c.train_seed or 0, c.num_agents, c.scale): rec["row"] for c, rec in load_cells(cfg).items()}
+        return []
+    now: dict[tuple[str, int], str | None] = {}
+    out = []
+    for c, rec in load_cells(cfg).items():
+        run = (c.method, c.train_seed or 0)
+        if run not in now:
+            try:
+                now[run] = find_method_checkpoint(cfg.checkpoints, *run).sha256
+            except (FileNotFoundError, ValueError, OSError):
+                now[run] = None
+        stored = rec["key"].get("checkpoint_sha256")
+        out.append((c, rec, now[run] is not None and stored is not None and stored != now[run]))
+    return out
+
+
+def arm_cells(arm: Arm, root: str | Path = ROOT) -> dict[tuple[str, int, int, bool], dict]:
+    """``{(algo, seed, N, scale): metrics row}`` of the arm's computed zero-shot cells (``scale``: a cell of the
+    fixed-density study past N = 512); cells computed with other weights than the arm's checkpoints now hold are
+    left out (:func:`stale_cells`)."""
+    return {(c.method, c.train_seed or 0, c.num_agents, c.scale): rec["row"]
+            for c, rec, stale in _stored_cells(arm, root) if not stale}  # fmt: skip
+
+
+def _current_sha(run: Run, root: str | Path) -> str | None:
+    from ..checkpoint import sha256
+
+    try:
+        return sha256(run.checkpoint_dir(root) / "model.safetensors")
+    except OSError:
+        return None
+
+
+def stale_cells(arms: Sequence[Arm], root: str | Path = ROOT) -> list[Path]:
+    """The arms' stored cells (zero-shot and rotated-world) computed with other weights than the checkpoint now
+    under the root: the report leaves them out (pending), the study recomputes them, the command line names them."""
+    from .driver import sweep_config
+
+    out: list[Path] = []
+    for arm in arms:
+        if arm.evaluation != "rotated":
+            out += [c.path(sweep_config(arm, root).out) for c, _, stale in _stored_cells(arm, root) if stale]
+            continue
+        for run in arm.all_runs():
+            now = _current_sha(run, root)
+            for cell, rec in _rotated_records(run, root).items():
+                stored = rec["key"].get("checkpoint_sha256")
+                if now is not None and stored not in (None, now):
+                    out.append(cell.path(run, root))
+    return sorted(out)
 
 
 def per_episode(row: dict | None, key: str) -> list[float] | None:
@@ -67,14 +116,22 @@ def method_mean(cells: dict, algo: str, seeds: Sequence[int], n: int, scale: boo
 
 # ------------------------------------------------------------------------------------------------------ rotated
 def rotated_rows(run: Run, root: str | Path = ROOT) -> dict[RotatedCell, dict]:
-    """``{cell: metrics row}`` of the run's computed rotated-world cells."""
+    """``{cell: metrics row}`` of the run's computed rotated-world cells made with the weights its checkpoint now
+    holds (:func:`stale_cells`)."""
+    now = _current_sha(run, root)
+    return {cell: rec["row"] for cell, rec in _rotated_records(run, root).items()
+            if now is None or rec["key"].get("checkpoint_sha256") in (None, now)}  # fmt: skip
+
+
+def _rotated_records(run: Run, root: str | Path) -> dict[RotatedCell, dict]:
+    """The run's readable rotated-world cell records (``key`` and ``row``)."""
     from ..reproduce.store import read_json
 
     out = {}
     for cell in rotated_cells():
         rec = read_json(cell.path(run, root))
-        if isinstance(rec, dict) and "row" in rec:
-            out[cell] = rec["row"]
+        if isinstance(rec, dict) and "row" in rec and isinstance(rec.get("key"), dict):
+            out[cell] = rec
     return out
 
 

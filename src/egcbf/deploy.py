@@ -1,4 +1,4 @@
-"""One agent's learned controller from its own observations: what a robot runs on board (issue 28).
+"""One agent's learned controller from its own observations: what a robot runs on board.
 
 The paper's controllers are trained centrally and executed distributed: each robot runs its own copy of the policy
 on what it senses and hears. :class:`AgentController` is that copy, built from a checkpoint. One call takes one

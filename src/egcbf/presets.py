@@ -30,7 +30,7 @@ def method_group(algo: str, robot: str = "quadrotor") -> str:
 
 PRESETS = ("cpu", "paper-cpu", "paper-cpu-mlp", "cpu-torque", "paper", "tiny", "gcbfplus")
 
-#: GCBF+'s training setting per benchmark robot (its pretrained models, ../shared/reference/gcbfplus-facts.md):
+#: GCBF+'s training setting per benchmark robot (its pretrained models; docs/robots.md):
 #: obstacles and arena side of its 8-agent training scenes
 GCBFPLUS_TRAINING = {
     "single_integrator": (8, 4.0),
@@ -164,7 +164,7 @@ def _planar_fields(algo: str, name: str, robot: str) -> tuple[dict[str, Any], di
     (``edge_sum``, invariant coefficients): an MLP head imitated the learned-CBF QP too weakly (docs/robots.md,
     "Training the planar swarm"); 32 agents and 8 obstacles at 1-3.6 agents per m^2.
 
-    ``"gcbfplus"`` (GCBF+'s benchmark robots, issue 26): the same networks in GCBF+'s training setting (8 agents,
+    ``"gcbfplus"`` (GCBF+'s benchmark robots): the same networks in GCBF+'s training setting (8 agents,
     its obstacles and arena, :data:`GCBFPLUS_TRAINING`), with the arena also 0.7x as wide every other update
     (twice the density: the reference table's densest 2-D cells), validated on 16 agents without obstacles in
     the training arena (a cell of the reference table), 30 CPU-minutes."""

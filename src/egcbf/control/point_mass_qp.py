@@ -1,5 +1,5 @@
 """The hand-crafted decentralized CBF-QP (dCBF-QP) for GCBF+'s point masses (the single and double integrators and
-the linear drone) and its cars (the Dubins car, our unicycle) (issue 26, part 4).
+the linear drone) and its cars (the Dubins car, our unicycle).
 
 Each agent solves one small QP over its own control ``u_i`` (world frame, in the box that acts at its state:
 :meth:`Robot.effective_control_bounds`, the robot's box less the pushes that a speed clip discards), from what it

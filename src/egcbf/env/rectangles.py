@@ -1,10 +1,10 @@
-"""Rotated rectangle obstacles in the plane, as the GCBF+ benchmark's 2-D environments use them (issue 26, part 2).
+"""Rotated rectangle obstacles in the plane, as the GCBF+ benchmark's 2-D environments use them.
 
 A rectangle is its centre ``c`` (world frame), its half sides ``(a, b)`` along its own axes, and its orientation
 ``(cos theta, sin theta)`` (the direction of its first axis). ``B`` environments of ``K`` rectangles each:
 ``centers (B, K, 2)``, ``half_sizes (B, K, 2)``, ``orientations (B, K, 2)``.
 
-Geometry (GCBF+'s conventions, ``../shared/reference/gcbfplus-facts.md``):
+Geometry (GCBF+'s conventions, docs/robots.md):
 
 * **inside with inflation r** (:meth:`Rectangles.contains`): with ``d = p - c`` in the rectangle's axes,
   ``x = |d . e1| - a``, ``y = |d . e2| - b``, a point is inside iff ``(x < r and y < 0) or (x < 0 and y < r) or

@@ -1,5 +1,5 @@
-"""GCBF+'s Dubins car, SE(2)-equivariant (issue 26). Our :mod:`egcbf.robots.unicycle` stays the control-affine
-variant; this one follows the reference (``../shared/reference/gcbfplus-facts.md``):
+"""GCBF+'s Dubins car, SE(2)-equivariant. Our :mod:`egcbf.robots.unicycle` stays the control-affine
+variant; this one follows the reference (docs/robots.md):
 
 State ``x`` ``(*batch, 5)``, control ``u`` ``(*batch, 2)``::
 

@@ -1,6 +1,6 @@
-"""GCBF+'s planar point-mass robots: the single integrator and the double integrator (issue 26, part 1).
+"""GCBF+'s planar point-mass robots: the single integrator and the double integrator.
 
-Both follow the GCBF+ reference's conventions exactly (``../shared/reference/gcbfplus-facts.md``, "Robot details"):
+Both follow the GCBF+ reference's conventions exactly (docs/robots.md, "GCBF+'s single and double integrators"):
 
 =================== ================== ============================== ================== ==========================
 robot               state              control (box)                  dynamics           state clip (after a step)

@@ -41,7 +41,7 @@ def _compared(cfg: RobustnessConfig, name: str) -> tuple[str, str] | None:
 
 
 def _receivers_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
-    """The fix of the message faults (issue 27, item 4): the default field conditions with the receivers holding a
+    """The fix of the message faults: the default field conditions with the receivers holding a
     lost neighbour's last message and predicting every message over its age, against the same conditions without,
     for every controller that reads messages (paired over the same scenes)."""
     pair = _compared(cfg, "field_receivers")
@@ -65,7 +65,7 @@ def _receivers_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
 
 
 def _actuation_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
-    """The fix of actuation delay (issue 27, item 4): two steps of delay with every agent commanding for its state
+    """The fix of actuation delay: two steps of delay with every agent commanding for its state
     predicted over the delay, against the same delay without (every controller; paired over the same scenes)."""
     pair = _compared(cfg, "act_delay_predict")
     if pair is None:
@@ -97,7 +97,7 @@ def _actuation_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
 
 
 def _disturbance_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
-    """The fix of wind and thrust gain errors (issue 27, item 4): the compared wind and thrust gain levels with every
+    """The fix of wind and thrust gain errors: the compared wind and thrust gain levels with every
     agent's disturbance observer, against the same faults without (every controller; paired over the same
     scenes)."""
     tables = []

@@ -1,4 +1,4 @@
-"""The equivariance study (issue 25, docs/equivariance.md): the paper's three claims about what SE(2)xR
+"""The equivariance study (docs/equivariance.md): the paper's three claims about what SE(2)xR
 equivariance buys, tested with training seeds and confidence intervals.
 
 * :mod:`~egcbf.study.plan`: the arms (training recipes), their runs and their evaluation cells;

@@ -1,7 +1,7 @@
 """What the equivariance study (docs/equivariance.md) trains and evaluates: its arms, their runs and their cells.
 
 An *arm* is one training recipe run for several methods and training seeds under one wall-time budget, and what it
-is evaluated on. The arms test the paper's three claims (issue 25):
+is evaluated on. The arms test the paper's three claims:
 
 * ``paper-cpu`` and ``paper-cpu-mlp``: the paper's training regime (8 agents, ``l = 2``, 5 obstacles) with our heads
   and with the paper's MLP heads; zero-shot evaluation at ``l = 4`` for N = 8 ... 512 and at fixed density past it

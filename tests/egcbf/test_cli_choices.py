@@ -27,7 +27,7 @@ from egcbf.control.controllers import CONTROLLERS
 from egcbf.env.scenes import SCENES
 from egcbf.export import FORMATS
 from egcbf.reproduce.plan import BACKENDS
-from egcbf.robots import ROBOTS
+from egcbf.robots import BUILTIN_ROBOTS, ROBOTS
 
 OPTIONS = [  # (command, flag, enum)
     ("eval", "--controller", Controller),
@@ -53,7 +53,11 @@ def test_the_choices_are_the_library_registries():
     assert _values(Preset) == list(PRESETS)
     assert _values(Dtype) == list(DTYPES)
     assert _values(Backend) == list(BACKENDS)
-    assert _values(RobotName) == list(ROBOTS)
+    assert (
+        _values(RobotName)
+        == [r for r in ROBOTS if r in BUILTIN_ROBOTS]
+        == sorted(BUILTIN_ROBOTS, key=list(ROBOTS).index)
+    )
     assert _values(SafetyFilter) == list(FILTERS)
     assert _values(SceneName) == list(SCENES)
     assert _values(ExportFormat) == list(FORMATS)
@@ -121,3 +125,32 @@ def test_the_commands_pass_plain_strings_on(monkeypatch, tmp_path):
     assert (type(config.algo), config.algo, type(config.group)) == (str, "gcbf+", str)
     assert list(seen["demo"]) == ["dcbf"] and all(type(k) is str for k in seen["demo"])
     assert type(seen["reproduce"]["backend"]) is str and seen["reproduce"]["backend"] == "ray"
+
+
+def test_a_robot_registered_by_the_user_is_accepted_by_eval_robot(tmp_path):
+    """``--robot`` takes the registry as it stands when the command runs: examples/new_robot.py's robot, once
+    registered, is evaluated; an unknown name is one error line listing the registered robots, the user's too."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "examples" / "new_robot.py"
+    spec = importlib.util.spec_from_file_location("new_robot_example", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["new_robot_example"] = module
+    spec.loader.exec_module(module)  # registers DiffDrive as "diffdrive"
+    name = module.DiffDrive.name
+    try:
+        assert name in ROBOTS and name not in _values(RobotName)
+        res = CliRunner().invoke(cli.app, ["eval", "--controller", "nominal", "--robot", name, "--num-agents", "4",
+                                           "--area", "2", "--episodes", "1", "--max-steps", "5", "--out",
+                                           str(tmp_path / "o"), "--no-progress"])  # fmt: skip
+        assert res.exit_code == 0, res.output
+        assert json.loads((tmp_path / "o" / "run.json").read_text())["robot"] == name
+        res = CliRunner().invoke(cli.app, ["eval", "--controller", "nominal", "--robot", "bogus", "--out",
+                                           str(tmp_path / "p"), "--no-progress"])  # fmt: skip
+        assert res.exit_code == 2 and "--robot: unknown robot 'bogus'" in res.output and name in res.output, res.output
+        assert not (tmp_path / "p").exists()
+    finally:  # the registry as the other tests expect it
+        del ROBOTS[name]
+        sys.modules.pop("new_robot_example", None)

@@ -14,6 +14,7 @@ import re
 from enum import Enum
 
 __all__ = [
+    "ROBOT_METAVAR",
     "Backend",
     "Controller",
     "DemoMethod",
@@ -25,6 +26,7 @@ __all__ = [
     "SafetyFilter",
     "SceneName",
     "choice_error",
+    "robot_choice",
 ]
 
 
@@ -88,7 +90,8 @@ class Preset(str, Enum):
 
 
 class RobotName(str, Enum):
-    """A robot (``egcbf.robots.ROBOTS``, the ones shipped): ``egcbf train --robot``, ``egcbf eval --robot``."""
+    """The robots shipped (``egcbf.robots.BUILTIN_ROBOTS``): what ``--help`` lists for ``--robot``. The option itself
+    takes any robot registered when the command runs (:func:`robot_choice`), a user's own too."""
 
     quadrotor = "quadrotor"
     unicycle = "unicycle"
@@ -121,6 +124,23 @@ class Backend(str, Enum):
 
 # typer's (and click's) message for a value outside the choices: "'ppo' is not one of 'gcbf', 'gcbf+'."
 _NOT_ONE_OF = re.compile(r"""(?P<value>'[^']*'|"[^"]*") is not one of (?P<choices>.+?)\.?$""", re.DOTALL)
+
+
+def robot_choice(value: str | None) -> str | None:
+    """The ``--robot`` option's check: a name in ``egcbf.robots.ROBOTS`` as it stands when the command runs (the
+    shipped robots and any registered with :func:`egcbf.robots.register_robot`), else typer's one-line choice error
+    (:func:`choice_error`)."""
+    import typer
+
+    from ..robots import ROBOTS
+
+    if value is None or value in ROBOTS:
+        return value
+    raise typer.BadParameter(f"{value!r} is not one of {', '.join(repr(name) for name in ROBOTS)}.")
+
+
+#: the ``--robot`` option's metavar: the shipped robots (any registered one is accepted too)
+ROBOT_METAVAR = "[" + "|".join(m.value for m in RobotName) + "|a registered robot]"
 
 
 def choice_error(flag: str, name: str, message: str) -> str | None:

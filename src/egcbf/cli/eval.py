@@ -26,11 +26,12 @@ from .checks import (
     usage_error,
 )
 from .choices import (
+    ROBOT_METAVAR,
     Controller,
     Dtype,
-    RobotName,
     SafetyFilter,
     SceneName,
+    robot_choice,
 )
 from .root import _THREADS_HELP, _threads, _torch_threads, allocator_setting, app
 
@@ -468,8 +469,12 @@ def eval_cmd(
         typer.Option("--resume", help="continue OUT's interrupted run (same flags): its finished swarm sizes are kept"),
     ] = False,
     robot: Annotated[
-        RobotName | None,
-        typer.Option(help="the robot of a --controller's swarm (default: quadrotor); a --checkpoint's is its own"),
+        str | None,
+        typer.Option(
+            metavar=ROBOT_METAVAR,
+            callback=robot_choice,
+            help="the robot of a --controller's swarm (default: quadrotor); a --checkpoint's is its own",
+        ),
     ] = None,
     filter: Annotated[
         SafetyFilter,
@@ -546,7 +551,7 @@ def eval_cmd(
             threads_reason=reason,
             overwrite=overwrite,
             allocator=allocator_setting(),
-            robot=None if robot is None else robot.value,
+            robot=robot,
             filter=filter.value,
             filter_alpha=filter_alpha,
             filter_margin=filter_margin,

@@ -16,9 +16,10 @@ from .checks import (
     usage_error,
 )
 from .choices import (
+    ROBOT_METAVAR,
     LearnedMethod,
     Preset,
-    RobotName,
+    robot_choice,
 )
 from .root import app
 
@@ -56,7 +57,12 @@ def train(
     ] = False,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
     robot: Annotated[
-        RobotName | None, typer.Option(help="the robot (default: quadrotor; the unicycle has the presets cpu and tiny)")
+        str | None,
+        typer.Option(
+            metavar=ROBOT_METAVAR,
+            callback=robot_choice,
+            help="the robot (default: quadrotor; the unicycle has the presets cpu and tiny)",
+        ),
     ] = None,
     init_from: Annotated[
         Path | None,
@@ -73,7 +79,6 @@ def train(
 
     algo = None if algo is None else algo.value
     preset = None if preset is None else preset.value
-    robot = None if robot is None else robot.value
     require(steps is None or steps >= 1, f"--steps must be >= 1, got {steps}")
     require(threads is None or threads >= 1, f"--threads must be >= 1, got {threads}")
     if tensorboard:

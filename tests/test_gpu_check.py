@@ -67,6 +67,5 @@ def test_a_run_cut_short_keeps_what_it_did(tmp_path):
     assert res.returncode == 0, res.stderr
     jobs, names = _jobs(tmp_path)
     assert jobs["info"] == "0" and "gpu_check/info.json" in names
-    assert "137" in jobs.values() or "skipped" in jobs.values(), jobs
-    assert "skipped" in jobs.values()
+    assert "skipped" in jobs.values(), jobs
     assert "no evaluation finished" in (tmp_path / "summary.md").read_text()

@@ -51,16 +51,22 @@ def usage_error(message: str, cause: BaseException | None = None) -> NoReturn:
     raise typer.Exit(2)
 
 
-def warn_unreadable(paths, command: str) -> None:
-    """One ``Warning:`` line on stderr naming the result files that exist but cannot be read (truncated or
-    corrupted; at most five named): they show as pending, and ``command`` recomputes them."""
+def warn_cells(paths, problem: str, consequence: str) -> None:
+    """One ``Warning:`` line on stderr about result files a report leaves out: ``"Warning: <count> <problem>:
+    <at most five paths>; <consequence>"``; nothing when ``paths`` is empty."""
     if not paths:
         return
     import typer
 
     names = ", ".join(str(p) for p in paths[:5]) + (" ..." if len(paths) > 5 else "")
-    typer.echo(f"Warning: {len(paths)} cell file(s) cannot be read (truncated or corrupted): {names}; they show as "
-               f"pending ({command} recomputes them)", err=True)  # fmt: skip
+    typer.echo(f"Warning: {len(paths)} {problem}: {names}; {consequence}", err=True)
+
+
+def warn_unreadable(paths, command: str) -> None:
+    """:func:`warn_cells` for result files that exist but cannot be read (truncated or corrupted): they show as
+    pending, and ``command`` recomputes them."""
+    warn_cells(paths, "cell file(s) cannot be read (truncated or corrupted)",
+               f"they show as pending ({command} recomputes them)")  # fmt: skip
 
 
 def require(ok: bool, message: str) -> None:

@@ -347,8 +347,8 @@ def run_eval(
         meta.update(finished=[r["num_agents"] for r in rows], wall_s=round(time.time() - t0, 1))
         write_json_atomic(out / "run.json", meta)
 
-    def _evaluate_sizes():
-        return (
+    try:
+        rows, _ = (
             ([], None)
             if not sizes
             else evaluate(
@@ -374,9 +374,6 @@ def run_eval(
                 faults=fault_config,
             )
         )
-
-    try:
-        rows, _ = _evaluate_sizes()
     except BaseException:
         if previous is None and not meta["finished"]:  # nothing finished: a failed run leaves nothing behind
             (out / "run.json").unlink(missing_ok=True)

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from .checks import require, warn_unreadable
+from .checks import require, warn_cells, warn_unreadable
 from .root import app
 
 
@@ -65,11 +65,8 @@ def study_cmd(
 
         # the report reads every arm, whichever --arms chose
         warn_unreadable(unreadable_cells(ARMS, root), "egcbf study without --report-only")
-        stale = stale_cells(ARMS, root)
-        if stale:
-            names = ", ".join(str(p) for p in stale[:5]) + (" ..." if len(stale) > 5 else "")
-            typer.echo(f"Warning: {len(stale)} cell(s) were computed with other weights than the checkpoints now "
-                       f"under {root}: {names}; left out of the report (pending)", err=True)  # fmt: skip
+        warn_cells(stale_cells(ARMS, root), f"cell(s) were computed with other weights than the checkpoints now "
+                   f"under {root}", "left out of the report (pending)")  # fmt: skip
     path, verdicts = write_report(report, root, quote_in=default_quote_targets(report))
     for claim, v in verdicts.items():
         typer.echo(f"{claim}: {v}")

@@ -20,10 +20,10 @@ from pathlib import Path
 
 from ..report import md_table
 from ..robots.quadrotor.dynamics import DEFAULT_DT, DEFAULT_MAX_STEPS
-from .paper import LABELS, METHODS, base_method
+from .paper import LABELS, METHODS
 from .plan import Cell, SweepConfig
 from .stats import episodes_text, scale_text
-from .store import find_method_checkpoint, read_invocations
+from .store import current_sha256, read_invocations
 
 __all__ = ["cell_invocations", "machine_text", "provenance_markdown", "regenerate_command", "timing_text"]
 
@@ -210,17 +210,6 @@ def _invocation_table(invocations: list[dict]) -> str:
     return md_table(head, rows)
 
 
-def _current_sha(cfg: SweepConfig, method: str, train_seed: int | None) -> str | None:
-    """The sha256 of the checkpoint now under ``cfg.checkpoints`` for this run (a filtered method's: its base
-    method's), or ``None`` (hand-crafted, or no readable checkpoint there: ``--report-only`` works without them)."""
-    if train_seed is None:
-        return None
-    try:
-        return find_method_checkpoint(cfg.checkpoints, base_method(method), train_seed).sha256
-    except (FileNotFoundError, ValueError, OSError):
-        return None
-
-
 def _runs_table(cfg: SweepConfig, records: dict[Cell, dict]) -> tuple[str, int, list[str]]:
     """The table of runs (method, training seed), the number of cells whose checkpoint differs from the current
     one, and the runs whose current checkpoint was not found."""
@@ -235,7 +224,7 @@ def _runs_table(cfg: SweepConfig, records: dict[Cell, dict]) -> tuple[str, int, 
         paths = sorted({str(r["meta"]["checkpoint"]) for r in recs if r["meta"].get("checkpoint")})
         steps = sorted({r["meta"]["checkpoint_step"] for r in recs if r["meta"].get("checkpoint_step") is not None})
         shas = Counter(r["key"].get("checkpoint_sha256") for r in recs if r["key"].get("checkpoint_sha256"))
-        current = _current_sha(cfg, m, s) if shas else None
+        current = current_sha256(cfg.checkpoints, m, s) if shas else None
         if shas and current is None:
             missing.append(f"{LABELS[m]} seed {s}")
         sha_text = []

@@ -27,12 +27,13 @@ from pathlib import Path
 
 from ..atomic import write_json_atomic
 from ..checkpoint import sha256
-from .paper import BASELINES, LABELS
+from .paper import BASELINES, LABELS, base_method
 from .plan import Cell, SweepConfig, cell_key, filter_settings
 
 __all__ = [
     "CheckpointInfo",
     "checkpoint_dir",
+    "current_sha256",
     "describe_mismatch",
     "find_method_checkpoint",
     "import_baseline",
@@ -67,6 +68,19 @@ def checkpoint_dir(root: str | Path, method: str, train_seed: int = 0) -> Path:
     """Where the checkpoint of ``method`` trained with ``train_seed`` lives: ``ROOT/<method>`` for seed 0,
     ``ROOT/seeds/<method>-s<k>`` for seed ``k`` (checkpoints/README.md)."""
     return Path(root) / method if not train_seed else Path(root) / "seeds" / f"{method}-s{train_seed}"
+
+
+def current_sha256(root: str | Path, method: str, train_seed: int | None) -> str | None:
+    """The sha256 of the weights of ``method``'s checkpoint now under ``root`` for ``train_seed``
+    (:func:`find_method_checkpoint`; a filtered method's: its base method's), or ``None``: a hand-crafted method
+    (``train_seed`` None), or no readable checkpoint there (reports regenerate without the checkpoints). A stored
+    cell whose sha256 differs from it was computed with other weights (stale)."""
+    if train_seed is None:
+        return None
+    try:
+        return find_method_checkpoint(root, base_method(method), train_seed).sha256
+    except (FileNotFoundError, ValueError, OSError):
+        return None
 
 
 def find_method_checkpoint(root: str | Path, method: str, train_seed: int = 0) -> CheckpointInfo:

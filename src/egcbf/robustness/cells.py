@@ -9,7 +9,7 @@ from ..bootstrap import Interval, mean_ci
 from ..reproduce.paper import BASELINES, base_method
 from ..reproduce.plan import Cell
 from ..reproduce.provenance import machine_text
-from ..reproduce.store import find_method_checkpoint, made_with, read_json
+from ..reproduce.store import current_sha256, made_with, read_json
 from .plan import RobustnessConfig, axis
 
 __all__ = [
@@ -30,22 +30,11 @@ def _cell(method: str, spec: str, n: int, obstacles: int) -> Cell:
     return Cell(method, obstacles, n, None if base_method(method) in BASELINES else 0, None, spec)
 
 
-def _current_shas(cfg: RobustnessConfig) -> dict[str, str | None]:
-    """``{learned method: sha256 of its checkpoint now under cfg.checkpoints}`` (training seed 0; ``None`` where
-    none can be read there, e.g. regenerating the report without the checkpoints)."""
-    shas = {}
-    for m in {base_method(m) for m in cfg.controllers} - set(BASELINES):
-        try:
-            shas[m] = find_method_checkpoint(cfg.checkpoints, m, 0).sha256
-        except (FileNotFoundError, ValueError):
-            shas[m] = None
-    return shas
-
-
 def stale_records(cfg: RobustnessConfig, records: dict) -> dict[tuple[str, str, int, int], str]:
     """The keys of ``records`` (:func:`load_records`) whose cell was computed with another checkpoint than the one
     now under ``cfg.checkpoints``: ``{key: stored sha256}`` (none where the current checkpoint cannot be read)."""
-    shas = _current_shas(cfg)
+    methods = {base_method(m) for m in cfg.controllers} - set(BASELINES)
+    shas = {m: current_sha256(cfg.checkpoints, m, 0) for m in methods}  # the shipped checkpoints: training seed 0
     out = {}
     for key, rec in records.items():
         now = shas.get(base_method(key[0]))

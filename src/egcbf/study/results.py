@@ -29,7 +29,7 @@ def _stored_cells(arm: Arm, root: str | Path) -> list[tuple]:
     """``[(cell, record, stale)]`` of the arm's stored zero-shot cells; ``stale``: computed with other weights than
     the checkpoint now under the arm's checkpoints (never where that checkpoint cannot be read)."""
     from ..reproduce import load_cells
-    from ..reproduce.store import find_method_checkpoint
+    from ..reproduce.store import current_sha256
     from .driver import sweep_config
 
     cfg = sweep_config(arm, root)
@@ -40,10 +40,7 @@ def _stored_cells(arm: Arm, root: str | Path) -> list[tuple]:
     for c, rec in load_cells(cfg).items():
         run = (c.method, c.train_seed or 0)
         if run not in now:
-            try:
-                now[run] = find_method_checkpoint(cfg.checkpoints, *run).sha256
-            except (FileNotFoundError, ValueError, OSError):
-                now[run] = None
+            now[run] = current_sha256(cfg.checkpoints, *run)
         stored = rec["key"].get("checkpoint_sha256")
         out.append((c, rec, now[run] is not None and stored is not None and stored != now[run]))
     return out
@@ -150,7 +147,9 @@ def unreadable_cells(arms: Sequence[Arm], root: str | Path = ROOT) -> list[Path]
         for run in arm.all_runs():
             for cell in rotated_cells():
                 path = cell.path(run, root)
-                rec = read_json(path) if path.exists() else {"row": None}
+                if not path.exists():
+                    continue
+                rec = read_json(path)
                 if not (isinstance(rec, dict) and "row" in rec):
                     bad.add(path)
     return sorted(bad)

@@ -28,12 +28,12 @@ import argparse
 import copy
 import dataclasses
 import json
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from gen_certificate_diagnosis import _prior
 
 import egcbf.algo.edge_qp as edge_qp
 from egcbf.algo.filtered import FilterConfig, FilteredController
@@ -44,7 +44,7 @@ from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.evaluate import concat_states, episode_seed
 from egcbf.graph import KIND_AGENT, KIND_GOAL
 from egcbf.nn.models import frames_for
-from egcbf.report import md_table, replace_section
+from egcbf.report import cpu_name, md_table, replace_section
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "results" / "learned_filter_variants.json"
@@ -59,15 +59,6 @@ WIDTH = 0.2
 LIFT = 6.0
 KEYS = ("states", "unsafe", "unsafe_claimed", "preceding", "missed", "claims", "violated", "filter_bad",
         "negatives_known", "cautious")  # fmt: skip
-
-
-def _prior(cbf):
-    """The CBF with its learned correction zeroed: the head's untrained closest-approach prior."""
-    net = copy.deepcopy(cbf)
-    with torch.no_grad():
-        net.head.edge_mlp[-1].weight.zero_()
-        net.head.edge_mlp[-1].bias.zero_()
-    return net
 
 
 def _continuous_entry(cbf):
@@ -161,17 +152,6 @@ def _episode(ctrl, barriers: dict, env_cfg: EnvConfig, look: _LookAhead | None) 
     return out
 
 
-def _cpu() -> str:
-    """The CPU's model name (Linux), else the platform's processor string."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
 def run() -> dict:
     torch.set_num_threads(1)
     policy, tc = load_network(CHECKPOINT, "policy")
@@ -182,7 +162,7 @@ def run() -> dict:
     barriers = {n: LearnedBarrier(net, tc.alpha) for n, net in barriers.items()}
     env_cfg = EnvConfig.for_robot("quadrotor", num_agents=512, area_size=4.0, num_obstacles=0)
     look = _LookAhead()
-    out = {"checkpoint": "checkpoints/egcbf+", "seed": SEED, "cpu": _cpu(), "lookahead": LOOKAHEAD, "width": WIDTH,
+    out = {"checkpoint": "checkpoints/egcbf+", "seed": SEED, "cpu": cpu_name(), "lookahead": LOOKAHEAD, "width": WIDTH,
            "lift": LIFT, "filters": {}}  # fmt: skip
     filters = {
         "shipped": (FilterConfig.for_kind("cbf"), cbf, None),

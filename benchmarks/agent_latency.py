@@ -5,7 +5,7 @@ The observation is agent 0 of a seeded scene with ``--neighbours`` neighbours in
 hits (32), all rows valid, exported with exactly that many rows (``egcbf export --max-neighbours 20 --max-hits 32``).
 Timed: the fixed-shape module on its padded inputs (PyTorch eager, the TorchScript file, the ONNX file under
 onnxruntime with one intra-op thread), interleaved, median of ``--repeats`` blocks of calls; and the whole
-:class:`egcbf.deploy.AgentController` call in PyTorch (padding, nearest-row selection and the module).
+:class:`egcbf.deploy.agent.AgentController` call in PyTorch (padding, nearest-row selection and the module).
 FLOPs: ``torch.utils.flop_counter`` on the eager module (matrix products and the like; element-wise work is not
 counted).
 
@@ -30,11 +30,11 @@ from pathlib import Path
 
 import torch
 
-from egcbf.deploy import AgentController
+from egcbf.deploy.agent import AgentController
+from egcbf.deploy.export import INPUT_NAMES, OUTPUT_NAMES, export_controller, exportable
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.export import INPUT_NAMES, OUTPUT_NAMES, export_controller, exportable
-from egcbf.report import cpu_name, replace_section
-from egcbf.threads import busy_cpus
+from egcbf.io.report import cpu_name, replace_section
+from egcbf.io.threads import busy_cpus
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,7 +1,7 @@
 """Closed-loop safety of the hand-crafted CBF-QP baselines (the numbers quoted in ``docs/baselines.md``).
 
 Runs full episodes (seeded resets) with each controller and barrier variant and prints one row per setting:
-safe / reach / success rate (``egcbf.metrics``), the smallest agent–agent distance seen, the steps whose QPs
+safe / reach / success rate (``egcbf.evaluate.metrics``), the smallest agent–agent distance seen, the steps whose QPs
 needed slack, failed solves and the median controller time.
 
     .venv/bin/python benchmarks/cbf_qp_safety.py                           # the docs' sweep (~10 min, 2 cores)
@@ -20,7 +20,7 @@ import torch
 
 from egcbf.control.controllers import make_controller
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.metrics import EpisodeStats, summarize
+from egcbf.evaluate.metrics import EpisodeStats, summarize
 
 VARIANTS = {
     "nominal": ("nominal", {}),

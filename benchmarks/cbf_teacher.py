@@ -36,12 +36,12 @@ import torch
 from validation_scene import add_scene_arguments, write_record
 
 from egcbf.algo.edge_qp import edge_qp_controls
-from egcbf.algo.filtered import FilterConfig, FilteredController
 from egcbf.algo.interface import solve_command_qp
-from egcbf.checkpoint import load_learner
-from egcbf.evaluate import evaluate
-from egcbf.graph import build_graph
+from egcbf.control.filters import FilterConfig, FilteredController
+from egcbf.env.graph import build_graph
+from egcbf.evaluate.episodes import evaluate
 from egcbf.nn import CBFNet
+from egcbf.train.checkpoint import load_learner
 
 
 class EdgeTeacher:

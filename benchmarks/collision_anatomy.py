@@ -16,9 +16,9 @@ import statistics
 import torch
 from validation_scene import add_scene_arguments, write_record
 
-from egcbf.checkpoint import load_controller
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.evaluate import episode_seed
+from egcbf.evaluate.episodes import episode_seed
+from egcbf.train.checkpoint import load_controller
 
 
 def contacts(checkpoint: str, num_agents: int, area: float, episodes: int, seed: int) -> list[dict]:

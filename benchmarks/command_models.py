@@ -21,8 +21,8 @@ import dataclasses
 import torch
 
 from egcbf.algo.interface import AccelInterface, solve_command_qp
-from egcbf.checkpoint import load_learner
-from egcbf.report import replace_section
+from egcbf.io.report import replace_section
+from egcbf.train.checkpoint import load_learner
 
 
 def main() -> None:

@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.graph import build_graph
-from egcbf.report import replace_section
+from egcbf.env.graph import build_graph
+from egcbf.io.report import replace_section
 from egcbf.robots.quadrotor import dynamics as dyn
 
 BEGIN, END = "<!-- env-scaling:begin -->", "<!-- env-scaling:end -->"

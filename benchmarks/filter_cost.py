@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from egcbf.algo.filtered import FilterConfig, load_filtered_controller
-from egcbf.checkpoint import load_controller
+from egcbf.control.filters import FilterConfig, load_filtered_controller
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.report import replace_section
+from egcbf.io.report import replace_section
+from egcbf.train.checkpoint import load_controller
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZES = (64, 256, 512, 1024, 2048, 4096)

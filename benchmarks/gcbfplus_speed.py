@@ -28,9 +28,9 @@ from pathlib import Path
 
 import torch
 
-from egcbf.allocator import keep_freed_memory
-from egcbf.report import cpu_name, replace_section
-from egcbf.threads import busy_cpus
+from egcbf.io.allocator import keep_freed_memory
+from egcbf.io.report import cpu_name, replace_section
+from egcbf.io.threads import busy_cpus
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = ROOT / "docs" / "results" / "gcbfplus" / "reference.json"
@@ -51,7 +51,7 @@ def cases() -> list[dict]:
 
 def _stepper(robot: str, algo: str, n: int, area: float, obstacles: int):
     from egcbf.algo import GraphCBFLearner
-    from egcbf.config import TrainConfig
+    from egcbf.algo.config import TrainConfig
     from egcbf.env import EnvConfig, SwarmEnv
 
     torch.manual_seed(0)

@@ -70,8 +70,8 @@ def measure(repeats: int) -> dict[str, float]:
 
     out = {"canonicalize": _median_ms(canon, repeats)}
 
+    from egcbf.algo.config import TrainConfig
     from egcbf.algo.learner import LearnedController
-    from egcbf.config import TrainConfig
     from egcbf.env import EnvConfig, SwarmEnv
     from egcbf.nn import PolicyNet
     from egcbf.robots.quadrotor.nominal import nominal_control
@@ -214,7 +214,7 @@ def main() -> None:
     body = "\n".join(lines) + "\n"
     print(body)
     if not args.no_write:
-        from egcbf.report import replace_section
+        from egcbf.io.report import replace_section
 
         replace_section(
             ROOT / "docs" / "benchmarks.md", "hot-paths", body, heading="## Hot paths against a base commit"

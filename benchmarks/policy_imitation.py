@@ -20,8 +20,8 @@ import torch
 
 from egcbf.algo.buffer import Samples
 from egcbf.algo.learner import policy_command
-from egcbf.checkpoint import load_learner
 from egcbf.nn import PolicyNet
+from egcbf.train.checkpoint import load_learner
 
 
 def corrected_error(policy, model_cfg, itf, data: Samples, u_ref, env_cfg, threshold: float) -> tuple[float, float]:

@@ -1,8 +1,9 @@
 """Step time and memory of the nominal controller, GCBF+ and EGCBF+ from 512 to 4096 agents, and one training update.
 
-Every measurement is a fresh process that runs the CLI's own evaluation (``egcbf.evaluate.evaluate``: the
+Every measurement is a fresh process that runs the CLI's own evaluation (``egcbf.evaluate.episodes.evaluate``: the
 controller builds its graph, casts LiDAR and acts, then the environment steps) with the CLI's process defaults
-(:func:`egcbf.allocator.keep_freed_memory`, threads from :func:`egcbf.threads.choose_threads` unless ``--threads``)
+(:func:`egcbf.io.allocator.keep_freed_memory`, threads from :func:`egcbf.io.threads.choose_threads` unless
+``--threads``)
 and reports the median ms per environment step over ``--steps`` steps of one episode, and its peak resident memory
 above what the process held before the first step (``ru_maxrss``; on CUDA the peak allocation). Cases:
 
@@ -33,7 +34,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from egcbf.report import cpu_name, replace_section
+from egcbf.io.report import cpu_name, replace_section
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "benchmarks.md"
@@ -45,22 +46,22 @@ DENSITY_AREA = 4.0  # l at N = 512
 STEP_CHILD = r"""
 import json, resource, sys, time, torch
 try:
-    from egcbf.allocator import keep_freed_memory
+    from egcbf.io.allocator import keep_freed_memory
     keep_freed_memory()
 except ImportError:  # a baseline commit from before the allocator setting
     pass
-from egcbf.threads import choose_threads
+from egcbf.io.threads import choose_threads
 name, n, area, envs, steps, device, threads = sys.argv[1:8]
 n, area, envs, steps = int(n), float(area), int(envs), int(steps)
 th, reason = choose_threads(int(threads) if threads != "auto" else None)
 torch.set_num_threads(th)
-from egcbf.evaluate import evaluate
+from egcbf.evaluate.episodes import evaluate
 from egcbf.control.controllers import make_controller
 overrides = {}
 if name == "nominal":
     ctrl = make_controller("nominal")
 else:
-    from egcbf.checkpoint import load_controller
+    from egcbf.train.checkpoint import load_controller
     ctrl, cfg = load_controller(sys.argv[8], device=device)
     overrides = dict(cfg.env_overrides)
 def rss_mb():
@@ -82,13 +83,13 @@ print(json.dumps(out))
 
 PROFILE_CHILD = r"""
 import collections, json, sys, time, torch
-from egcbf.allocator import keep_freed_memory
+from egcbf.io.allocator import keep_freed_memory
 keep_freed_memory()
 torch.set_num_threads(1)
-import egcbf.algo.learner as learner_mod, egcbf.graph as graph_mod
+import egcbf.algo.learner as learner_mod, egcbf.env.graph as graph_mod
 from groupcanon.field_type import FieldType
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.checkpoint import load_learner
+from egcbf.train.checkpoint import load_learner
 name, n, area, steps, ckpt = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]), sys.argv[5]
 acc, active = collections.defaultdict(float), [True]
 def timed(label, fn):
@@ -134,9 +135,9 @@ print(json.dumps({"total_ms": 1e3 * total / steps, **{k: 1e3 * v / steps for k, 
 
 UPDATE_CHILD = r"""
 import json, statistics, sys, torch
-from egcbf.allocator import keep_freed_memory
+from egcbf.io.allocator import keep_freed_memory
 keep_freed_memory()
-from egcbf.config import TrainConfig
+from egcbf.algo.config import TrainConfig
 from egcbf.algo import GraphCBFLearner
 torch.set_num_threads(1)
 cfg = TrainConfig.preset(sys.argv[1], "cpu", max_wall_minutes=None)

@@ -36,12 +36,12 @@ import torch
 from step_floor import episode_states  # the same episode as the step-floor and CLI-step benchmarks
 from torch import Tensor, nn
 
-from egcbf.allocator import keep_freed_memory
-from egcbf.graph import SwarmGraph, build_graph
+from egcbf.env.graph import SwarmGraph, build_graph
+from egcbf.io.allocator import keep_freed_memory
+from egcbf.io.report import cpu_name, replace_section
+from egcbf.io.threads import busy_cpus, choose_threads
 from egcbf.nn.attention import EdgeAttention
 from egcbf.nn.layers import SiLU
-from egcbf.report import cpu_name, replace_section
-from egcbf.threads import busy_cpus, choose_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "benchmarks.md"

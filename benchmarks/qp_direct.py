@@ -1,10 +1,10 @@
 """The hand-written solver adapters egcbf used before it solved the centralized CBF-QP through qpsolvers, kept here
 only so that ``benchmarks/qp_scaling.py --direct`` can measure qpsolvers' overhead against them in the same run
-(issue 29). The library never imports this module; ``egcbf.control.sparse_solvers`` is what solves.
+(issue 29). The library never imports this module; ``egcbf.qp.sparse_solvers`` is what solves.
 
-Each adapter takes the :class:`egcbf.control.qp.SparseQP` (two-sided rows ``l <= C z <= u`` and variable bounds)
+Each adapter takes the :class:`egcbf.qp.sparse_qp.SparseQP` (two-sided rows ``l <= C z <= u`` and variable bounds)
 and calls one solver's native Python API with the same tolerance and iteration budget as
-``egcbf.control.sparse_solvers.SETTINGS``. Copied from egcbf at commit e5a0b87 (``control/qp.py``).
+``egcbf.qp.sparse_solvers.SETTINGS``. Copied from egcbf at commit e5a0b87 (``control/qp.py``).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from egcbf.control.ipm import INF
-from egcbf.control.qp import SparseQP, _with_box_rows
+from egcbf.qp.ipm import INF
+from egcbf.qp.sparse_qp import SparseQP, _with_box_rows
 
 __all__ = ["DIRECT", "solve_direct"]
 

@@ -7,7 +7,7 @@ constraint and QP assembly, solve, checks; not the attitude loop or the simulato
 reported, with the number of CBF rows, the steps whose QP needed slack and the failed solves.
 
 Solver comparison (centralized QP): on ``--snapshots`` states of the cCBF-QP rollout, the same assembled sparse QP
-is solved by every installed solver egcbf tests (``egcbf.control.qp.SOLVERS``, through qpsolvers, same tolerance
+is solved by every installed solver egcbf tests (``egcbf.qp.sparse_qp.SOLVERS``, through qpsolvers, same tolerance
 1e-7, no warm start) and the median solve time (conversion + setup + solve) is reported, with the largest distance
 to PIQP's solution. With ``--direct`` the solvers egcbf had before qpsolvers are also called through their old
 hand-written adapters (``benchmarks/qp_direct.py``), alternating with the qpsolvers call on the same QP, and the
@@ -33,11 +33,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from egcbf.control.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
-from egcbf.control.qp import SOLVERS, assemble_centralized, solve_sparse
-from egcbf.control.sparse_solvers import available_solvers
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.report import replace_section
+from egcbf.io.report import replace_section
+from egcbf.qp.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
+from egcbf.qp.sparse_qp import SOLVERS, assemble_centralized, solve_sparse
+from egcbf.qp.sparse_solvers import available_solvers
 from egcbf.robots.quadrotor.barriers import build_constraints, split_for_agents
 from egcbf.robots.quadrotor.cbf_qp import CentralizedCBFQP
 from egcbf.robots.quadrotor.dcbf_qp import DecentralizedCBFQP
@@ -128,7 +128,7 @@ def solver_comparison(ctrl: CentralizedCBFQP, snaps, cfg, solvers, direct: bool 
 
 def _adapter_solve(qp, solver, eps_abs=1e-6, max_iter=1000, x0=None):
     """``solve_sparse`` through the pre-qpsolvers adapter (``benchmarks/qp_direct.py``), as a SolveResult."""
-    from egcbf.control.qp import SolveResult
+    from egcbf.qp.sparse_qp import SolveResult
 
     t0 = time.perf_counter()
     try:

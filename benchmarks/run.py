@@ -32,7 +32,7 @@ import torch
 import torch_geometric
 from torch_geometric.nn import TransformerConv
 
-from egcbf.report import cpu_name
+from egcbf.io.report import cpu_name
 from groupcanon import Canonicalize, FieldType, groups
 from groupcanon.features import Point, Scalar, Vector
 

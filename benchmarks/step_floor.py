@@ -2,7 +2,7 @@
 
 Issue 28 asks for EGCBF+'s step at N = 512, l = 4 in <= 10 ms on the 2-core CPU. This benchmark says whether that is
 reachable without changing what the networks compute. In one process with the CLI's thread choice
-(:func:`egcbf.threads.choose_threads`) it measures, on the states of the episode the CLI-step benchmark
+(:func:`egcbf.io.threads.choose_threads`) it measures, on the states of the episode the CLI-step benchmark
 (``benchmarks/policy_scaling.py``) times (evaluation seed 0, episode 0, no obstacles, each method's own closed
 loop; every ``--every``-th of its first ``--steps`` steps):
 
@@ -37,13 +37,13 @@ from pathlib import Path
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from egcbf.allocator import keep_freed_memory
-from egcbf.checkpoint import load_controller
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.evaluate import episode_seed
-from egcbf.graph import build_graph
-from egcbf.report import cpu_name, replace_section
-from egcbf.threads import busy_cpus, choose_threads
+from egcbf.env.graph import build_graph
+from egcbf.evaluate.episodes import episode_seed
+from egcbf.io.allocator import keep_freed_memory
+from egcbf.io.report import cpu_name, replace_section
+from egcbf.io.threads import busy_cpus, choose_threads
+from egcbf.train.checkpoint import load_controller
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "benchmarks.md"

@@ -26,14 +26,14 @@ import sys
 import tempfile
 from pathlib import Path
 
-from egcbf.report import cpu_name, replace_section
+from egcbf.io.report import cpu_name, replace_section
 
 ROOT = Path(__file__).resolve().parents[1]
 BASELINE = "30c0011"  # the last commit before the command interface and the update optimizations
 
 CHILD = r"""
 import json, sys, torch
-from egcbf.config import TrainConfig
+from egcbf.algo.config import TrainConfig
 from egcbf.algo import GraphCBFLearner
 algo, preset, updates = sys.argv[1], sys.argv[2], int(sys.argv[3])
 torch.set_num_threads(1)

@@ -12,10 +12,10 @@ import dataclasses
 
 import torch
 
-from egcbf.algo.filtered import FilterConfig, FilteredController
+from egcbf.control.filters import FilterConfig, FilteredController
 from egcbf.env import EnvConfig
 from egcbf.env.swarm import SwarmEnv, cast_lidar
-from egcbf.evaluate import concat_states, episode_seed
+from egcbf.evaluate.episodes import concat_states, episode_seed
 
 
 def main() -> None:

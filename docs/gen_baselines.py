@@ -12,7 +12,7 @@ Run: .venv/bin/python docs/gen_baselines.py
 
 from pathlib import Path
 
-from egcbf.report import load_run, metrics_markdown, replace_section
+from egcbf.io.report import load_run, metrics_markdown, replace_section
 
 ROOT = Path(__file__).parent
 RESULTS = ROOT / "results" / "baselines"

@@ -22,14 +22,14 @@ from pathlib import Path
 
 import torch
 
-from egcbf.algo.filtered import FilterConfig, load_filtered_controller
 from egcbf.certify import LearnedBarrier, count_rates, roll_out
-from egcbf.checkpoint import load_network
+from egcbf.control.filters import FilterConfig, load_filtered_controller
 from egcbf.env import EnvConfig
-from egcbf.evaluate import episode_seed
-from egcbf.graph import KIND_GOAL
+from egcbf.env.graph import KIND_GOAL
+from egcbf.evaluate.episodes import episode_seed
+from egcbf.io.report import md_table, replace_section
 from egcbf.nn.edge_min import segment_logsumexp
-from egcbf.report import md_table, replace_section
+from egcbf.train.checkpoint import load_network
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "results" / "certificate_diagnosis.json"

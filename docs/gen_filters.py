@@ -16,8 +16,8 @@ import json
 import re
 from pathlib import Path
 
-from egcbf.bootstrap import mean_ci
-from egcbf.report import pct, replace_section
+from egcbf.evaluate.bootstrap import mean_ci
+from egcbf.io.report import pct, replace_section
 
 ROOT = Path(__file__).parent
 RESULTS = ROOT / "results" / "filters"
@@ -193,7 +193,7 @@ def _lidar(rows: list[dict]) -> str:
               "(`<method>-s<training seed>-dcbf-lidar[-plane]`; the rows without a suffix read hits as points) or "
               "the nominal controller; the other rows are the reproduction's cells "
               "(docs/results/reproduction, the same seed, episodes and arena). Intervals: 95 % bootstrap over "
-              "episodes (`egcbf.bootstrap.mean_ci`, one training seed)."]  # fmt: skip
+              "episodes (`egcbf.evaluate.bootstrap.mean_ci`, one training seed)."]  # fmt: skip
     return "\n".join(lines)
 
 
@@ -217,7 +217,7 @@ def _faults(rows: list[dict]) -> str:
     lines += ["", "`egcbf eval --faults default` (the default field conditions of docs/robustness.md; commands "
               "below) on the shipped checkpoint behind the named filter (`<method>-s<training seed>-<filter>-default`)"
               " or the nominal controller behind it. Intervals: 95 % bootstrap over episodes "
-              "(`egcbf.bootstrap.mean_ci`, one training seed)."]  # fmt: skip
+              "(`egcbf.evaluate.bootstrap.mean_ci`, one training seed)."]  # fmt: skip
     return "\n".join(lines)
 
 

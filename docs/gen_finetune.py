@@ -21,8 +21,8 @@ import json
 import statistics
 from pathlib import Path
 
-from egcbf.curves import training_curves
-from egcbf.report import replace_section
+from egcbf.io.report import replace_section
+from egcbf.viz.curves import training_curves
 
 ROOT = Path(__file__).parent
 RESULTS = ROOT / "results" / "finetune"

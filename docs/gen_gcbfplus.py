@@ -92,9 +92,9 @@ def run_cell(method: str, row: dict) -> dict | None:
     """Evaluate one cell (``None`` if the method has no checkpoint for this robot yet)."""
     import torch
 
-    from egcbf.checkpoint import load_controller
     from egcbf.control.controllers import make_controller
-    from egcbf.evaluate import evaluate
+    from egcbf.evaluate.episodes import evaluate
+    from egcbf.train.checkpoint import load_controller
 
     robot = ROBOTS[row["env"]]
     if method in ("nominal", "brisk", "ccbf", "dcbf"):
@@ -207,7 +207,7 @@ def report() -> str:
         "(within 2 r of another agent or r of an obstacle), reach = within 2 r of the goal at some step, success = "
         "both, the reference's definitions (docs/metrics.md). nominal: the reference's nominal law; brisk: the robot's "
         "brisk law (`Robot.brisk_control`, no safety; below); ccbf / dcbf: the hand-crafted centralized / "
-        "decentralized CBF-QP (`egcbf.control.point_mass_qp` for the point masses and the Dubins car; the "
+        "decentralized CBF-QP (`egcbf.robots.point_mass_qp` for the point masses and the Dubins car; the "
         "quadrotor's own for the CrazyFlie row). gcbf+ / egcbf+: `checkpoints/<robot>/<method>`; for the CrazyFlie "
         "row the quadrotor's shipped `checkpoints/<method>` (the `cpu` recipe). `pending`: not computed yet (a "
         "robot whose checkpoints are not shipped yet). CrazyFlie's row is our quadrotor: another plant and command.",

@@ -17,7 +17,7 @@ import re
 from collections import defaultdict
 from pathlib import Path
 
-from egcbf.report import replace_section
+from egcbf.io.report import replace_section
 from egcbf.reproduce import PAPER_TABLE_I
 
 ROOT = Path(__file__).parent

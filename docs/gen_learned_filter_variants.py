@@ -36,15 +36,15 @@ import torch
 from gen_certificate_diagnosis import _prior
 
 import egcbf.algo.edge_qp as edge_qp
-from egcbf.algo.filtered import FilterConfig, FilteredController
 from egcbf.certify import LearnedBarrier, count_rates
 from egcbf.certify.rollout import Trajectory
-from egcbf.checkpoint import load_network
+from egcbf.control.filters import FilterConfig, FilteredController
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.evaluate import concat_states, episode_seed
-from egcbf.graph import KIND_AGENT, KIND_GOAL
+from egcbf.env.graph import KIND_AGENT, KIND_GOAL
+from egcbf.evaluate.episodes import concat_states, episode_seed
+from egcbf.io.report import cpu_name, md_table, replace_section
 from egcbf.nn.models import frames_for
-from egcbf.report import cpu_name, md_table, replace_section
+from egcbf.train.checkpoint import load_network
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "results" / "learned_filter_variants.json"

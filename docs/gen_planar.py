@@ -165,10 +165,10 @@ def gif() -> Path:
     """The side-by-side GIF of one planar episode (module doc)."""
     import torch
 
-    from egcbf.checkpoint import load_controller
     from egcbf.control.controllers import make_controller
-    from egcbf.evaluate import evaluate
-    from egcbf.render import render_comparison_gif
+    from egcbf.evaluate.episodes import evaluate
+    from egcbf.train.checkpoint import load_controller
+    from egcbf.viz.render import render_comparison_gif
 
     torch.set_num_threads(1)
     controllers = {
@@ -203,7 +203,7 @@ def main() -> None:
     if not args.table:
         evaluate_missing(rows)
     sys.path.insert(0, str(REPO / "src"))
-    from egcbf.report import replace_section
+    from egcbf.io.report import replace_section
 
     replace_section(ROOT / "robots.md", "planar-results", table(), heading="## Results")
     print(f"wrote the 'planar-results' section of {ROOT / 'robots.md'}")

@@ -11,8 +11,8 @@ Run: .venv/bin/python docs/gen_policy_head.py
 import json
 from pathlib import Path
 
-from egcbf.curves import training_curves
-from egcbf.report import replace_section
+from egcbf.io.report import replace_section
+from egcbf.viz.curves import training_curves
 
 ROOT = Path(__file__).parent
 RESULTS = ROOT / "results" / "policy_head"

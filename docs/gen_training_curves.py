@@ -16,8 +16,8 @@ import csv
 import json
 from pathlib import Path
 
-from egcbf.curves import training_curves
-from egcbf.report import replace_section
+from egcbf.io.report import replace_section
+from egcbf.viz.curves import training_curves
 
 ROOT = Path(__file__).parent
 CKPTS = ROOT.parent / "checkpoints"

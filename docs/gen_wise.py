@@ -18,7 +18,7 @@ import re
 import statistics
 from pathlib import Path
 
-from egcbf.report import replace_section
+from egcbf.io.report import replace_section
 
 ROOT = Path(__file__).parent
 WISE = ROOT / "results" / "finetune" / "wise"

@@ -15,8 +15,8 @@ from typing import ClassVar
 import torch
 
 from egcbf.algo import GraphCBFLearner
-from egcbf.config import TrainConfig
-from egcbf.evaluate import evaluate
+from egcbf.algo.config import TrainConfig
+from egcbf.evaluate.episodes import evaluate
 from egcbf.robots import Robot, register_robot, rk4_step
 from egcbf.robots.checks import check_robot
 from groupcanon import FieldType

@@ -1,8 +1,8 @@
 """Fly the shipped EGCBF+ policy the way robots would, one controller per agent, in wind and with one control
-period of actuation latency, without and with the agents' on-board handling (:class:`egcbf.onboard.Onboard`: a
+period of actuation latency, without and with the agents' on-board handling (:class:`egcbf.faults.onboard.Onboard`: a
 Smith predictor over the latency and a disturbance observer; docs/deploy.md, "Latency and wind on board").
 
-Each agent runs its own :class:`egcbf.deploy.AgentController` on what it knows: its own state, its goal, and its
+Each agent runs its own :class:`egcbf.deploy.agent.AgentController` on what it knows: its own state, its goal, and its
 neighbours' broadcasts (with the handling, each broadcasts the state its next command will act on). The world is
 the simulator's: its dynamics, 1 m/s^2 of wind with gusts, and the latency (:class:`egcbf.faults.FaultProcess`
 with the physical faults only).
@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import torch
 
-from egcbf.deploy import AgentController
+from egcbf.deploy.agent import AgentController
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.faults import FaultConfig, FaultProcess
-from egcbf.onboard import Onboard
+from egcbf.faults.onboard import Onboard
 
 torch.set_num_threads(1)
 WORLD = FaultConfig(wind=(1.0, 0.0, 0.0), gust=0.5, act_delay=1)  # what the robots do not control

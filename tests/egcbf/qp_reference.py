@@ -26,7 +26,7 @@ def main() -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from test_cbf_qp import numpy_rows
 
-    from egcbf.control.qp import assemble_centralized, polish_sparse, solve_sparse
+    from egcbf.qp.sparse_qp import assemble_centralized, polish_sparse, solve_sparse
 
     out = []
     for seed, n in SCENES:

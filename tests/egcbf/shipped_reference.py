@@ -21,10 +21,10 @@ from pathlib import Path
 
 import torch
 
-from egcbf.checkpoint import load_learner
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.graph import build_graph
+from egcbf.env.graph import build_graph
 from egcbf.robots.quadrotor.nominal import nominal_control
+from egcbf.train.checkpoint import load_learner
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = Path(__file__).resolve().parent / "data" / "shipped_reference.json"

@@ -19,9 +19,9 @@ from egcbf.algo import (
     make_interface,
     solve_cbf_qp,
 )
-from egcbf.config import LEARNED_METHODS, TrainConfig
+from egcbf.algo.config import LEARNED_METHODS, TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
-from egcbf.graph import build_graph, refresh_graph
+from egcbf.env.graph import build_graph, refresh_graph
 from egcbf.nn import CBFNet, ModelConfig
 from egcbf.robots.quadrotor import dynamics as dyn
 from egcbf.robots.quadrotor.so3 import so3_exp

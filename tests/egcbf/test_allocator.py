@@ -1,4 +1,4 @@
-"""egcbf.allocator: the CLI's malloc setting applies on glibc, can be turned off, and says which (subprocesses:
+"""egcbf.io.allocator: the CLI's malloc setting applies on glibc, can be turned off, and says which (subprocesses:
 the setting is process-wide, so it is never applied to the test process itself)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-CODE = "import json; from egcbf.allocator import keep_freed_memory; print(json.dumps(keep_freed_memory()))"
+CODE = "import json; from egcbf.io.allocator import keep_freed_memory; print(json.dumps(keep_freed_memory()))"
 
 
 def _run(**env: str) -> tuple[bool, str]:

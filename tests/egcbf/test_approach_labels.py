@@ -10,8 +10,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from egcbf.algo.config import TrainConfig
 from egcbf.algo.learner import GraphCBFLearner
-from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.env.lidar import LidarScan
 from egcbf.env.swarm import approach_unsafe

@@ -1,4 +1,4 @@
-"""Weight averaging of two checkpoints (egcbf.averaging, ``egcbf average``): the end points are the inputs, the
+"""Weight averaging of two checkpoints (egcbf.train.averaging, ``egcbf average``): the end points are the inputs, the
 result is the same model and stays SE2xR-equivariant, its provenance is recorded, and bad inputs are refused."""
 
 import functools
@@ -12,11 +12,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from egcbf.averaging import average_checkpoints, average_weights
-from egcbf.checkpoint import CheckpointError, load_network, read_config, read_tensors, sha256
 from egcbf.cli import app
 from egcbf.env import EnvConfig
-from egcbf.graph import GROUP, build_graph
+from egcbf.env.graph import GROUP, build_graph
+from egcbf.train.averaging import average_checkpoints, average_weights
+from egcbf.train.checkpoint import CheckpointError, load_network, read_config, read_tensors, sha256
 from groupcanon import FieldType
 from groupcanon.features import Vector
 from groupcanon.testing import strategies as gst

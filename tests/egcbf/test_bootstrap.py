@@ -1,4 +1,4 @@
-"""egcbf.bootstrap: the two-level (seeds, then episodes) bootstrap of a method's mean and of a difference."""
+"""egcbf.evaluate.bootstrap: the two-level (seeds, then episodes) bootstrap of a method's mean and of a difference."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from egcbf.bootstrap import Interval, difference_ci, mean_ci
+from egcbf.evaluate.bootstrap import Interval, difference_ci, mean_ci
 
 values = st.floats(0.0, 1.0, allow_nan=False)
 runs_st = st.lists(st.lists(values, min_size=1, max_size=12), min_size=1, max_size=4)

@@ -10,11 +10,11 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from egcbf.algo.config import TrainConfig
 from egcbf.algo.interface import make_interface
 from egcbf.algo.learner import base_command, policy_command
-from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.graph import build_graph
+from egcbf.env.graph import build_graph
 from egcbf.nn.models import ModelConfig, PolicyNet, sensing
 from egcbf.robots import DoubleIntegrator, DubinsCar, make_robot
 from groupcanon import FieldType

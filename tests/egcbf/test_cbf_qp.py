@@ -8,10 +8,11 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
-from egcbf.control.constraints import Constraints
 from egcbf.control.controllers import NominalController, make_controller
-from egcbf.control.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
-from egcbf.control.qp import (
+from egcbf.env import EnvConfig, Obstacles, SwarmEnv, SwarmState
+from egcbf.qp.constraints import Constraints
+from egcbf.qp.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm
+from egcbf.qp.sparse_qp import (
     INF,
     SOLVERS,
     SlackPenalty,
@@ -20,7 +21,6 @@ from egcbf.control.qp import (
     polish_sparse,
     solve_sparse,
 )
-from egcbf.env import EnvConfig, Obstacles, SwarmEnv, SwarmState
 from egcbf.robots.quadrotor import dynamics as dyn
 from egcbf.robots.quadrotor.barriers import (
     AccelBounds,
@@ -293,7 +293,7 @@ def test_solutions_are_those_of_the_adapters_before_qpsolvers(solver):
 def test_a_missing_solver_is_named_with_its_install_command(monkeypatch):
     import qpsolvers
 
-    from egcbf.control.qp import require_solver
+    from egcbf.qp.sparse_qp import require_solver
     from egcbf.robots.quadrotor.cbf_qp import CBFQPConfig
 
     monkeypatch.setattr(qpsolvers, "available_solvers", [s for s in qpsolvers.available_solvers if s != "osqp"])
@@ -429,7 +429,7 @@ def test_failed_solves_are_counted_and_braked(monkeypatch):
     state, cfg = random_scene(9, n=12)
 
     def broken(qp, solver, *a, **k):
-        from egcbf.control.qp import SolveResult
+        from egcbf.qp.sparse_qp import SolveResult
 
         return SolveResult(np.full(qp.H.shape[0], np.nan), False, "broken", 0, 0.0)
 

@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from egcbf.algo.filtered import DCBF_FILTER_BARRIER, FilterConfig, FilteredController
+from egcbf.algo.config import TrainConfig
 from egcbf.certify import (
     BrakingBarrier,
     CertifyConfig,
@@ -35,12 +35,12 @@ from egcbf.certify import (
     write_report,
 )
 from egcbf.cli import app
-from egcbf.config import TrainConfig
 from egcbf.control.controllers import make_controller
+from egcbf.control.filters import DCBF_FILTER_BARRIER, FilterConfig, FilteredController
 from egcbf.env import EnvConfig, SwarmState
+from egcbf.env.graph import GROUP
 from egcbf.env.obstacles import Obstacles
-from egcbf.evaluate import run_episodes
-from egcbf.graph import GROUP
+from egcbf.evaluate.episodes import run_episodes
 from egcbf.nn import CBFNet
 from groupcanon.testing import strategies as gst
 

@@ -1,4 +1,5 @@
-"""`egcbf.checkpoint` is the on-disk format alone: evaluating, plotting and reproducing from checkpoints never import
+"""`egcbf.train.checkpoint` is the on-disk format alone: evaluating, plotting and reproducing from checkpoints never
+import
 the trainer, and reading a checkpoint's metadata needs no network code."""
 
 import subprocess
@@ -9,13 +10,13 @@ ROOT = Path(__file__).resolve().parents[2]
 
 CODE = """
 import sys
-import egcbf.checkpoint as ckpt
+import egcbf.train.checkpoint as ckpt
 assert "egcbf.algo.learner" not in sys.modules and "egcbf.nn" not in sys.modules, "metadata needs no networks"
 assert ckpt.read_config(sys.argv[1]).algo == "egcbf+"
-import egcbf.cli, egcbf.cli.demo, egcbf.cli.eval, egcbf.contour, egcbf.reproduce
+import egcbf.cli, egcbf.cli.demo, egcbf.cli.eval, egcbf.viz.contour, egcbf.reproduce
 ctrl, cfg = ckpt.load_controller(sys.argv[1])
-net, _ = egcbf.contour.load_cbf(sys.argv[1])
-assert "egcbf.train" not in sys.modules, sorted(m for m in sys.modules if m.startswith("egcbf"))
+net, _ = egcbf.viz.contour.load_cbf(sys.argv[1])
+assert "egcbf.train.loop" not in sys.modules, sorted(m for m in sys.modules if m.startswith("egcbf"))
 print("OK")
 """
 
@@ -33,7 +34,7 @@ def test_a_run_directory_loads_its_best_checkpoint_for_evaluation(tmp_path):
     import shutil
     from pathlib import Path
 
-    from egcbf.checkpoint import CHECKPOINTS_DIR, load_controller
+    from egcbf.train.checkpoint import CHECKPOINTS_DIR, load_controller
 
     root = Path(__file__).resolve().parents[2] / "checkpoints"
     run = tmp_path / "run"

@@ -8,8 +8,8 @@ from typer.testing import CliRunner
 
 from egcbf.cli import app
 from egcbf.control.controllers import make_controller
-from egcbf.evaluate import episode_seed, evaluate
-from egcbf.render import render_gif, render_topdown
+from egcbf.evaluate.episodes import episode_seed, evaluate
+from egcbf.viz.render import render_gif, render_topdown
 
 KEYS = {"num_agents", "safe_rate", "reach_rate", "success_rate", "cost", "cost_min", "cost_max", "reward"}
 

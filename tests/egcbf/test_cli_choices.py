@@ -7,7 +7,7 @@ import pytest
 from typer.testing import CliRunner
 
 from egcbf import cli
-from egcbf.algo.filtered import FILTERS
+from egcbf.algo.config import LEARNED_METHODS, PRESETS
 from egcbf.cli.choices import (
     Backend,
     Controller,
@@ -22,10 +22,10 @@ from egcbf.cli.choices import (
     choice_error,
 )
 from egcbf.cli.eval import DTYPES
-from egcbf.config import LEARNED_METHODS, PRESETS
 from egcbf.control.controllers import CONTROLLERS
+from egcbf.control.filters import FILTERS
+from egcbf.deploy.export import FORMATS
 from egcbf.env.scenes import SCENES
-from egcbf.export import FORMATS
 from egcbf.reproduce.plan import BACKENDS
 from egcbf.robots import BUILTIN_ROBOTS, ROBOTS
 
@@ -101,11 +101,11 @@ def test_the_commands_pass_plain_strings_on(monkeypatch, tmp_path):
     import egcbf.cli.demo
     import egcbf.cli.eval
     import egcbf.reproduce
-    import egcbf.train
+    import egcbf.train.loop
 
     seen = {}
     monkeypatch.setattr(egcbf.cli.eval, "run_eval", lambda **kw: seen.update(eval=kw))
-    monkeypatch.setattr(egcbf.train, "train", lambda config, out, **kw: seen.update(train=config))
+    monkeypatch.setattr(egcbf.train.loop, "train", lambda config, out, **kw: seen.update(train=config))
     monkeypatch.setattr(egcbf.cli.demo, "run_demo", lambda sources, **kw: seen.update(demo=sources))
 
     def sweep_config(**kw):

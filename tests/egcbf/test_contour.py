@@ -5,15 +5,15 @@ import math
 import pytest
 import torch
 
-from egcbf.checkpoint import find_checkpoint
-from egcbf.config import TrainConfig
-from egcbf.contour import cbf_contour_figure, cbf_slice, load_cbf, transform_element
+from egcbf.algo.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
+from egcbf.env.graph import build_graph
 from egcbf.env.obstacles import Obstacles
 from egcbf.env.swarm import SwarmState
-from egcbf.graph import build_graph
 from egcbf.nn import CBFNet, ModelConfig
-from egcbf.train import train
+from egcbf.train.checkpoint import find_checkpoint
+from egcbf.train.loop import train
+from egcbf.viz.contour import cbf_contour_figure, cbf_slice, load_cbf, transform_element
 
 F64 = torch.float64
 CFG = EnvConfig(num_agents=4, area_size=1.5, num_obstacles=2, n_rays=8, lidar_max_hits=4)

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from egcbf.curves import load_metrics, training_curves
+from egcbf.viz.curves import load_metrics, training_curves
 
 
 def _write_run(d, rows, best_step=None):
@@ -44,7 +44,7 @@ def test_training_curves_writes_a_png(tmp_path):
 
 
 def test_training_curves_of_several_seeds_average_on_common_steps(tmp_path):
-    from egcbf.curves import _on_grid
+    from egcbf.viz.curves import _on_grid
 
     def rows(level, steps):
         return [{"step": s, "wall_s": 2.0 * s, "safe_rate": level, "reach_rate": 1.0, "success_rate": level,

@@ -6,10 +6,10 @@ import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
+from egcbf.algo.config import TrainConfig
 from egcbf.cli import app
-from egcbf.config import TrainConfig
-from egcbf.report import number, pct
-from egcbf.train import train
+from egcbf.io.report import number, pct
+from egcbf.train.loop import train
 
 SMALL = ["--num-agents", "3", "--area", "1.5", "--obstacles", "1", "--episodes", "1", "--max-steps", "8"]
 
@@ -55,7 +55,7 @@ def test_demo_compares_five_controllers_on_the_same_episodes(checkpoints, tmp_pa
 def test_comparison_gif_marks_agents_that_collided(tmp_path):
     import numpy as np
 
-    from egcbf.render import render_comparison_gif
+    from egcbf.viz.render import render_comparison_gif
 
     traj = np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 1.0]]) + 0.2 * np.arange(5)[:, None, None] * np.array([1, 0, 0])
     hit = np.zeros((5, 2), dtype=bool)

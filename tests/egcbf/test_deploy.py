@@ -1,4 +1,4 @@
-"""egcbf.deploy.AgentController: one agent's control from its own observation equals the swarm-level evaluation's
+"""egcbf.deploy.agent.AgentController: one agent's control from its own observation equals the swarm-level evaluation's
 for that agent (every agent of random scenes), with no neighbours, with more than its limit, and far agents
 ignored."""
 
@@ -12,9 +12,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from egcbf.checkpoint import load_controller
-from egcbf.deploy import AgentController, AgentFilteredController
+from egcbf.deploy.agent import AgentController, AgentFilteredController
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
+from egcbf.train.checkpoint import load_controller
 
 ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
 F64 = torch.float64
@@ -105,7 +105,7 @@ def test_beyond_the_limit_the_nearest_neighbours_are_kept():
     sub_lidar = LidarScan(lidar.points[:, rows], lidar.valid[:, rows], lidar.distance[:, rows])
     from egcbf.algo.interface import make_interface
     from egcbf.algo.learner import policy_command
-    from egcbf.graph import build_graph
+    from egcbf.env.graph import build_graph
 
     graph = build_graph(sub, env_cfg, lidar=sub_lidar)
     itf = make_interface(agent.model_config.interface, state.robot)
@@ -129,7 +129,7 @@ def test_bad_observations_are_named():
 
 @functools.cache
 def _filtered(method: str = "egcbf+"):
-    from egcbf.algo.filtered import FilterConfig, load_filtered_controller
+    from egcbf.control.filters import FilterConfig, load_filtered_controller
 
     swarm, cfg = load_filtered_controller(ROOT / method, FilterConfig.for_kind("dcbf"), dtype=F64)
     return swarm, cfg, AgentFilteredController.from_checkpoint(ROOT / method, dtype=F64)
@@ -167,7 +167,7 @@ def test_the_filtered_agent_refuses_bad_inputs():
         agent(x, goal, x.new_zeros(0, 18), x.new_zeros(0, 3), accelerations=x.new_zeros(2, 3))
     with pytest.raises(ValueError, match="obstacles must be"):
         agent(x, goal, x.new_zeros(0, 18), x.new_zeros(0, 3), obstacles=(x.new_zeros(1, 2), x.new_zeros(1)))
-    from egcbf.algo.filtered import FilterConfig
+    from egcbf.control.filters import FilterConfig
 
     with pytest.raises(NotImplementedError, match="'dcbf' filter"):
         AgentFilteredController(agent.controller, FilterConfig.for_kind("prior"))

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
 from egcbf.faults import FaultConfig, FaultProcess
-from egcbf.onboard import DIST_OBS_TAU, Onboard
+from egcbf.faults.onboard import DIST_OBS_TAU, Onboard
 from egcbf.robots import Robot, make_robot
 from egcbf.robots.quadrotor.dynamics import DEFAULT_PARAMS, GROUP, STATE_TYPE
 from egcbf.robots.quadrotor.nominal import desired_heading, reject_disturbance, track_acceleration
@@ -173,7 +173,8 @@ def test_a_robot_without_rejection_is_refused():
 
 
 def test_one_onboard_per_agent_is_what_the_simulator_runs_for_the_swarm():
-    """A robot running its own :class:`egcbf.onboard.Onboard` on its ``(S,)`` state does what the fault process does
+    """A robot running its own :class:`egcbf.faults.onboard.Onboard` on its ``(S,)`` state does what the fault process
+    does
     for it in the swarm: the same trajectories (two periods of actuation delay with the prediction, the observer,
     wind and thrust errors acting)."""
     faults = FaultConfig(act_delay=2, act_predict=1, dist_obs=1, wind=(0.5, 0.2, 0.0), thrust_gain=0.2)

@@ -9,9 +9,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from egcbf.config import TrainConfig
+from egcbf.algo.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.graph import build_graph
+from egcbf.env.graph import build_graph
 from egcbf.robots import DubinsCar
 from groupcanon import FieldType
 from groupcanon.features import Scalar
@@ -104,7 +104,7 @@ def test_egcbf_plus_is_se2_equivariant(scene_seed, g):
 
 def test_the_pipeline_runs():
     from egcbf.algo import GraphCBFLearner
-    from egcbf.evaluate import evaluate
+    from egcbf.evaluate.episodes import evaluate
 
     learner = GraphCBFLearner(TrainConfig.preset("egcbf+", "tiny", robot="dubins_car"))
     learner.update()

@@ -12,12 +12,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from egcbf.algo import GraphCBFLearner
+from egcbf.algo.config import TrainConfig
 from egcbf.algo.edge_qp import edge_rows
-from egcbf.algo.filtered import FilterConfig, FilteredController
-from egcbf.config import TrainConfig
-from egcbf.graph import GROUP
+from egcbf.control.filters import FilterConfig, FilteredController
+from egcbf.env.graph import GROUP
 from egcbf.robots.quadrotor.barriers import AccelBounds, bound_rows
-from egcbf.train import train
+from egcbf.train.loop import train
 from groupcanon import FieldType
 from groupcanon.features import Vector
 from groupcanon.testing import strategies as gst

@@ -12,11 +12,11 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from egcbf.algo.config import TrainConfig
 from egcbf.algo.edge_qp import edge_barriers, edge_qp_controls
 from egcbf.algo.interface import ControlInterface
-from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.graph import KIND_AGENT, build_graph
+from egcbf.env.graph import KIND_AGENT, build_graph
 from egcbf.nn import CBFNet
 from groupcanon import FieldType
 from groupcanon.features import Vector
@@ -61,7 +61,7 @@ def test_the_barrier_gradients_are_finite_differences(name):
     ``dv`` (the receiver's summary ``z`` held, as over a control step): central differences, 1e-6, away from the
     closest approach's kinks (``dv = 0``, and its time reaching 0 or the horizon: a car's LiDAR ray square to its
     heading sees a hit whose closest approach is now)."""
-    from egcbf.graph import KIND_GOAL
+    from egcbf.env.graph import KIND_GOAL
     from egcbf.nn.models import frames_for
 
     cbf = _cbf("gcbf+", name)
@@ -104,7 +104,7 @@ def test_targets_keep_their_rows_and_the_acting_box(name):
     cf = c.reshape(x.shape[0], -1)
     assert bool((cf >= lo - 1e-9).all() and (cf <= hi + 1e-9).all())
     # the rows: -gv . (A_i + B_i s c_i) >= rhs (halved for agent edges), rebuilt here from the barriers
-    from egcbf.control.point_mass_qp import acceleration_affine
+    from egcbf.robots.point_mass_qp import acceleration_affine
 
     e = edge_barriers(graph, cbf, cbf.config.cbf_distance, cbf.config.closest_approach_horizon)
     drift, gain = acceleration_affine(robot, x)
@@ -170,7 +170,7 @@ def test_the_single_integrator_is_refused():
 
 
 def test_a_double_integrator_run_with_the_per_edge_target_trains(tmp_path):
-    from egcbf.train import train
+    from egcbf.train.loop import train
 
     cfg = TrainConfig.preset(
         "egcbf+", "tiny", robot="double_integrator", steps=2, qp_constraints="edges", area_size=1.5, area_sizes=None

@@ -11,12 +11,12 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from egcbf.algo.config import TrainConfig
 from egcbf.algo.interface import make_interface
 from egcbf.algo.learner import policy_command
 from egcbf.algo.qp import solve_cbf_qp
-from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.graph import build_graph
+from egcbf.env.graph import build_graph
 from egcbf.nn import PolicyNet
 from egcbf.robots import make_robot
 from groupcanon import FieldType

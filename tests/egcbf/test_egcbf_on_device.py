@@ -15,12 +15,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from egcbf.algo.filtered import FilterConfig, load_filtered_controller
-from egcbf.checkpoint import load_controller, load_network
-from egcbf.config import TrainConfig
+from egcbf.algo.config import TrainConfig
 from egcbf.control.controllers import NominalController
+from egcbf.control.filters import FilterConfig
+from egcbf.control.resolve import resolve
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.train import train
+from egcbf.train.checkpoint import load_controller, load_network
+from egcbf.train.loop import train
 
 pytestmark = pytest.mark.device
 
@@ -68,7 +69,9 @@ def test_the_shipped_policy_matches_float64_on_the_cpu(device):
 def test_the_filters_match_float64_on_the_cpu(device, kind):
     out = []
     for dev, dtype in ((device, F32), (torch.device("cpu"), F64)):
-        ctrl, _ = load_filtered_controller(SHIPPED, FilterConfig(kind=kind), device=dev, dtype=dtype)
+        ctrl = resolve(
+            f"policy:{kind}", SHIPPED, filter_config=FilterConfig(kind=kind), device=dev, dtype=dtype
+        ).controller
         _, state, cfg = _scene(dev, dtype)
         u, info = ctrl(state, cfg)
         assert u.device.type == dev.type and torch.isfinite(u).all()

@@ -138,7 +138,7 @@ def test_sampler_many_points_sparse():
     gen = torch.Generator().manual_seed(0)
     pts = sample_separated_points(1, 2, 2048, 2048 ** (1 / 3), 0.2, obs, 0.2, generator=gen)
     assert pts.shape == (1, 2, 2048, 3)
-    from egcbf.neighbors import radius_neighbors
+    from egcbf.geometry.neighbors import radius_neighbors
 
     for s in range(2):
         assert radius_neighbors(pts[0, s], 0.2).shape[1] == 0

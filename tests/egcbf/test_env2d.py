@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from egcbf.env.lidar import lidar_scan, ray_directions
 from egcbf.env.obstacles import Obstacles, sample_obstacles
 from egcbf.env.sampling import packing_feasible, sample_separated_points
-from egcbf.neighbors import brute_force_neighbors, radius_neighbors
+from egcbf.geometry.neighbors import brute_force_neighbors, radius_neighbors
 from groupcanon.groups import SE2
 from groupcanon.testing import strategies as gst
 

@@ -1,4 +1,4 @@
-"""egcbf.export / ``egcbf export``: the exported files (TorchScript, ONNX) compute what the per-agent PyTorch
+"""egcbf.deploy.export / ``egcbf export``: the exported files (TorchScript, ONNX) compute what the per-agent PyTorch
 controller computes on every agent of random scenes (float32, 1e-5), ONNX runs under onnxruntime with neither torch
 nor egcbf imported, masked rows change nothing, and the files carry their layout."""
 
@@ -17,9 +17,9 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from egcbf.cli import app
-from egcbf.deploy import AgentController
+from egcbf.deploy.agent import AgentController
+from egcbf.deploy.export import INPUT_NAMES, OUTPUT_NAMES, export_controller, run_onnx
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.export import INPUT_NAMES, OUTPUT_NAMES, export_controller, run_onnx
 
 onnxruntime = pytest.importorskip("onnxruntime")
 ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
@@ -138,7 +138,7 @@ def test_every_robot_exports_at_the_default_limits(tmp_path):
     """The example inputs a file is checked on fit every robot at the default 64 neighbour rows (no sampling
     separation), and a point-mass policy (frame averaging) traces to the same outputs."""
     from egcbf.algo import GraphCBFLearner
-    from egcbf.config import TrainConfig
+    from egcbf.algo.config import TrainConfig
     from egcbf.env import EnvConfig
 
     for robot in ("double_integrator", "dubins_car"):

@@ -14,10 +14,10 @@ from hypothesis import strategies as st
 
 from egcbf.algo.learner import LearnedController
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState, cast_lidar
-from egcbf.evaluate import evaluate, run_episodes
+from egcbf.env.graph import KIND_AGENT, build_graph
+from egcbf.evaluate.episodes import evaluate, run_episodes
 from egcbf.faults import DEFAULT_FIELD, FaultConfig, FaultProcess, draws, noncooperative_mask, parse_faults
 from egcbf.faults.sensing import STREAMS
-from egcbf.graph import KIND_AGENT, build_graph
 from egcbf.nn import ModelConfig, PolicyNet
 from egcbf.robots import make_robot
 

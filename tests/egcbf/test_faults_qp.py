@@ -12,14 +12,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from egcbf.algo.filtered import FilterConfig, FilteredController, filter_reads_sensing
 from egcbf.cli import app
 from egcbf.control.controllers import NominalController
+from egcbf.control.filters import FilterConfig, FilteredController, filter_reads_sensing
 from egcbf.env import EnvConfig, Obstacles, SwarmEnv, SwarmState
-from egcbf.evaluate import evaluate, fault_support_error
+from egcbf.env.graph import KIND_AGENT, build_graph
+from egcbf.evaluate.episodes import evaluate, fault_support_error
 from egcbf.faults import DEFAULT_FIELD, FaultConfig, FaultProcess, Sensing, draws
 from egcbf.faults.sensing import STREAMS, unread_faults
-from egcbf.graph import KIND_AGENT, build_graph
 from egcbf.robots import make_robot
 from egcbf.robots.quadrotor import dynamics as dyn
 from egcbf.robots.quadrotor.barriers import BarrierConfig, build_constraints, perceived_constraints, split_for_agents
@@ -312,8 +312,8 @@ def test_eval_runs_the_dcbf_qp_under_message_faults_and_refuses_the_centralized_
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory):
-    from egcbf.config import TrainConfig
-    from egcbf.train import train
+    from egcbf.algo.config import TrainConfig
+    from egcbf.train.loop import train
 
     root = tmp_path_factory.mktemp("ckpt") / "egcbf+"
     train(TrainConfig.preset("egcbf+", "tiny", steps=1), root, progress=False, log=lambda s: None)

@@ -4,7 +4,7 @@
 import matplotlib
 import numpy as np
 
-from egcbf.render import render_comparison_gif, render_gif, render_topdown
+from egcbf.viz.render import render_comparison_gif, render_gif, render_topdown
 
 
 def test_renders_keep_the_users_backend(tmp_path):

@@ -1,12 +1,12 @@
-"""`METHOD:FILTER` names (egcbf.filter_names): one parser for eval, demo and reproduce."""
+"""`METHOD:FILTER` names (egcbf.control.names): one parser for eval, demo and reproduce."""
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from egcbf.algo import filtered
 from egcbf.cli.demo import describe, out_dir
-from egcbf.filter_names import FILTERS, filter_label, join_method, path_name, split_method
+from egcbf.control import filters as filtered
+from egcbf.control.names import FILTERS, filter_label, join_method, path_name, split_method
 
 # a method name: anything without ':' (the parser leaves whether the method exists to its caller)
 METHOD = st.text(st.characters(exclude_characters=":", exclude_categories=("Cs",)), min_size=1, max_size=12)
@@ -40,7 +40,7 @@ def test_join_refuses_what_split_could_not_read():
 def test_one_implementation_behind_eval_demo_and_reproduce(tmp_path):
     from egcbf.reproduce import LABELS
 
-    assert filtered.FILTERS is FILTERS  # egcbf.algo.filtered re-exports the names' module
+    assert filtered.FILTERS is FILTERS  # egcbf.control.filters re-exports the names' module
     assert split_method("egcbf+:none") == ("egcbf+", "none") and describe("egcbf+:none") == describe("egcbf+")
     assert describe("egcbf+:dcbf") == LABELS["egcbf+:dcbf"] == filter_label("EGCBF+", "dcbf") == "EGCBF+ + dCBF filter"
     assert LABELS["nominal:dcbf"] == "nominal + dCBF filter" and LABELS["egcbf+:cbf"] == "EGCBF+ + learned-CBF filter"

@@ -1,4 +1,4 @@
-"""Run-time safety filters of a learned policy (egcbf.algo.filtered): SE2xR equivariance of the filtered controller
+"""Run-time safety filters of a learned policy (egcbf.control.filters): SE2xR equivariance of the filtered controller
 (hypothesis, float64 within 1e-7 m/s^2: the per-agent QPs are solved by an interior-point method to 1e-12, and the
 solution moves continuously with its data; float32 within 1e-3), decentralization (an agent's filtered command does
 not depend on agents outside its sensing radius), the rows against finite differences, and that the filter keeps
@@ -13,10 +13,10 @@ from dyn_helpers import moving_scene
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from egcbf.algo.filtered import FILTERS, FilterConfig, FilteredController, edge_rows
-from egcbf.config import TrainConfig
+from egcbf.algo.config import TrainConfig
+from egcbf.control.filters import FILTERS, FilterConfig, FilteredController, edge_rows
 from egcbf.env import EnvConfig, SwarmState
-from egcbf.graph import GROUP, KIND_AGENT, KIND_GOAL, KIND_HIT, build_graph
+from egcbf.env.graph import GROUP, KIND_AGENT, KIND_GOAL, KIND_HIT, build_graph
 from egcbf.nn import CBFNet, PolicyNet
 from egcbf.nn.edge_min import closest_approach
 from egcbf.nn.models import frames_for
@@ -186,7 +186,7 @@ def test_the_cbf_filter_needs_its_network_and_the_acceleration_interface():
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory):
-    from egcbf.train import train
+    from egcbf.train.loop import train
 
     root = tmp_path_factory.mktemp("ckpt") / "egcbf+"
     train(TrainConfig.preset("egcbf+", "tiny", steps=1), root, progress=False, log=lambda s: None)
@@ -273,8 +273,8 @@ def test_the_nominal_controller_behind_the_dcbf_filter_is_the_dcbf_qp_with_the_f
 
     from typer.testing import CliRunner
 
-    from egcbf.algo.filtered import DCBF_FILTER_BARRIER
     from egcbf.cli import app
+    from egcbf.control.filters import DCBF_FILTER_BARRIER
     from egcbf.robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 
     state, cfg = _scene(6, 1.0, 9, envs=1, obstacles=1)

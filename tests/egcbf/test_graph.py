@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from egcbf.env import EnvConfig, SwarmEnv, SwarmState
-from egcbf.graph import (
+from egcbf.env.graph import (
     EDGE_TYPE,
     GROUP,
     KIND_AGENT,
@@ -19,7 +19,7 @@ from egcbf.graph import (
     build_graph,
     refresh_graph,
 )
-from egcbf.neighbors import brute_force_neighbors
+from egcbf.geometry.neighbors import brute_force_neighbors
 from egcbf.robots.quadrotor import dynamics as dyn
 from groupcanon import FieldType
 from groupcanon.features import Scalar

@@ -8,9 +8,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from egcbf.config import TrainConfig
+from egcbf.algo.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.graph import build_graph
+from egcbf.env.graph import build_graph
 from egcbf.robots import DoubleIntegrator, IntegratorParams, LinearDrone, SingleIntegrator, make_robot
 from groupcanon import FieldType
 from groupcanon.features import Vector
@@ -119,7 +119,7 @@ def test_gcbf_plus_networks_do_not_average_frames():
 @pytest.mark.parametrize("name", ["single_integrator", "double_integrator", "linear_drone"])
 def test_the_pipeline_runs(name, tmp_path):
     from egcbf.algo import GraphCBFLearner
-    from egcbf.evaluate import evaluate
+    from egcbf.evaluate.episodes import evaluate
 
     cfg = TrainConfig.preset("gcbf+", "tiny", robot=name)
     learner = GraphCBFLearner(cfg)

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from egcbf.algo.interface import AccelInterface, TorqueInterface, make_interface
 from egcbf.env import EnvConfig
-from egcbf.graph import GROUP, build_graph, refresh_graph
+from egcbf.env.graph import GROUP, build_graph, refresh_graph
 from egcbf.nn import CBFNet, ModelConfig
 from egcbf.robots.quadrotor import dynamics as dyn
 from egcbf.robots.quadrotor.nominal import nominal_acceleration, nominal_control

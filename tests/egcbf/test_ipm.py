@@ -1,4 +1,4 @@
-"""The batched interior-point core (egcbf.control.ipm) and its two Newton backends: KKT conditions on random strictly
+"""The batched interior-point core (egcbf.qp.ipm) and its two Newton backends: KKT conditions on random strictly
 convex QPs, agreement with PIQP, agreement of the dense and the structured backend, float32, batch independence."""
 
 import numpy as np
@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 from torch import Tensor
 
 from egcbf.algo.qp import CBFQPKKT, solve_cbf_qp
-from egcbf.control.dense_ipm import DenseKKT, dense_settings, polish_dense, solve_dense_ipm
-from egcbf.control.ipm import IPMSettings, solve_ipm
+from egcbf.qp.dense_ipm import DenseKKT, dense_settings, polish_dense, solve_dense_ipm
+from egcbf.qp.ipm import IPMSettings, solve_ipm
 
 F64 = torch.float64
 DENSE = dense_settings()  # the settings solve_dense_ipm uses (the decentralized CBF-QP's)

@@ -25,7 +25,7 @@ def _pair(seed: int, dtype, aligned: bool, sorted_: bool = False, n_dst: int = 9
     gen = torch.Generator().manual_seed(seed)
     num_edges = int(torch.randint(1, 40, (1,), generator=gen))
     dst = torch.randint(0, n_dst - 2, (num_edges,), generator=gen)  # the last two receivers get no edge
-    if sorted_:  # as egcbf.graph builds them: each receiver's edges contiguous
+    if sorted_:  # as egcbf.env.graph builds them: each receiver's edges contiguous
         dst = dst.sort().values
     n_src = num_edges if aligned else 6
     src = torch.arange(num_edges) if aligned else torch.randint(0, n_src, (num_edges,), generator=gen)

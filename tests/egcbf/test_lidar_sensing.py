@@ -15,13 +15,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from egcbf.algo.filtered import DCBF_FILTER_BARRIER, FilterConfig, FilteredController
 from egcbf.cli import app
+from egcbf.control.filters import DCBF_FILTER_BARRIER, FilterConfig, FilteredController
 from egcbf.env import EnvConfig, SwarmState
+from egcbf.env.graph import GROUP
 from egcbf.env.obstacles import Obstacles
-from egcbf.evaluate import fault_support_error
+from egcbf.evaluate.episodes import fault_support_error
 from egcbf.faults import parse_faults
-from egcbf.graph import GROUP
 from egcbf.robots.quadrotor.barriers import hit_constraints, obstacle_constraints
 from egcbf.robots.quadrotor.cbf_qp import CentralizedCBFQP
 from egcbf.robots.quadrotor.dcbf_qp import DecentralizedCBFQP

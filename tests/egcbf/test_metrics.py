@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.metrics import EpisodeStats, summarize
+from egcbf.evaluate.metrics import EpisodeStats, summarize
 from egcbf.robots.quadrotor import dynamics as dyn
 
 

@@ -5,8 +5,8 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
-from egcbf import neighbors
-from egcbf.neighbors import brute_force_neighbors, radius_neighbors, radius_search
+from egcbf.geometry import neighbors
+from egcbf.geometry.neighbors import brute_force_neighbors, radius_neighbors, radius_search
 
 
 @st.composite

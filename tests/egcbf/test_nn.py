@@ -11,11 +11,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from egcbf.algo.actions import control_bounds, control_scale
+from egcbf.algo.config import TrainConfig
 from egcbf.algo.interface import make_interface
 from egcbf.algo.learner import LearnedController, policy_command
-from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmState
-from egcbf.graph import GROUP, KIND_GOAL, build_graph
+from egcbf.env.graph import GROUP, KIND_GOAL, build_graph
 from egcbf.nn import CBFNet, GraphTransformerLayer, ModelConfig, PolicyNet, frames_for
 from egcbf.robots.quadrotor import dynamics as dyn
 from groupcanon import FieldType
@@ -344,7 +344,7 @@ def test_edge_min_head_gradients_are_finite_for_isolated_agents():
     torch.manual_seed(0)
     cbf = CBFNet(ModelConfig(hidden=16, heads=2, head_hidden=16, cbf_head="edge_min")).double()
     x = state.x.clone().requires_grad_(True)
-    from egcbf.graph import refresh_graph
+    from egcbf.env.graph import refresh_graph
 
     h = cbf(refresh_graph(build_graph(state, cfg), x))
     assert torch.allclose(h, torch.tanh(torch.tensor([1 - 0.15], dtype=F64)))

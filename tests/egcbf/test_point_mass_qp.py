@@ -1,4 +1,4 @@
-"""The point masses' dCBF-QP (egcbf.control.point_mass_qp): it commutes with the robots' quarter turns and
+"""The point masses' dCBF-QP (egcbf.robots.point_mass_qp): it commutes with the robots' quarter turns and
 translations (float64, 1e-9), keeps the box, returns the nominal control where no row binds, and is refused where it
 does not apply."""
 
@@ -63,7 +63,7 @@ def test_commands_stay_in_the_box_that_acts(name, seed):
 
 
 def test_where_it_does_not_apply():
-    from egcbf.control.point_mass_qp import PointMassDCBF
+    from egcbf.robots.point_mass_qp import PointMassDCBF
 
     quad = EnvConfig(num_agents=2, num_envs=1)
     with pytest.raises(ValueError, match="not a quadrotor"):  # the quadrotor has its own CBF-QPs
@@ -72,9 +72,9 @@ def test_where_it_does_not_apply():
 
 @pytest.mark.parametrize("robot", ["double_integrator", "linear_drone", "dubins_car", "unicycle"])
 def test_the_acceleration_model_matches_the_dynamics(robot):
-    """``dv/dt = A + B u`` (egcbf.control.point_mass_qp.acceleration_affine) against a central difference of the
+    """``dv/dt = A + B u`` (egcbf.robots.point_mass_qp.acceleration_affine) against a central difference of the
     world velocity along the control-affine flow, at random states and controls (float64)."""
-    from egcbf.control.point_mass_qp import acceleration_affine
+    from egcbf.robots.point_mass_qp import acceleration_affine
 
     cfg = EnvConfig.for_robot(robot, num_agents=6, num_obstacles=0, num_envs=2, area_size=2.0)
     rob = cfg.make_robot()
@@ -121,7 +121,7 @@ def test_the_cars_dcbf_qp_is_se2_invariant(robot, seed, yaw, t):
 def test_the_centralized_qp_keeps_whole_pair_rows_and_agrees_with_them(robot):
     """The cCBF-QP's command satisfies every whole barrier row it was given (up to its slack, none here), keeps the
     box, and equals the nominal control where nothing binds; its rows are the dCBF-QP's halves added up."""
-    from egcbf.control.point_mass_qp import barrier_rows
+    from egcbf.robots.point_mass_qp import barrier_rows
 
     cfg = EnvConfig.for_robot(robot, num_agents=10, num_obstacles=2, num_envs=2, area_size=1.0)
     env = SwarmEnv(cfg, dtype=F64)

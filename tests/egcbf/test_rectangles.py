@@ -1,4 +1,4 @@
-"""egcbf.env.rectangles: GCBF+'s rotated rectangle obstacles. The inflated inside test is the distance test, ray
+"""egcbf.geometry.rectangles: GCBF+'s rotated rectangle obstacles. The inflated inside test is the distance test, ray
 casting finds the first boundary point (against a brute-force march), everything is invariant under rigid motions
 of the plane, and the sampling follows GCBF+'s ranges. In the swarm (EnvConfig(obstacle_shape="rectangle")):
 the obstacle queries, the sampling clearance, the collision mask and the LiDAR agree with that geometry."""
@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import Tensor
 
-from egcbf.env.rectangles import Rectangles, sample_rectangles
 from egcbf.env.swarm import safety_masks
+from egcbf.geometry.rectangles import Rectangles, sample_rectangles
 
 F64 = torch.float64
 
@@ -127,7 +127,7 @@ def _rect_env(seed: int, n: int = 10, k: int = 6, **kw):
 @settings(max_examples=8, deadline=None)
 def test_obstacle_queries_on_rectangles_are_the_geometry(seed):
     """Obstacles.rectangles: near pairs (dense and cell list alike), the inflated inside test and the surface
-    distance agree with egcbf.env.rectangles."""
+    distance agree with egcbf.geometry.rectangles."""
     from egcbf.env.obstacles import sample_rectangle_obstacles
 
     g = torch.Generator().manual_seed(seed)

@@ -12,15 +12,15 @@ import pytest
 from typer.testing import CliRunner
 
 from egcbf import reproduce as rp
-from egcbf.checkpoint import load_controller
+from egcbf.algo.config import TrainConfig
 from egcbf.cli import app
-from egcbf.config import TrainConfig
 from egcbf.control.controllers import make_controller
-from egcbf.evaluate import evaluate
-from egcbf.report import number, pct
+from egcbf.evaluate.episodes import evaluate
+from egcbf.io.report import number, pct
 from egcbf.reproduce import Cell, SweepConfig
 from egcbf.reproduce.stats import Stat
-from egcbf.train import train
+from egcbf.train.checkpoint import load_controller
+from egcbf.train.loop import train
 
 TIMING = ("step_ms_median", "qp_ms_median")
 
@@ -177,7 +177,7 @@ def test_a_second_sweep_into_the_same_directory_is_refused(first, tmp_path, monk
     cfg, _ = first
     ready = tmp_path / "ready"
     holder = subprocess.Popen([sys.executable, "-c", (
-        "import pathlib, sys, time\nfrom egcbf.locks import DirLock\n"
+        "import pathlib, sys, time\nfrom egcbf.io.locks import DirLock\n"
         f"with DirLock({str(cfg.out)!r}, 'egcbf reproduce'):\n"
         f"    pathlib.Path({str(ready)!r}).touch()\n    time.sleep(60)\n"
     )])  # fmt: skip
@@ -233,7 +233,7 @@ def test_process_pool_survives_a_dying_worker():
     cell = Cell("dcbf", 0, 2)
     seeds = [pool_helpers.DIE, 1, 2, 3, 4]
     tasks = [rp.CellTask(cell=cell, area=1.0, episodes=1, seed=s, max_steps=1, device="cpu") for s in seeds]
-    got = {t.seed: (res, err) for t, res, err in rp.workers._run_processes(tasks, 2, pool_helpers.die_or_answer)}
+    got = {t.seed: (res, err) for t, res, err in rp.workers.run_processes(tasks, 2, pool_helpers.die_or_answer)}
     assert sorted(got) == sorted(seeds)
     assert got[pool_helpers.DIE][0] is None and "died" in got[pool_helpers.DIE][1]
     assert all(got[s] == ({"seed": s, "pid": got[s][0]["pid"]}, None) for s in seeds[1:])
@@ -256,7 +256,7 @@ def test_process_pool_ends_when_a_worker_dies_before_its_cell_starts():
     old = signal.signal(signal.SIGALRM, hung)
     signal.alarm(240)
     try:
-        got = {t.seed: (res, err) for t, res, err in rp.workers._run_processes(tasks, 2, pool_helpers.die_or_answer)}
+        got = {t.seed: (res, err) for t, res, err in rp.workers.run_processes(tasks, 2, pool_helpers.die_or_answer)}
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, old)
@@ -274,7 +274,7 @@ def test_process_pool_closing_stops_its_workers_at_once():
     cell = Cell("dcbf", 0, 2)
     seeds = (1, pool_helpers.SLEEP, pool_helpers.SLEEP)
     tasks = [rp.CellTask(cell=cell, area=1.0, episodes=1, seed=s, max_steps=1, device="cpu") for s in seeds]
-    outcomes = rp.workers._run_processes(tasks, 2, pool_helpers.die_or_answer)
+    outcomes = rp.workers.run_processes(tasks, 2, pool_helpers.die_or_answer)
     task, res, _ = next(outcomes)
     assert task.seed == 1
     t0 = time.perf_counter()
@@ -314,7 +314,7 @@ def test_baseline_import(checkpoints, tmp_path):
 
 def test_report_sections_paper_numbers_and_figures(first, tmp_path, monkeypatch):
     cfg, records = first
-    contour = pytest.importorskip("egcbf.contour")
+    contour = pytest.importorskip("egcbf.viz.contour")
     calls = []
 
     def fake_contour(checkpoints, out_png):  # the real figure takes ~10 s; its own tests cover it
@@ -779,9 +779,9 @@ def test_filtered_methods_follow_their_base_methods_seeds_and_checkpoints(checkp
     assert keys[Cell("egcbf+:cbf", 0, 2, 0)]["filter_config"] == {"alpha": 1.0, "margin": 0.0}
     # the learned-CBF filter needs the soft-min CBF head: refused before any cell runs
     plain = types.SimpleNamespace(model=types.SimpleNamespace(interface="accel", cbf_head="mlp", cbf_z_symmetric=False))
-    import egcbf.checkpoint
+    import egcbf.train.checkpoint
 
-    monkeypatch.setattr(egcbf.checkpoint, "read_config", lambda path: plain)
+    monkeypatch.setattr(egcbf.train.checkpoint, "read_config", lambda path: plain)
     with pytest.raises(ValueError, match=r"egcbf\+:cbf cannot use the checkpoint .*soft-min CBF head"):
         rp.runner._check_filters(cfg, ckpts)
     rp.runner._check_filters(dataclasses.replace(cfg, methods=("egcbf+:dcbf",)), ckpts)  # dcbf reads no CBF
@@ -924,8 +924,8 @@ def test_report_only_names_a_truncated_cell_file(first, tmp_path):
 def test_convergence_draws_the_run_a_fine_tuned_checkpoint_started_from(checkpoints, tmp_path, monkeypatch):
     """A checkpoint whose config names ``init_from`` (fine-tuned) is drawn with the curve of the run it started
     from (its whole training), and the caption says so; without ``init_from`` its own metrics.csv is drawn."""
-    from egcbf import curves
     from egcbf.reproduce.figures import convergence_section
+    from egcbf.viz import curves
 
     ckpts = tmp_path / "checkpoints"
     shutil.copytree(checkpoints, ckpts)
@@ -999,7 +999,7 @@ def test_pending_seeds_of_two_methods_are_one_note():
 def test_a_quoted_block_is_rewritten_only_where_the_page_has_its_markers(tmp_path):
     """`quote_section` rewrites the block between a page's markers, leaves a page without them (or no page) alone;
     `relative_link` is the path from the page's folder."""
-    from egcbf.report import quote_section, relative_link
+    from egcbf.io.report import quote_section, relative_link
 
     page, bare = tmp_path / "README.md", tmp_path / "plain.md"
     page.write_text("intro\n<!-- x:begin -->\nold\n<!-- x:end -->\ntail\n")

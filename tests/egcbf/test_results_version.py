@@ -34,25 +34,20 @@ FAULTS = (
 
 
 def _factory(method: str):
-    from egcbf.algo.filtered import FilterConfig, load_filtered_controller
-    from egcbf.checkpoint import load_controller
     from egcbf.control.controllers import make_controller
-    from egcbf.reproduce.paper import base_method, method_filter
+    from egcbf.control.resolve import resolve
+    from egcbf.reproduce.paper import base_method
 
-    base, kind = base_method(method), method_filter(method)
+    base = base_method(method)
     if base in ("nominal", "ccbf", "dcbf"):
         return lambda cfg: make_controller(base)
-    path = ROOT / "checkpoints" / base
-    if kind == "none":
-        ctrl = load_controller(path, dtype=torch.float64)[0]
-    else:
-        ctrl = load_filtered_controller(path, FilterConfig.for_kind(kind), dtype=torch.float64)[0]
+    ctrl = resolve(method, ROOT / "checkpoints" / base, dtype=torch.float64).controller
     return lambda cfg: ctrl
 
 
 def compute() -> dict[str, list[float]]:
     """``{"method | spec": [safe, reach, cost, reward, sum of final positions, sum of their squares]}``."""
-    from egcbf.evaluate import evaluate
+    from egcbf.evaluate.episodes import evaluate
     from egcbf.faults import parse_faults
     from egcbf.robustness.plan import perceived
 

@@ -10,11 +10,11 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from egcbf.algo.config import TrainConfig
 from egcbf.algo.interface import ControlInterface, make_interface
 from egcbf.algo.learner import LearnedController, policy_command
-from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.graph import build_graph
+from egcbf.env.graph import build_graph
 from egcbf.nn import CBFNet, PolicyNet
 from egcbf.robots import ROBOTS, DubinsCar, Quadrotor, Robot, Unicycle, UnicycleParams, make_robot, register_robot
 from egcbf.robots.checks import check_robot, generic_states
@@ -254,7 +254,7 @@ def test_control_interface_matches_the_dynamics():
     c = 0.5 * torch.ones(1, 4, 2, dtype=F64)
     h, lf, lg = itf.lie_derivatives(cbf, graph, state.x)
     hdot = lf + torch.einsum("bijk,bjk->bi", lg, c)
-    from egcbf.graph import refresh_graph
+    from egcbf.env.graph import refresh_graph
 
     x1 = itf.model_step(state.x, c, step_cfg)
     fd = (cbf(refresh_graph(graph, x1)).view(1, 4) - h) / step_cfg.dt
@@ -276,7 +276,7 @@ def test_hand_crafted_qps_refuse_another_robot():
 
 
 def test_planar_episodes_render(tmp_path):
-    from egcbf.render import render_comparison_gif, render_gif, render_topdown
+    from egcbf.viz.render import render_comparison_gif, render_gif, render_topdown
 
     traj = torch.rand(5, 3, 2) * 2
     goals, centers, radii = torch.rand(3, 2), torch.rand(2, 2), torch.full((2,), 0.1)
@@ -307,8 +307,8 @@ def test_demo_refuses_a_planar_checkpoint(tmp_path):
 def test_gcbfplus_preset_trains_each_benchmark_robot(robot, tmp_path):
     """GCBF+'s training setting (8 agents, its obstacles and arena, 0.7x the arena every other update) builds and
     runs an update for each of its benchmark robots; the other robots refuse it by name."""
-    from egcbf.config import GCBFPLUS_TRAINING, TrainConfig
-    from egcbf.train import train
+    from egcbf.algo.config import GCBFPLUS_TRAINING, TrainConfig
+    from egcbf.train.loop import train
 
     cfg = TrainConfig.preset("egcbf+", "gcbfplus", robot=robot)
     obstacles, side = GCBFPLUS_TRAINING[robot]

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from egcbf.cli import app
 from egcbf.faults import DEFAULT_FIELD, parse_faults
 from egcbf.faults.spec import HANDLING_FIELDS
-from egcbf.report import machine_info
+from egcbf.io.report import machine_info
 from egcbf.reproduce import SweepConfig
 from egcbf.reproduce.plan import cell_key
 from egcbf.reproduce.provenance import machine_text

@@ -13,8 +13,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from egcbf.algo.config import TrainConfig
 from egcbf.algo.learner import LearnedController
-from egcbf.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.env.obstacles import Obstacles
 from egcbf.env.sampling import packing_feasible, sample_separated_points

@@ -8,9 +8,9 @@ import pytest
 import shipped_reference
 import torch
 
-from egcbf.checkpoint import load_controller
-from egcbf.config import TrainConfig
+from egcbf.algo.config import TrainConfig
 from egcbf.env import EnvConfig, SwarmEnv
+from egcbf.train.checkpoint import load_controller
 
 ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
 SHIPPED = sorted(p.parent for p in ROOT.glob("**/model.safetensors"))
@@ -63,7 +63,7 @@ def test_shipped_policy_outputs_are_unchanged(method):
 @pytest.mark.parametrize("state", sorted(ROOT.glob("**/state.json")), ids=lambda p: str(p.parent.relative_to(ROOT)))
 def test_shipped_checkpoints_carry_their_identity(state):
     """Every shipped checkpoint says what it is (format, method, group, interface, weights hash) and matches it."""
-    from egcbf.checkpoint import FORMAT_VERSION, check_identity, identity, read_config
+    from egcbf.train.checkpoint import FORMAT_VERSION, check_identity, identity, read_config
 
     meta = json.loads(state.read_text())
     cfg = read_config(state.parent)
@@ -79,8 +79,8 @@ AVERAGED = [p for p in SHIPPED if "weight_average" in json.loads((p / "state.jso
 def test_averaged_checkpoints_are_their_recorded_average(path, tmp_path):
     """A weight-averaged checkpoint (``egcbf average``) names its two inputs, which are still shipped with the
     weights they had, and rebuilding it from them gives the same tensors exactly."""
-    from egcbf.averaging import average_checkpoints
-    from egcbf.checkpoint import read_tensors, sha256
+    from egcbf.train.averaging import average_checkpoints
+    from egcbf.train.checkpoint import read_tensors, sha256
 
     rec = json.loads((path / "state.json").read_text())["weight_average"]
     repo = ROOT.parent

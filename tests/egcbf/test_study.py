@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from egcbf.bootstrap import Interval
+from egcbf.algo.config import TrainConfig
 from egcbf.cli import app
-from egcbf.config import TrainConfig
+from egcbf.evaluate.bootstrap import Interval
 from egcbf.reproduce import cell_key
 from egcbf.reproduce.store import checkpoint_dir
 from egcbf.study import ARMS, Arm, RotatedCell, Run, arm, pending_runs, train_command, train_runs, verdict, write_report

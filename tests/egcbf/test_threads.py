@@ -7,9 +7,9 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from egcbf import threads
 from egcbf.cli import app
-from egcbf.threads import choose_threads
+from egcbf.io import threads
+from egcbf.io.threads import choose_threads
 
 
 @pytest.fixture

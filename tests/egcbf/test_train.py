@@ -8,11 +8,11 @@ import torch
 from typer.testing import CliRunner
 
 from egcbf.algo import GraphCBFLearner
-from egcbf.checkpoint import CheckpointError, find_checkpoint, load_controller, load_learner
+from egcbf.algo.config import LEARNED_METHODS, TrainConfig
 from egcbf.cli import app
-from egcbf.config import LEARNED_METHODS, TrainConfig
 from egcbf.env import SwarmEnv
-from egcbf.train import train
+from egcbf.train.checkpoint import CheckpointError, find_checkpoint, load_controller, load_learner
+from egcbf.train.loop import train
 
 
 def _quiet(cfg, out, **kw):
@@ -251,7 +251,7 @@ def test_warm_start_from_a_checkpoint(tmp_path):
     source = find_checkpoint(first, prefer_best=True)
     cfg = TrainConfig.preset("egcbf+", "tiny", steps=1, num_agents=4, init_from=str(first))
     learner = GraphCBFLearner(cfg)
-    from egcbf.checkpoint import sha256, warm_start
+    from egcbf.train.checkpoint import sha256, warm_start
 
     ckpt, digest = warm_start(learner, first)
     assert ckpt == source and digest == sha256(source / "model.safetensors")

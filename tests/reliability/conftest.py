@@ -3,9 +3,9 @@
 import pytest
 from typer.testing import CliRunner
 
+from egcbf.algo.config import TrainConfig
 from egcbf.cli import app
-from egcbf.config import TrainConfig
-from egcbf.train import train
+from egcbf.train.loop import train
 
 
 @pytest.fixture

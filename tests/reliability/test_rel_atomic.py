@@ -1,10 +1,10 @@
-"""egcbf.atomic: files and directories are replaced whole, and an interrupted directory swap is recovered."""
+"""egcbf.io.atomic: files and directories are replaced whole, and an interrupted directory swap is recovered."""
 
 import json
 
 import pytest
 
-from egcbf.atomic import recover_dir, replace_dir, write_json_atomic, write_text_atomic
+from egcbf.io.atomic import recover_dir, replace_dir, write_json_atomic, write_text_atomic
 
 
 def test_write_text_replaces_the_whole_file(tmp_path):

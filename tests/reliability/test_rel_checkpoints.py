@@ -8,8 +8,8 @@ import shutil
 import pytest
 import torch
 
-from egcbf.atomic import recover_dir, replace_dir
-from egcbf.checkpoint import (
+from egcbf.io.atomic import recover_dir, replace_dir
+from egcbf.train.checkpoint import (
     FORMAT_VERSION,
     CheckpointError,
     find_checkpoint,
@@ -17,11 +17,11 @@ from egcbf.checkpoint import (
     load_learner,
     load_network,
 )
-from egcbf.train import _truncate_csv, train
+from egcbf.train.loop import _truncate_csv, train
 
 
 def _tiny_config(**changes):
-    from egcbf.config import TrainConfig
+    from egcbf.algo.config import TrainConfig
 
     return TrainConfig.preset("egcbf+", "tiny", steps=2, **changes)
 
@@ -91,7 +91,7 @@ def test_missing_config_names_the_file(run, where):
 
 
 def test_another_methods_config_is_refused(run):
-    from egcbf.config import TrainConfig
+    from egcbf.algo.config import TrainConfig
 
     TrainConfig.preset("gcbf+", "tiny").to_json(run / "best" / "config.json")
     with pytest.raises(CheckpointError, match=r"algo 'egcbf\+'.*'gcbf\+'"):
@@ -101,7 +101,7 @@ def test_another_methods_config_is_refused(run):
 def test_weights_of_another_shape_are_refused(run):
     from safetensors.torch import load_file
 
-    from egcbf.checkpoint import read_config, save_weights, sha256
+    from egcbf.train.checkpoint import read_config, save_weights, sha256
 
     f = run / "best" / "model.safetensors"
     w = load_file(str(f))
@@ -177,7 +177,7 @@ def test_weights_of_another_run_are_refused(run, tmp_path):
 
 
 def test_state_json_records_the_weights_hash(run):
-    from egcbf.checkpoint import sha256
+    from egcbf.train.checkpoint import sha256
 
     state = json.loads((run / "best" / "state.json").read_text())
     assert state["weights_sha256"] == sha256(run / "best" / "model.safetensors")
@@ -196,7 +196,7 @@ def _relabel(best, algo: str, group: str) -> None:
 
 
 def test_weights_record_what_they_are_in_their_own_header(run):
-    from egcbf.checkpoint import identity, read_config, weights_identity
+    from egcbf.train.checkpoint import identity, read_config, weights_identity
 
     best = run / "best"
     assert weights_identity(best / "model.safetensors") == {k: str(v) for k, v in identity(read_config(best)).items()}
@@ -212,7 +212,7 @@ def test_relabelling_config_and_state_together_is_refused(run):
 def test_missing_state_json_is_fine_when_the_weights_say_what_they_are(run):
     (run / "best" / "state.json").unlink()
     load_controller(run / "best")  # identity from the weights' header: nothing to relabel
-    from egcbf.config import TrainConfig
+    from egcbf.algo.config import TrainConfig
 
     TrainConfig.preset("gcbf+", "tiny").to_json(run / "best" / "config.json")
     with pytest.raises(CheckpointError, match=r"holds weights of algo 'egcbf\+'"):
@@ -236,7 +236,7 @@ def test_missing_state_json_of_legacy_weights_is_refused(run):
 
 @pytest.mark.parametrize("key", ["algo", "group", "interface", "weights_sha256"])
 def test_legacy_state_json_stripped_of_a_key_is_refused(run, key):
-    from egcbf.checkpoint import sha256
+    from egcbf.train.checkpoint import sha256
 
     best = run / "best"
     _strip_header_identity(best / "model.safetensors")
@@ -249,7 +249,7 @@ def test_legacy_state_json_stripped_of_a_key_is_refused(run, key):
 
 
 def test_legacy_checkpoint_with_complete_state_json_still_loads(run):
-    from egcbf.checkpoint import sha256
+    from egcbf.train.checkpoint import sha256
 
     best = run / "best"
     _strip_header_identity(best / "model.safetensors")
@@ -278,7 +278,7 @@ def test_point_mass_weights_under_the_other_robots_config_are_refused(cli, tmp_p
     from rel_helpers import assert_usage_error
     from safetensors.torch import load_file
 
-    from egcbf.checkpoint import CheckpointError, check_identity, read_config, save_weights, weights_identity
+    from egcbf.train.checkpoint import CheckpointError, check_identity, read_config, save_weights, weights_identity
 
     root = Path(__file__).resolve().parents[2] / "checkpoints"
     ckpt = tmp_path / "ckpt"

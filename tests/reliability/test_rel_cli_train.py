@@ -196,8 +196,8 @@ def test_training_that_cannot_fit_is_refused_with_the_number(cli, tmp_path, monk
 
 
 def test_training_that_fits_is_not_refused():
+    from egcbf.algo.config import TrainConfig
     from egcbf.cli import checks as cli_checks
-    from egcbf.config import TrainConfig
 
     cli_checks.check_training_memory(TrainConfig.preset("egcbf+", "cpu"), cli_checks.parse_device("cpu"))
 
@@ -219,8 +219,8 @@ def test_sweep_that_cannot_fit_is_refused_with_the_number(cli, tmp_path, monkeyp
 @pytest.fixture(scope="module")
 def gcbf_plus_run(tmp_path_factory):
     """A finished ``tiny`` GCBF+ run of 2 updates (the other method's weights, for the swapped-folders case)."""
-    from egcbf.config import TrainConfig
-    from egcbf.train import train
+    from egcbf.algo.config import TrainConfig
+    from egcbf.train.loop import train
 
     out = tmp_path_factory.mktemp("gcbf_plus_run")
     train(TrainConfig.preset("gcbf+", "tiny", steps=2), out, progress=False, log=lambda s: None)

@@ -3,9 +3,9 @@ seeds, an arena too large for the neighbour grid, obstacles that leave no room."
 
 import pytest
 
-from egcbf.config import TrainConfig
+from egcbf.algo.config import TrainConfig
 from egcbf.env import EnvConfig
-from egcbf.evaluate import evaluate
+from egcbf.evaluate.episodes import evaluate
 
 
 @pytest.mark.parametrize(
@@ -141,7 +141,7 @@ def test_evaluate_names_a_controller_factory_that_is_not_callable():
 
 
 def test_train_names_an_argument_of_the_wrong_type(tmp_path):
-    from egcbf.train import train
+    from egcbf.train.loop import train
 
     with pytest.raises(TypeError, match=r"^train\(\) argument config must be a TrainConfig, got dict"):
         train({"algo": "egcbf+"}, tmp_path)
@@ -154,7 +154,7 @@ def test_train_names_an_argument_of_the_wrong_type(tmp_path):
 
 def test_run_episodes_with_no_seeds_names_the_cause():
     from egcbf.control.controllers import NominalController
-    from egcbf.evaluate import run_episodes
+    from egcbf.evaluate.episodes import run_episodes
 
     with pytest.raises(ValueError, match="seeds is empty"):
         run_episodes(NominalController(), EnvConfig(num_agents=2, area_size=2.0), [])

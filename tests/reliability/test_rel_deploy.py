@@ -1,4 +1,5 @@
-"""The per-agent controller a robot runs (``egcbf.deploy``) refuses what the simulator refuses: an attitude that is
+"""The per-agent controller a robot runs (``egcbf.deploy.agent``) refuses what the simulator refuses: an attitude that
+is
 not a rotation (all zeros, ``2 I``), and a controller that would hear no neighbour (``max_neighbours = 0``)."""
 
 from pathlib import Path
@@ -6,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from egcbf.deploy import AgentController
+from egcbf.deploy.agent import AgentController
 
 ROOT = Path(__file__).resolve().parents[2] / "checkpoints" / "egcbf+"
 

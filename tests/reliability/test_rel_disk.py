@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 
 import egcbf
-from egcbf.atomic import WriteError, remove_stale_temporaries, write_json_atomic, write_text_atomic, writing
-from egcbf.checkpoint import find_checkpoint, load_learner
+from egcbf.io.atomic import WriteError, remove_stale_temporaries, write_json_atomic, write_text_atomic, writing
+from egcbf.train.checkpoint import find_checkpoint, load_learner
 
 SRC = str(Path(egcbf.__file__).resolve().parents[1])
 
@@ -51,8 +51,8 @@ def run(tiny_run, tmp_path):
 
 # ----------------------------------------------------------------------------------------------------- checkpoints
 SAVE = """
-from egcbf.atomic import WriteError
-from egcbf.checkpoint import find_checkpoint, load_learner, save_best, save_checkpoint
+from egcbf.io.atomic import WriteError
+from egcbf.train.checkpoint import find_checkpoint, load_learner, save_best, save_checkpoint
 run = sys.argv[1]
 learner = load_learner(find_checkpoint(run))
 errors, small, large = [], int(sys.argv[2]), int(sys.argv[3])
@@ -99,8 +99,8 @@ def test_train_past_the_file_size_limit_ends_with_one_error_line(tmp_path):
 # --------------------------------------------------------------------------------------------------------- metrics
 METRICS = """
 import torch
-from egcbf.atomic import WriteError, write_json_atomic, writing
-from egcbf.train import METRICS_FIELDS, _Logger
+from egcbf.io.atomic import WriteError, write_json_atomic, writing
+from egcbf.train.loop import METRICS_FIELDS, _Logger
 from pathlib import Path
 out = Path(sys.argv[1])
 logger = _Logger(out, 0)  # metrics.csv and scalars.csv with their headers

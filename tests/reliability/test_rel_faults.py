@@ -40,12 +40,12 @@ def test_a_fault_file_takes_the_short_names(cli, tmp_path):
 
 
 def test_a_run_that_fails_before_any_result_leaves_nothing(cli, tmp_path, monkeypatch):
-    import egcbf.evaluate
+    import egcbf.evaluate.episodes
 
     def broken(*args, **kwargs):
         raise RuntimeError("simulated failure in the first swarm size")
 
-    monkeypatch.setattr(egcbf.evaluate, "evaluate", broken)
+    monkeypatch.setattr(egcbf.evaluate.episodes, "evaluate", broken)
     res = cli("eval", *RUN, "--out", tmp_path / "ev")
     assert res.exit_code != 0 and isinstance(res.exception, RuntimeError)
     assert not (tmp_path / "ev" / "run.json").exists()

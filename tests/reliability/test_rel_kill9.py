@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 import egcbf
-from egcbf.checkpoint import find_checkpoint, load_controller, load_learner
+from egcbf.train.checkpoint import find_checkpoint, load_controller, load_learner
 
 SRC = str(Path(egcbf.__file__).resolve().parents[1])
 TIMEOUT = 60.0

@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from egcbf.cli import app
-from egcbf.locks import LOCK_NAME, DirLock, DirLockedError
+from egcbf.io.locks import LOCK_NAME, DirLock, DirLockedError
 
 EGCBF = [sys.executable, "-m", "egcbf"]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -20,7 +20,7 @@ ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 def _hold(directory: Path, ready: Path, what: str = "egcbf eval") -> subprocess.Popen:
     """A second process holding ``directory``'s lock until killed."""
     code = (
-        "import pathlib, time\nfrom egcbf.locks import DirLock\n"
+        "import pathlib, time\nfrom egcbf.io.locks import DirLock\n"
         f"with DirLock({str(directory)!r}, {what!r}):\n    pathlib.Path({str(ready)!r}).touch()\n    time.sleep(120)\n"
     )
     proc = subprocess.Popen([sys.executable, "-c", code], env=ENV)

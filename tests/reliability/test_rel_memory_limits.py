@@ -16,7 +16,7 @@ import pytest
 from rel_helpers import assert_usage_error
 
 import egcbf
-from egcbf.allocator import Headroom, MemoryLimit, memory_headroom, memory_limits
+from egcbf.io.allocator import Headroom, MemoryLimit, memory_headroom, memory_limits
 
 SRC = str(Path(egcbf.__file__).resolve().parents[1])
 GiB, MiB = 2**30, 2**20

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from ..env import EnvConfig, LidarScan, Obstacles, SwarmState
-from ..graph import SwarmGraph, build_graph
+from ..env.graph import SwarmGraph, build_graph
 from ..robots import Robot
 
 __all__ = ["Samples", "TrajectoryBuffer", "UnsafeBuffer"]

@@ -11,9 +11,9 @@ the minimum), and it gives each agent one row per threat instead of one row for 
          the command box of the interface, in the agent's yaw frame;  s_i >= 0
 
 Pair rows are split in halves (the ``dCBF-QP``'s convention), so no agent needs another's command. All ``B N`` QPs
-are one batch of the dense interior-point solver (:func:`egcbf.control.dense_qp.solve_dense_batch_ipm`); an agent
+are one batch of the dense interior-point solver (:func:`egcbf.qp.dense_qp.solve_dense_batch_ipm`); an agent
 whose QP fails or whose solution fails the check brakes. Used by the run-time filters
-(:mod:`egcbf.algo.filtered`, ``cbf`` and ``prior``) and by the learner's per-edge QP target
+(:mod:`egcbf.control.filters`, ``cbf`` and ``prior``) and by the learner's per-edge QP target
 (``TrainConfig.qp_constraints = "edges"``).
 
 Robots driven through their raw control (:class:`~egcbf.algo.interface.ControlInterface`: GCBF+'s double
@@ -33,12 +33,12 @@ from torch import Tensor
 
 from groupcanon.groups import Trivial
 
-from ..control.dense_qp import assemble_decentralized, solve_dense_batch_ipm, verified
-from ..control.point_mass_qp import acceleration_affine, solve_own_qps
-from ..control.qp import SlackPenalty
-from ..graph import KIND_AGENT, KIND_GOAL, SwarmGraph
+from ..env.graph import KIND_AGENT, KIND_GOAL, SwarmGraph
 from ..nn.edge_min import EdgeMinHead, closest_approach
 from ..nn.models import CBFNet, frames_for
+from ..qp.dense_qp import assemble_decentralized, solve_dense_batch_ipm, verified
+from ..qp.sparse_qp import SlackPenalty
+from ..robots.point_mass_qp import acceleration_affine, solve_own_qps
 from ..robots.quadrotor.barriers import AccelBounds, bound_rows
 from ..robots.quadrotor.cbf_qp import brake_acceleration
 from .interface import AccelInterface, ControlInterface
@@ -148,16 +148,14 @@ def edge_qp_controls(
     ``(B, N, k)``, in the box that acts at its state (:meth:`ControlInterface.state_bounds`), one row
     ``db_ij/dt + alpha (b_ij - margin) >= 0`` per agent neighbour (halved) and LiDAR hit, with the world
     acceleration ``a_i = A_i + B_i s c_i`` of the robot's control-affine model
-    (:func:`egcbf.control.point_mass_qp.acceleration_affine`) and each neighbour's acceleration left to its own half.
-    Solved by :func:`egcbf.control.point_mass_qp.solve_own_qps`; an agent whose QP fails keeps ``c_ref`` projected
+    (:func:`egcbf.robots.point_mass_qp.acceleration_affine`) and each neighbour's acceleration left to its own half.
+    Solved by :func:`egcbf.robots.point_mass_qp.solve_own_qps`; an agent whose QP fails keeps ``c_ref`` projected
     into its box (counted). Returns the commands ``(B, N, k)`` float64 and the counts of :func:`edge_qp_commands`.
 
     ``min_authority``: a row is dropped (counted in ``rows_dropped``) when a unit of normalized control changes its
     ``db/dt`` by no more than this (m/s per unit): a barrier the agent barely moves (a separating pair, whose
     closest approach is now) would otherwise demand a huge push, and the agent's one slack would then relax all its
-    rows. The Dubins car's runs use ``0.1`` (``TrainConfig.qp_edge_min_authority``; with one checkpoint's CBF, on
-    validation seed 777 with 16 agents at l = 4, the teacher was 93.8 % safe with 1e-9 and 99.6 % with 0.1; with
-    another's 99.2 and 98.4 %: docs/robots.md)."""
+    rows. The Dubins car's runs use ``0.1`` (``TrainConfig.qp_edge_min_authority``; why: docs/robots.md)."""
     robot = itf.robot
     if robot.kinematic:
         raise ValueError(f"the per-edge QPs need a robot whose velocity is part of its state, not the {robot.name} "

@@ -46,7 +46,7 @@ import torch
 from torch import Tensor, nn
 
 from ..env import EnvConfig
-from ..graph import SwarmGraph, refresh_graph
+from ..env.graph import SwarmGraph, refresh_graph
 from ..robots import Quadrotor, Robot
 from ..robots.quadrotor import dynamics as dyn
 from ..robots.quadrotor.nominal import (

@@ -29,12 +29,12 @@ import torch
 from torch import Tensor
 from torch.func import functional_call
 
-from ..config import TrainConfig
 from ..env import EnvConfig, SwarmEnv, SwarmState
-from ..graph import SwarmGraph, build_graph, refresh_graph
+from ..env.graph import SwarmGraph, build_graph, refresh_graph
 from ..nn import CBFNet, ModelConfig, PolicyNet, sensing
 from ..robots import Robot
 from .buffer import Samples, TrajectoryBuffer, UnsafeBuffer
+from .config import TrainConfig
 from .edge_qp import edge_qp_commands, edge_qp_controls
 from .interface import CommandInterface, ControlInterface, make_interface, solve_command_qp
 from .labels import finite_horizon_labels

@@ -10,13 +10,13 @@ accelerations in each agent's yaw frame, or normalized torque and thrust)::
 
 ``Lf h_i`` and ``Lg_j h_i`` (the derivative of ``h_i`` along agent ``j``'s command) come from the interface's model,
 built on the Jacobian ``dh_i/dx_j``, which comes from autograd with the graph's topology, goals and LiDAR hits held
-fixed (the states enter as in :func:`egcbf.graph.refresh_graph`, as GCBF+ does), in *one* backward pass: every
+fixed (the states enter as in :func:`egcbf.env.graph.refresh_graph`, as GCBF+ does), in *one* backward pass: every
 edge reads its own copy of its sender's state, so the gradient of ``sum_i h_i`` with respect to the copies
 separates into every ``dh_i/dx_j`` (:func:`cbf_jacobian`). Entries for agents outside ``i``'s neighbourhood are
 exactly zero. GCBF+'s constants: ``alpha`` = 0.1 times the loss's class-K slope, ``w1 = 1e3``, ``w2 = 10``.
 
 The QP is always feasible (the slack absorbs conflicts; the box contains the clipped reference). It is solved by
-the batched primal-dual interior-point method of :mod:`egcbf.control.ipm` (Mehrotra predictor-corrector; the
+the batched primal-dual interior-point method of :mod:`egcbf.qp.ipm` (Mehrotra predictor-corrector; the
 environments of a chunk advance together), in float64, with the Newton linear algebra of :class:`CBFQPKKT`, which
 uses the problem's structure (one ``kN x kN`` Cholesky per environment and iteration). It runs on the device of the
 data (CPU or GPU); checked against proxsuite in the tests.
@@ -30,8 +30,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from ..control.ipm import IPMSettings, solve_ipm
-from ..graph import SwarmGraph, with_agent_states
+from ..env.graph import SwarmGraph, with_agent_states
+from ..qp.ipm import IPMSettings, solve_ipm
 
 __all__ = ["CBFQPKKT", "CBFQPResult", "cbf_jacobian", "solve_cbf_qp"]
 
@@ -64,7 +64,7 @@ def cbf_jacobian(cbf: nn.Module, graph: SwarmGraph, x: Tensor) -> tuple[Tensor, 
 # ------------------------------------------------------------------------------------------ the learned CBF-QP
 @dataclass
 class CBFQPKKT:
-    """The learned-CBF QPs of ``B`` environments as a :class:`egcbf.control.ipm.KKTSystem`, variables
+    """The learned-CBF QPs of ``B`` environments as a :class:`egcbf.qp.ipm.KKTSystem`, variables
     ``x = (u (nu), s (n))``::
 
         min 1/2 ||u - u_ref||^2 + 1/2 w2 ||s||^2 + w1 1's   s.t.  a u + s >= -b,  s >= 0,  lo <= u <= hi
@@ -179,7 +179,7 @@ def _gt_mul(at: Tensor, y: Tensor, n: int, nu: int) -> tuple[Tensor, Tensor]:
 def _solve(
     a: Tensor, b: Tensor, u_ref: Tensor, lo: Tensor, hi: Tensor, w1: float, w2: float, tol: float, max_iter: int
 ) -> tuple[Tensor, Tensor, Tensor, int]:
-    """:func:`egcbf.control.ipm.solve_ipm` on the QPs of :class:`CBFQPKKT`, from the reference control pulled
+    """:func:`egcbf.qp.ipm.solve_ipm` on the QPs of :class:`CBFQPKKT`, from the reference control pulled
     towards the box's centre (``u = mid + 0.9 (u_ref - mid)``), a small slack ``0.1`` priced at its multiplier
     ``w1``, inequality slacks ``max(h - G x, 0.1)`` and multipliers 1. Returns ``u`` ``(B, nu)``, ``s`` ``(B, n)``,
     ``converged`` ``(B,)`` and the number of passes of the solver's loop plus one, capped at ``max_iter`` (what

@@ -9,7 +9,7 @@ condition a certificate checks is ``h(x_{t+1}) - h(x_t) >= -dt kappa(h(x_t))``.
   ``kappa(h) = alpha h`` with the checkpoint's training ``alpha``.
 * :class:`BrakingBarrier`: the minimum over an agent's pair and obstacle barriers of the ``dcbf`` filter
   (Wang, Ames & Egerstedt's braking-distance barrier ``sqrt(2 A_sum (d - D)) + d'`` with the filter's margin,
-  deceleration and culling radius, :data:`egcbf.algo.filtered.DCBF_FILTER_BARRIER`), read at the current state
+  deceleration and culling radius, :data:`egcbf.control.filters.DCBF_FILTER_BARRIER`), read at the current state
   (no look-ahead); inside the safety distance (``d < D``, where that barrier is undefined) ``h = d - D < 0``;
   ``kappa(h) = gamma h^3``, the filter's class-K function. An agent with no pair or obstacle within range has
   ``h = +inf`` (nothing threatens it).
@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from ..env import EnvConfig, SwarmState
-from ..graph import build_graph
+from ..env.graph import build_graph
 from ..nn.models import CBFNet
 from ..robots.quadrotor.barriers import BarrierConfig, agent_pairs
 

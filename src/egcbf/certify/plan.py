@@ -5,7 +5,7 @@ rollouts are recorded once and scored against several barriers: the learned CBF 
 (and, on the quadrotor, the ``dcbf`` filter's hand-crafted barrier as a reference row), or, for a controller
 without a policy (the nominal controller, alone and behind the ``dcbf`` filter), every learned CBF of the robot and
 the reference. Controllers: ``policy`` (the checkpoint's policy alone), ``policy:cbf``, ``policy:prior``,
-``policy:dcbf`` (behind each run-time filter, :mod:`egcbf.algo.filtered`), ``nominal`` and ``nominal:dcbf``.
+``policy:dcbf`` (behind each run-time filter, :mod:`egcbf.control.filters`), ``nominal`` and ``nominal:dcbf``.
 
 The default plan (:class:`CertifyConfig`): the quadrotor's EGCBF+ and GCBF+ of every shipped training seed, at
 N = 64 (l = 2) and N = 512 (l = 4) (the training density, 8 agents per m^3), with 0 and 8 obstacles; each robot of
@@ -23,7 +23,8 @@ from pathlib import Path
 
 import torch
 
-from ..report import code_version, machine_info
+from ..io.report import code_version, machine_info
+from ..robots import DEFAULT_ROBOT
 
 __all__ = ["CONTROLLERS", "Cell", "CertifyConfig", "Learned", "run_cell"]
 
@@ -54,7 +55,7 @@ class Learned:
     @property
     def barrier(self) -> str:
         """The name of its CBF's rows in the report."""
-        return self.label if self.robot == "quadrotor" else f"{self.robot}/{self.label}"
+        return self.label if self.robot == DEFAULT_ROBOT else f"{self.robot}/{self.label}"
 
 
 @dataclass(frozen=True)
@@ -118,7 +119,7 @@ class CertifyConfig:
         out = []
         for algo in ("egcbf+", "gcbf+"):
             for s in self.quadrotor_seeds:
-                out.append(Learned(f"{algo}-s{s}", "quadrotor", algo if s == 0 else f"seeds/{algo}-s{s}"))
+                out.append(Learned(f"{algo}-s{s}", DEFAULT_ROBOT, algo if s == 0 else f"seeds/{algo}-s{s}"))
         for robot in self.suite:
             out += [Learned(f"{algo}-s0", robot, f"{robot}/{algo}") for algo in ("gcbf+", "egcbf+")]
         return out
@@ -127,9 +128,9 @@ class CertifyConfig:
         """Every cell of the plan, largest ``N`` first (``only`` applied)."""
         learned = self.learned()
         cells = []
-        for robot in ("quadrotor", *self.suite):
+        for robot in (DEFAULT_ROBOT, *self.suite):
             mine = [c for c in learned if c.robot == robot]
-            if robot == "quadrotor":
+            if robot == DEFAULT_ROBOT:
                 sizes = self.quadrotor_sizes
                 policy_ctrls, nominal_ctrls = CONTROLLERS[:4], CONTROLLERS[4:]
                 ref = (REFERENCE,)
@@ -146,7 +147,7 @@ class CertifyConfig:
                                           (*(c.barrier for c in mine), *ref)))  # fmt: skip
         if self.only:
             cells = [c for c in cells if self.only in c.name]
-        return sorted(cells, key=lambda c: (-c.num_agents, c.robot != "quadrotor"))
+        return sorted(cells, key=lambda c: (-c.num_agents, c.robot != DEFAULT_ROBOT))
 
     def key(self, cell: Cell, shas: dict[str, str]) -> dict:
         """What a stored cell's counts depend on: the settings and the SHA-256 of every checkpoint involved."""
@@ -169,25 +170,18 @@ class CellTask:
 
 
 def _controller(task: CellTask, dev):
-    from ..algo.filtered import FilterConfig, FilteredController, load_filtered_controller
-    from ..checkpoint import load_controller
-    from ..control.controllers import make_controller
+    from ..control.resolve import POLICY, resolve
 
     cell = task.cell
     method, _, kind = cell.controller.partition(":")
     if method == "nominal":
-        if kind:
-            return FilteredController(None, None, FilterConfig.for_kind(kind))
-        return make_controller("nominal", robot=cell.robot)
-    path = task.paths[cell.learned.barrier]
-    if kind:
-        return load_filtered_controller(path, FilterConfig.for_kind(kind), device=dev)[0]
-    return load_controller(path, device=dev)[0]
+        return resolve(cell.controller, robot=cell.robot).controller
+    return resolve(f"{POLICY}:{kind}" if kind else POLICY, task.paths[cell.learned.barrier], device=dev).controller
 
 
 def _barriers(task: CellTask, dev) -> dict:
-    from ..algo.filtered import DCBF_FILTER_BARRIER
-    from ..checkpoint import load_network
+    from ..control.filters import DCBF_FILTER_BARRIER
+    from ..train.checkpoint import load_network
     from .barriers import BrakingBarrier, LearnedBarrier
 
     out = {}
@@ -203,7 +197,7 @@ def _barriers(task: CellTask, dev) -> dict:
 def run_cell(task: CellTask) -> dict:
     """Roll the cell's episodes out and count every barrier's rates: the cell file's content but its key."""
     from ..env import EnvConfig
-    from ..evaluate import episode_seed
+    from ..evaluate.episodes import episode_seed
     from .rates import count_rates, pool_counts
     from .rollout import roll_out
 

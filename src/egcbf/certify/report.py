@@ -12,8 +12,9 @@ from collections import defaultdict
 from collections.abc import Iterable
 from pathlib import Path
 
-from ..atomic import write_text_atomic
-from ..report import md_table, quote_section, relative_link
+from ..io.atomic import write_text_atomic
+from ..io.report import md_table, quote_section, relative_link
+from ..robots import DEFAULT_ROBOT
 from .plan import REFERENCE, Cell, CertifyConfig
 from .rates import RATES, bin_centers, pool_counts, rate
 from .runner import load_cells
@@ -91,7 +92,7 @@ def headline(cells: list[tuple[Cell, dict]], learned: list[str]) -> str | None:
 
     def own(k: int) -> dict:
         return _pooled(cells, "egcbf+-s0", lambda c: c.run == "egcbf+-s0" and c.controller == "policy:cbf"
-                       and c.num_agents == 512 and c.robot == "quadrotor" and c.obstacles == k)  # fmt: skip
+                       and c.num_agents == 512 and c.robot == DEFAULT_ROBOT and c.obstacles == k)  # fmt: skip
 
     settings = [(k, own(k)) for k in sorted({c.obstacles for c, _ in cells})]
     settings = [(k, c) for k, c in settings if c]
@@ -261,7 +262,7 @@ def write_report(cfg: CertifyConfig, path: str | Path = "docs/certificate.md",
               f"condition bounds ≤ {_pct(VALID_BOUND)} %).", ""]  # fmt: skip
     rows = []
     for c, s in cells:
-        if c.run == "egcbf+-s0" and c.controller == "policy:cbf" and c.num_agents == 512 and c.robot == "quadrotor":
+        if c.run == "egcbf+-s0" and c.controller == "policy:cbf" and c.num_agents == 512 and c.robot == DEFAULT_ROBOT:
             counts = s["barriers"]["egcbf+-s0"]
             rows.append([str(c.obstacles), f"{100 * s['safe_rate']:.2f}", verdict(counts), *_row(counts)])
     lines += [md_table(["obstacles", "safe %", "verdict", *_HEAD], rows) if rows else "(not computed yet)", ""]

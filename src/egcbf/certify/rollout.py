@@ -1,6 +1,7 @@
 """Closed-loop rollouts that record what a certificate needs: every agent's barrier values, collisions and QP status.
 
-:func:`roll_out` runs a controller on a batch of episodes exactly as :func:`egcbf.evaluate.run_episodes` does (the
+:func:`roll_out` runs a controller on a batch of episodes exactly as :func:`egcbf.evaluate.episodes.run_episodes` does
+(the
 same seeds, resets and steps, no faults) and keeps, per step ``t = 0 .. T`` and agent, each barrier's value at the
 state ``x_t``, whether ``x_t`` is in collision (``x_0`` never is), and for ``t < T`` whether the controller's run-time
 filter needed slack or braked at ``x_t`` (``None`` for a controller without a filter).
@@ -18,7 +19,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from ..env import EnvConfig, SwarmEnv
-from ..evaluate import concat_states
+from ..evaluate.episodes import concat_states
 
 __all__ = ["Trajectory", "roll_out"]
 

@@ -1,7 +1,7 @@
 """Running ``egcbf certify``'s cells resumably: each finished cell is written at once (atomically) to its file; a
 rerun computes only the cells that are missing or whose key (settings, checkpoint SHA-256) changed; a cell that
 raises is named at the end while the others go on; one sweep at a time holds the results folder
-(:class:`egcbf.locks.DirLock`)."""
+(:class:`egcbf.io.locks.DirLock`)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from ..atomic import write_json_atomic
-from ..checkpoint import sha256
-from ..locks import DirLock
+from ..io.atomic import write_json_atomic
+from ..io.locks import DirLock
+from ..train.checkpoint import sha256
 from .plan import Cell, CellTask, CertifyConfig, run_cell, with_paths
 
 __all__ = ["checkpoint_shas", "load_cells", "pending", "sweep"]
@@ -84,7 +84,7 @@ def _caught(task: CellTask):
 def sweep(cfg: CertifyConfig, log: Callable[[str], None] = print) -> dict[Cell, str]:
     """Compute every pending cell of ``cfg`` on ``cfg.workers`` processes, writing each as it finishes; returns the
     failures ``{cell: traceback}`` (empty: all done)."""
-    from ..reproduce.workers import _run_processes
+    from ..reproduce.workers import run_processes
 
     failures: dict[Cell, str] = {}
     with DirLock(cfg.out, "egcbf certify"):
@@ -92,7 +92,7 @@ def sweep(cfg: CertifyConfig, log: Callable[[str], None] = print) -> dict[Cell, 
         log(f"{len(todo)} of {len(cfg.cells())} cells to compute")
         keys = {id(task): (cell, key) for cell, task, key in todo}
         tasks = [task for _, task, _ in todo]
-        outcomes = _run_processes(tasks, cfg.workers, _caught) if cfg.workers > 1 and len(tasks) > 1 else map(
+        outcomes = run_processes(tasks, cfg.workers, _caught) if cfg.workers > 1 and len(tasks) > 1 else map(
             _caught, tasks)  # fmt: skip
         for k, (task, result, err) in enumerate(outcomes, 1):
             cell, key = keys[id(task)]

@@ -1,4 +1,4 @@
-"""``egcbf average``: weight averaging of two checkpoints of one model (:mod:`egcbf.averaging`), how the shipped
+"""``egcbf average``: weight averaging of two checkpoints of one model (:mod:`egcbf.train.averaging`), how the shipped
 EGCBF+ and GCBF+ policies are made from the fine-tuned ones and their starting points (checkpoints/README.md)."""
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ def average_cmd(
 ) -> None:
     """Write OUT = lam x the weights of A + (1 - lam) x those of B (CBF, target CBF and policy), with A's config and
     both inputs recorded in OUT/state.json."""
-    from ..averaging import average_checkpoints
-    from ..checkpoint import CheckpointError
+    from ..train.averaging import average_checkpoints
+    from ..train.checkpoint import CheckpointError
 
     require(0.0 <= lam <= 1.0, f"--lam must be in [0, 1], got {lam}")
     require(

@@ -117,13 +117,15 @@ def check_env_flags(
     obstacles: int,
     max_steps: int | None,
     overrides: dict | None = None,
-    robot: str = "quadrotor",
+    robot: str | None = None,
 ) -> list:
     """The :class:`~egcbf.env.EnvConfig` of every swarm size, or a usage error naming the flag (``--area``,
-    ``--obstacles``, ``--max-steps``, ``--num-agents``) if any of them is invalid or cannot be sampled."""
+    ``--obstacles``, ``--max-steps``, ``--num-agents``) if any of them is invalid or cannot be sampled; ``robot``:
+    the swarm's robot (``None``: the default robot)."""
     from ..env import EnvConfig
     from ..env.sampling import packing_feasible
     from ..env.scenes import scene_boxes
+    from ..robots import DEFAULT_ROBOT
 
     require(math.isfinite(area) and area > 0, f"--area must be a finite number > 0 (metres), got {area:g}")
     require(obstacles >= 0, f"--obstacles must be >= 0, got {obstacles}")
@@ -134,7 +136,9 @@ def check_env_flags(
     configs = []
     for n in sizes:
         try:
-            cfg = EnvConfig.for_robot(robot, num_agents=n, area_size=area, num_obstacles=obstacles, **kw)
+            cfg = EnvConfig.for_robot(
+                robot or DEFAULT_ROBOT, num_agents=n, area_size=area, num_obstacles=obstacles, **kw
+            )
         except (TypeError, ValueError) as err:
             usage_error(f"--num-agents {n}, --area {area:g}, --obstacles {obstacles}: {err}", err)
         sep = cfg.start_separation * cfg.agent_radius
@@ -179,14 +183,14 @@ _BYTES_PER_EDGE_64 = 2048
 def available_memory(device: torch.device) -> int | None:
     """Bytes the run may still allocate: free GPU memory for CUDA; on the CPU the least of free memory, what the
     address-space and data limits (``ulimit -v``, ``ulimit -d``) leave of the process's current size, and the
-    cgroup's headroom (:func:`egcbf.allocator.memory_headroom`, whose ``limit`` names the one that binds);
+    cgroup's headroom (:func:`egcbf.io.allocator.memory_headroom`, whose ``limit`` names the one that binds);
     ``None`` where it cannot be told (then nothing is refused)."""
     if device.type == "cuda":
         try:
             return int(torch.cuda.mem_get_info(device)[0])
         except (RuntimeError, AssertionError):
             return None
-    from ..allocator import memory_headroom
+    from ..io.allocator import memory_headroom
 
     return memory_headroom()
 
@@ -216,7 +220,7 @@ def _available(free: int) -> str:
 def check_policy_memory(configs: Sequence, episodes: int, batch: int | None, hidden: int, device: torch.device) -> None:
     """Refuse (usage error, with the numbers) a learned-policy evaluation whose estimated step memory
     (:func:`policy_memory`) exceeds :func:`available_memory`, before anything is allocated."""
-    from ..evaluate import episode_batch
+    from ..evaluate.episodes import episode_batch
 
     free = available_memory(device)
     if free is None:
@@ -241,8 +245,8 @@ def check_sweep_memory(cells: Sequence[tuple[int, float, int]], workers: int, hi
                        device: torch.device) -> None:  # fmt: skip
     """Refuse (usage error, with the numbers) a sweep whose largest learned cells, ``workers`` of them at once,
     would not fit: ``cells`` are ``(num_agents, area, episodes)`` of the learned cells (:func:`policy_memory` of
-    each, episodes batched as :func:`egcbf.evaluate.evaluate` batches them)."""
-    from ..evaluate import episode_batch
+    each, episodes batched as :func:`egcbf.evaluate.episodes.evaluate` batches them)."""
+    from ..evaluate.episodes import episode_batch
 
     free = available_memory(device)
     if free is None or not cells:
@@ -322,7 +326,7 @@ def prepare_out(
     """Make ``out`` an empty-of-results, writable directory that this process alone writes into, before any work
     starts.
 
-    ``out`` is locked for the rest of the command (:func:`egcbf.locks.hold_dir`): a second command writing there at
+    ``out`` is locked for the rest of the command (:func:`egcbf.io.locks.hold_dir`): a second command writing there at
     the same time is refused, naming the first. ``results`` are glob patterns of the files a run writes there (e.g.
     ``metrics.json``, ``*_N*.gif``). If any exists, the run is refused unless ``overwrite``, in which case they are
     deleted first (so that a new run never mixes with an old one's renders). The current directory (``--out ''``
@@ -330,7 +334,7 @@ def prepare_out(
     directory are refused. ``lock=False`` (a directory that only receives a report file, e.g. ``--report``'s)
     checks that it is a writable directory, nothing else.
     """
-    from ..locks import DirLockedError, hold_dir
+    from ..io.locks import DirLockedError, hold_dir
 
     if lock and str(out) in ("", "."):
         usage_error(f"{flag} is empty or '.' (the current directory); name a directory for the results, e.g. "

@@ -40,7 +40,7 @@ class Controller(str, Enum):
 
 
 class SafetyFilter(str, Enum):
-    """A run-time safety filter of a learned policy (``egcbf.algo.filtered.FILTERS``): ``egcbf eval --filter``."""
+    """A run-time safety filter of a learned policy (``egcbf.control.filters.FILTERS``): ``egcbf eval --filter``."""
 
     none = "none"
     cbf = "cbf"
@@ -56,7 +56,7 @@ class SceneName(str, Enum):
 
 
 class LearnedMethod(str, Enum):
-    """A learned method (``egcbf.config.LEARNED_METHODS``): ``egcbf train --algo``."""
+    """A learned method (``egcbf.algo.config.LEARNED_METHODS``): ``egcbf train --algo``."""
 
     gcbf = "gcbf"
     gcbf_plus = "gcbf+"
@@ -78,7 +78,7 @@ class DemoMethod(str, Enum):
 
 
 class Preset(str, Enum):
-    """A training preset (``egcbf.config.PRESETS``): ``egcbf train --preset``."""
+    """A training preset (``egcbf.algo.config.PRESETS``): ``egcbf train --preset``."""
 
     cpu = "cpu"
     paper_cpu = "paper-cpu"
@@ -109,7 +109,7 @@ class Dtype(str, Enum):
 
 
 class ExportFormat(str, Enum):
-    """The file format of an exported agent controller (``egcbf.export.FORMATS``): ``egcbf export --format``."""
+    """The file format of an exported agent controller (``egcbf.deploy.export.FORMATS``): ``egcbf export --format``."""
 
     torchscript = "torchscript"
     onnx = "onnx"

@@ -2,7 +2,7 @@
 
 Every controller runs :func:`egcbf.cli.eval.run_eval` on the same swarm, area, obstacles, episodes and evaluation
 seed, so the episodes (starts, goals, obstacles) are identical and the rows compare like with like. The first
-episode of each is recorded and drawn side by side (:func:`egcbf.render.render_comparison_gif`).
+episode of each is recorded and drawn side by side (:func:`egcbf.viz.render.render_comparison_gif`).
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ from typing import Annotated
 import torch
 import typer
 
-from ..atomic import write_json_atomic, write_text_atomic
-from ..filter_names import FILTER_LABELS, filter_label, path_name, split_method
-from ..report import machine_info, number, pct
+from ..control.names import FILTER_LABELS, filter_label, path_name, split_method
+from ..io.atomic import write_json_atomic, write_text_atomic
+from ..io.report import machine_info, number, pct
 from .checks import (
     check_env_flags,
     check_policy_memory,
@@ -30,7 +30,7 @@ from .checks import (
 from .choices import (
     DemoMethod,
 )
-from .eval import EVAL_RESULTS, load_policy, run_eval, say_run_checkpoint
+from .eval import EVAL_RESULTS, build_controller, run_eval, say_run_checkpoint
 from .root import _THREADS_HELP, _threads, _torch_threads, allocator_setting, app
 
 __all__ = ["DESCRIPTIONS", "FILTER_DESCRIPTIONS", "demo_table", "describe", "out_dir", "run_demo"]
@@ -45,7 +45,7 @@ DESCRIPTIONS = {
     "dcbf": "dCBF-QP (hand-crafted)",
     "ccbf": "cCBF-QP (hand-crafted)",
 }
-#: a learned method behind a run-time filter, ``METHOD:FILTER`` (:mod:`egcbf.filter_names`)
+#: a learned method behind a run-time filter, ``METHOD:FILTER`` (:mod:`egcbf.control.names`)
 FILTER_DESCRIPTIONS = {k: f"+ {v}" for k, v in FILTER_LABELS.items()}
 
 
@@ -100,7 +100,7 @@ def run_demo(
     controller}``, the first is the demo's method) into ``OUT/<name>/``; print and write the table
     (``OUT/summary.md``), the comparison GIF (``OUT/compare_N<n>.gif``) and a top-down still of the first
     controller, and ``OUT/demo.json``. Inputs are checked by the caller. Returns the summary written to demo.json."""
-    from ..render import render_comparison_gif, render_topdown
+    from ..viz.render import render_comparison_gif, render_topdown
 
     t0 = time.time()
     rows, episodes_seen = {}, {}
@@ -188,9 +188,9 @@ def _read_row(directory: Path) -> dict:
 def _demo_source(name: str, checkpoints: Path) -> Path | None:
     """The checkpoint directory of a learned method (``checkpoints/<name>``), or ``None`` for a hand-crafted
     controller name; a clear error naming the path and the training command if a learned method has none."""
-    from ..config import LEARNED_METHODS
+    from ..algo.config import LEARNED_METHODS
     from ..control.controllers import CONTROLLERS
-    from ..filter_names import FILTERS, split_method
+    from ..control.names import FILTERS, split_method
 
     if name in CONTROLLERS:
         return None
@@ -205,7 +205,7 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
             f"or a controller {sorted(CONTROLLERS)}"
         )
     name = method
-    from ..checkpoint import find_checkpoint
+    from ..train.checkpoint import find_checkpoint
 
     path = checkpoints / name
     try:
@@ -261,7 +261,7 @@ def demo(
     controller and the hand-crafted dCBF-QP on the same episodes (128 agents, l = 4, 8 obstacles by default): one
     table, OUT/summary.md, a GIF of the first episode of every controller side by side (OUT/compare_N<n>.gif),
     OUT/<controller>/metrics.json and OUT/demo.json."""
-    from ..filter_names import split_method
+    from ..control.names import split_method
 
     method = method.value
     if compare is None:  # a hand-crafted --method alone is compared with the nominal controller only
@@ -277,9 +277,12 @@ def demo(
     require(num_agents >= 1, f"--num-agents must be >= 1, got {num_agents}")
     dev = parse_device(device)
     check_env_flags([num_agents], area, obstacles, max_steps)
+    from ..control.resolve import POLICY
+    from ..robots import DEFAULT_ROBOT
+
     for name, ckpt in sources.items():  # every checkpoint loads and fits in memory, before the first method runs
         if ckpt is not None:
-            _, _, train_cfg = load_policy(ckpt, dev, torch.float32, "--checkpoints")
+            train_cfg = build_controller(POLICY, ckpt, "--checkpoints", device=dev).train_config
             base = split_method(name)[0]
             require(  # the label comes from what the weights are, not from the folder's name
                 train_cfg.algo == base,
@@ -287,7 +290,7 @@ def demo(
                 f"the folders of --checkpoints are named after their method (put {base}'s checkpoint there)",
             )
             require(
-                train_cfg.robot == "quadrotor",
+                train_cfg.robot == DEFAULT_ROBOT,
                 f"--checkpoints: {ckpt} drives a {train_cfg.robot}; the demo compares quadrotor controllers (for "
                 f"another robot: `egcbf eval --checkpoint {ckpt}`, or docs/gen_planar.py --gif for the unicycle)",
             )

@@ -14,8 +14,8 @@ from typing import Annotated
 import torch
 import typer
 
-from ..atomic import WriteError, write_json_atomic, writing
-from ..report import machine_info, number, pct
+from ..io.atomic import WriteError, write_json_atomic, writing
+from ..io.report import machine_info, number, pct
 from .checks import (
     check_env_flags,
     check_policy_memory,
@@ -35,7 +35,15 @@ from .choices import (
 )
 from .root import _THREADS_HELP, _threads, _torch_threads, allocator_setting, app
 
-__all__ = ["DTYPES", "EVAL_RESULTS", "format_table", "load_policy", "render_records", "run_eval", "say_run_checkpoint"]
+__all__ = [
+    "DTYPES",
+    "EVAL_RESULTS",
+    "build_controller",
+    "format_table",
+    "render_records",
+    "run_eval",
+    "say_run_checkpoint",
+]
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 #: the files an evaluation writes into --out (a new run refuses a folder holding any of them without --overwrite)
@@ -45,8 +53,8 @@ _RESUME_FREE = ("command", "finished", "complete", "wall_s", "threads", "threads
 
 
 def format_table(rows: list[dict], title: str = "") -> str:
-    """A fixed-width table of metric rows (rates in % and costs as :func:`egcbf.report.pct` and
-    :func:`egcbf.report.number` print them)."""
+    """A fixed-width table of metric rows (rates in % and costs as :func:`egcbf.io.report.pct` and
+    :func:`egcbf.io.report.number` print them)."""
     head = f"{'N':>5} {'Safe%':>7} {'Reach%':>7} {'Succ%':>7} {'Cost (min/max)':>20} {'Reward':>10} {'step ms':>8}"
     has_qp = any("qp_ms_median" in r for r in rows)
     if has_qp:
@@ -71,8 +79,8 @@ def format_table(rows: list[dict], title: str = "") -> str:
 
 def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path]:
     """A GIF and a top-down PNG per recorded swarm size ``{N: EpisodeRecord}``; returns the paths written. A full disk
-    or the file-size limit raises :class:`egcbf.atomic.WriteError` naming the image (no partial image is left)."""
-    from ..render import render_gif, render_topdown
+    or the file-size limit raises :class:`egcbf.io.atomic.WriteError` naming the image (no partial image is left)."""
+    from ..viz.render import render_gif, render_topdown
 
     paths = []
     for n, rec in records.items():
@@ -92,31 +100,20 @@ def render_records(records: dict, out: Path, area: float, tag: str) -> list[Path
     return paths
 
 
-def load_policy(checkpoint: Path, dev: torch.device, dtype: torch.dtype, flag: str = "--checkpoint"):
-    """``(checkpoint directory, controller, training config)`` of ``checkpoint`` (of a run directory, its ``best/``
-    if it has one, else its newest checkpoint; said on stderr), or a usage error naming it."""
-    from ..checkpoint import CheckpointError, find_checkpoint, load_controller
+def build_controller(name: str, checkpoint: Path | None, flag: str = "--checkpoint", **kwargs):
+    """:func:`egcbf.control.resolve.resolve` of ``name`` (and ``checkpoint``), or a usage error naming ``flag``
+    and saying why; which checkpoint of a run directory is used is said on stderr."""
+    from ..control.resolve import ControllerError, resolve
+    from ..train.checkpoint import CheckpointError
 
     try:
-        ckpt = find_checkpoint(checkpoint, prefer_best=True)
-        learned, train_cfg = load_controller(ckpt, device=dev, dtype=dtype)
-    except (FileNotFoundError, CheckpointError) as err:
-        usage_error(f"{flag} {checkpoint}: {err}", err)
-    say_run_checkpoint(checkpoint, ckpt, flag)
-    return ckpt, learned, train_cfg
-
-
-def _filtered(ckpt, learned, train_cfg, config, dev, dtype):
-    """The checkpoint's policy behind the run-time filter ``config`` (its CBF network for ``cbf``), or a usage
-    error saying why this checkpoint cannot be filtered."""
-    from ..algo.filtered import FilteredController
-    from ..checkpoint import CheckpointError, load_network
-
-    try:
-        cbf = load_network(ckpt, "cbf", dev, dtype)[0] if config.kind == "cbf" else None
-        return FilteredController(learned.policy, train_cfg.model, config, cbf)
-    except (CheckpointError, ValueError) as err:
-        usage_error(f"--filter {config.kind} on {ckpt}: {err}", err)
+        built = resolve(name, checkpoint, **kwargs)
+    except (FileNotFoundError, CheckpointError, ControllerError) as err:
+        where = f"{flag} {checkpoint}" if checkpoint is not None else f"--controller {name}"
+        usage_error(f"{where}: {err}", err)
+    if checkpoint is not None:
+        say_run_checkpoint(checkpoint, built.checkpoint, flag)
+    return built
 
 
 def say_run_checkpoint(given: Path, found: Path, flag: str) -> None:
@@ -166,11 +163,12 @@ def run_eval(
     ``resume``: continue the interrupted run in ``out`` (same settings, checked against its ``run.json``): the swarm
     sizes it finished are kept, the others evaluated.
     """
-    from ..algo.filtered import FILTERS, FilterConfig, FilteredController
-    from ..control.controllers import CONTROLLERS, POINT_MASSES, make_controller
-    from ..evaluate import evaluate, fault_support_error
-    from ..filter_names import join_method
-    from ..robots import ROBOTS
+    from ..control.controllers import CONTROLLERS
+    from ..control.filters import FILTERS, FilterConfig
+    from ..control.names import join_method, split_method
+    from ..control.resolve import POLICY
+    from ..evaluate.episodes import evaluate, fault_support_error
+    from ..robots import DEFAULT_ROBOT, ROBOTS
 
     require(dtype in DTYPES, f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
@@ -219,33 +217,27 @@ def run_eval(
             require("noncoop" not in given_fields(faults), f"--faults {faults} at --num-agents {n}: {why}")
             typer.echo(f"--faults {faults}: at N = {n} {why}; that size runs without them", err=True)
     dev = parse_device(device)
-    env_overrides, ckpt = None, None
+    env_overrides = None
     if checkpoint is not None:  # a learned policy: everything it needs is in the checkpoint directory
         if controller is not None:
             usage_error("--controller and --checkpoint exclude each other (the checkpoint's policy is the controller)")
-        ckpt, learned, train_cfg = load_policy(checkpoint, dev, DTYPES[dtype])
-        controller = train_cfg.algo
-        if filter_config is not None:
-            learned = _filtered(ckpt, learned, train_cfg, filter_config, dev, DTYPES[dtype])
-            controller = join_method(train_cfg.algo, filter)
-        env_overrides = dict(train_cfg.env_overrides)  # the sensing the policy was trained with (radii, LiDAR)
+        built = build_controller(join_method(POLICY, filter), checkpoint, filter_config=filter_config, device=dev,
+                                 dtype=DTYPES[dtype])  # fmt: skip
         require(
-            robot in (None, train_cfg.robot),
-            f"--robot {robot} but the checkpoint's policy drives a {train_cfg.robot}; drop --robot",
+            robot in (None, built.robot),
+            f"--robot {robot} but the checkpoint's policy drives a {built.robot}; drop --robot",
         )
-        robot = train_cfg.robot
+        controller, robot, env_overrides = built.name, built.robot, built.env_overrides
     else:
         controller = controller or "nominal"
         require(controller in CONTROLLERS, f"--controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
-        if filter_config is not None:  # the nominal command behind the filter
-            filtered_nominal = FilteredController(None, None, filter_config)
-            controller = join_method("nominal", filter)
-    robot = robot or "quadrotor"
+    robot = robot or DEFAULT_ROBOT
     require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
+    robot_cls = ROBOTS[robot]
     from ..faults.process import for_robot
 
     try:  # the default field conditions mean something for every robot: what it cannot take is left out, and said
-        fault_config, left_out = for_robot(fault_config, ROBOTS[robot](), given_fields(faults))
+        fault_config, left_out = for_robot(fault_config, robot_cls(), given_fields(faults))
     except ValueError as err:
         usage_error(f"--faults {faults}: {str(err).removeprefix('faults: ')}", err)
     if left_out:
@@ -254,29 +246,22 @@ def run_eval(
             err=True,
         )
     qp_options = {}
+    base = split_method(controller)[0]
     if obstacle_sensing == "lidar":  # what reads the obstacle map must read the LiDAR instead
-        require(robot == "quadrotor", f"--obstacle-sensing lidar is the quadrotor's dcbf QP and filter; not a {robot}")
-        require(controller != "ccbf", "--obstacle-sensing lidar: the centralized CBF-QP reads the obstacle map; use "
+        require(robot_cls.lidar_obstacle_rows,
+                f"--obstacle-sensing lidar: the {robot}'s controllers read the obstacle map")  # fmt: skip
+        require(base != "ccbf", "--obstacle-sensing lidar: the centralized CBF-QP reads the obstacle map; use "
                 "--controller dcbf (each agent's own LiDAR hits)")  # fmt: skip
-        if controller == "dcbf" and filter_config is None:
+        if base == "dcbf" and filter_config is None:
             qp_options.update(obstacle_sensing="lidar", lidar_hits=lidar_hits)
-    affine_qp = controller in ("ccbf", "dcbf") and robot in POINT_MASSES and filter_config is None
-    if (controller in ("ccbf", "dcbf") or filter_config is not None) and robot != "quadrotor" and not affine_qp:
-        usage_error(
-            f"--controller {controller}: the run-time filters are written for the quadrotor, and the hand-crafted "
-            f"CBF-QPs for the quadrotor and {', '.join(POINT_MASSES)}; not a {robot}"
-        )
+    require(filter_config is None or robot_cls.run_time_filters,
+            f"--filter {filter}: the run-time filters are not written for the {robot}")  # fmt: skip
+    if checkpoint is None:  # a hand-crafted controller, or the nominal command behind a filter
+        built = build_controller(join_method(controller, filter), None, robot=robot, filter_config=filter_config,
+                                 **qp_options)  # fmt: skip
+        controller = built.name
     if fault_config.edge_faults:  # message and LiDAR faults: ask the controller which ones it perceives
-        if checkpoint is not None:
-            probe = learned
-        elif filter_config is not None:
-            probe = filtered_nominal
-        else:
-            try:
-                probe = make_controller(controller, robot=robot, **qp_options)
-            except ValueError as err:
-                usage_error(f"--controller {controller}: {err}", err)
-        why = fault_support_error(probe, fault_config, name=controller)
+        why = fault_support_error(built.controller, fault_config, name=controller)
         require(why is None, f"--faults {fault_config.spec()}: {why}")
     require(math.isfinite(scene_yaw), f"--scene-yaw must be a finite number of degrees, got {scene_yaw}")
     if scene != "uniform" or scene_yaw != 0:  # else the environment's defaults, as every earlier run recorded them
@@ -288,7 +273,7 @@ def run_eval(
         env_overrides = {**(env_overrides or {}), "max_travel": float(max_travel)}
     configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides, robot)
     if checkpoint is not None:
-        check_policy_memory(configs, episodes, batch, train_cfg.model.hidden, dev)
+        check_policy_memory(configs, episodes, batch, built.train_config.model.hidden, dev)
     require(not (resume and overwrite), "--resume continues OUT's run and --overwrite would delete it: pass one")
     previous = _previous_run(out) if resume else None
     prepare_out(out, overwrite, () if resume else EVAL_RESULTS)
@@ -297,8 +282,8 @@ def run_eval(
         "command": " ".join(["egcbf", *sys.argv[1:]]),
         "controller": controller,
         "robot": robot,
-        "checkpoint": None if ckpt is None else str(ckpt),
-        **({} if ckpt is None else {"weights_sha256": _weights_sha256(ckpt)}),
+        "checkpoint": None if built.checkpoint is None else str(built.checkpoint),
+        **({} if built.checkpoint is None else {"weights_sha256": built.weights_sha256}),
         "filter": filter,
         "filter_config": None if filter_config is None else filter_config.settings(),
         "num_agents": sizes,
@@ -352,11 +337,9 @@ def run_eval(
             ([], None)
             if not sizes
             else evaluate(
-                (lambda cfg: learned)
-                if checkpoint is not None
-                else (lambda cfg: filtered_nominal)
-                if filter_config is not None
-                else (lambda cfg: make_controller(controller, robot=robot, **qp_options)),
+                (lambda cfg: built.controller)
+                if checkpoint is not None or filter_config is not None
+                else (lambda cfg: build_controller(controller, None, robot=robot, **qp_options).controller),
                 sizes,
                 area_size=area,
                 num_obstacles=obstacles,
@@ -401,13 +384,6 @@ def _previous_run(out: Path) -> dict:
         usage_error(f"--resume: {path} cannot be read ({err}); rerun with --overwrite", err)
     require(isinstance(previous, dict) and "finished" in previous, f"--resume: {path} is not an eval run's record")
     return previous
-
-
-def _weights_sha256(ckpt: Path) -> str:
-    """The sha256 of the checkpoint's ``model.safetensors``: what ``run.json`` records of the weights evaluated."""
-    from ..checkpoint import sha256
-
-    return sha256(Path(ckpt) / "model.safetensors")
 
 
 def _resumable(previous: dict, meta: dict, out: Path) -> list[dict]:

@@ -1,5 +1,5 @@
 """``egcbf export``: one agent's learned controller as a self-contained TorchScript or ONNX file
-(:mod:`egcbf.export`, docs/deploy.md)."""
+(:mod:`egcbf.deploy.export`, docs/deploy.md)."""
 
 from __future__ import annotations
 
@@ -25,9 +25,9 @@ def export_cmd(
 ) -> None:
     """Write one agent's controller (policy, group actions, nominal controller, attitude loop) with fixed-shape,
     masked inputs to OUT; the file is checked against PyTorch before it is kept. ONNX runs under onnxruntime alone."""
-    from ..checkpoint import CheckpointError
-    from ..deploy import AgentController
-    from ..export import export_controller
+    from ..deploy.agent import AgentController
+    from ..deploy.export import export_controller
+    from ..train.checkpoint import CheckpointError
 
     require(max_neighbours >= 1, f"--max-neighbours must be >= 1 (a controller that reads no neighbour would not "
             f"avoid them), got {max_neighbours}")  # fmt: skip

@@ -125,8 +125,7 @@ def reproduce(
     obstacles, and OBSTACLE-METHODS with OBSTACLES obstacles; SEED-METHODS once per training seed) and at the
     SCALE-SIZES at fixed density, resumably (finished cells are kept; stop and rerun the same command), and write
     REPORT."""
-    from ..checkpoint import read_config
-    from ..filter_names import split_method
+    from ..control.names import split_method
     from ..reproduce import (
         CellsFailed,
         SweepConfig,
@@ -139,6 +138,7 @@ def reproduce(
         write_report,
     )
     from ..reproduce.store import pending_cells
+    from ..train.checkpoint import read_config
 
     try:
         sweep_cfg = dict(

@@ -13,8 +13,8 @@ import torch
 import typer
 from typer.core import TyperGroup
 
-from ..allocator import keep_freed_memory
-from ..threads import choose_threads
+from ..io.allocator import keep_freed_memory
+from ..io.threads import choose_threads
 from .checks import (
     _debug,
     usage_error,
@@ -96,7 +96,7 @@ def _root(
     """Equivariant graph CBFs for quadrotor swarms. (EGCBF_DEBUG=1 shows the traceback of a usage error.)"""
 
 
-#: the process's allocator setting (:mod:`egcbf.allocator`), set by :func:`main`; recorded in run.json
+#: the process's allocator setting (:mod:`egcbf.io.allocator`), set by :func:`main`; recorded in run.json
 _ALLOCATOR = "default (the CLI's entry point did not run)"
 
 
@@ -113,7 +113,7 @@ _THREADS_HELP = (
 
 
 def _threads(requested: int | None) -> tuple[int, str]:
-    """``(threads, reason)`` from :func:`egcbf.threads.choose_threads`; a bad ``--threads`` is a usage error."""
+    """``(threads, reason)`` from :func:`egcbf.io.threads.choose_threads`; a bad ``--threads`` is a usage error."""
     try:
         return choose_threads(requested)
     except ValueError as err:
@@ -133,7 +133,7 @@ def _torch_threads(threads: int, reason: str) -> Iterator[None]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """The ``egcbf`` command: keeps freed memory for reuse (:mod:`egcbf.allocator`) and runs :data:`app`, which
+    """The ``egcbf`` command: keeps freed memory for reuse (:mod:`egcbf.io.allocator`) and runs :data:`app`, which
     prints a bad flag value or a missing argument as one ``Error:`` line naming the flag (exit code 2) instead of
     typer's boxed panel; ``EGCBF_DEBUG=1`` re-raises. ``argv``: the arguments (default: ``sys.argv[1:]``)."""
     global _ALLOCATOR

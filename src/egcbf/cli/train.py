@@ -73,16 +73,16 @@ def train(
     ] = None,
 ) -> None:
     """Train GCBF, GCBF+, EGCBF or EGCBF+ (one learner; the group and the reference controller differ)."""
-    from ..checkpoint import CheckpointError, checkpoint_step
-    from ..config import PRESETS, TrainConfig
-    from ..train import train as run_training
+    from ..algo.config import PRESETS, TrainConfig
+    from ..train.checkpoint import CheckpointError, checkpoint_step
+    from ..train.loop import train as run_training
 
     algo = None if algo is None else algo.value
     preset = None if preset is None else preset.value
     require(steps is None or steps >= 1, f"--steps must be >= 1, got {steps}")
     require(threads is None or threads >= 1, f"--threads must be >= 1, got {threads}")
     if tensorboard:
-        from ..train import require_tensorboard
+        from ..train.loop import require_tensorboard
 
         try:
             require_tensorboard()
@@ -125,8 +125,9 @@ def train(
         robot is None or file_robot is None or file_robot == robot,
         f"--config {config} says robot {file_robot!r} but --robot is {robot!r}",
     )
-    robot = robot or file_robot or "quadrotor"
-    from ..robots import ROBOTS
+    from ..robots import DEFAULT_ROBOT, ROBOTS
+
+    robot = robot or file_robot or DEFAULT_ROBOT
 
     require(robot in ROBOTS, f"--robot must be one of {sorted(ROBOTS)}, got {robot!r}")
     require(name in PRESETS, f"--preset must be one of {PRESETS}, got {name!r}")

@@ -1,10 +1,7 @@
-"""The robot-independent control machinery: the QP cores every hand-crafted CBF-QP is solved with
-(:mod:`~egcbf.control.qp` sparse, :mod:`~egcbf.control.dense_qp` and :mod:`~egcbf.control.dense_ipm` batched dense,
-:mod:`~egcbf.control.ipm` the interior-point core, :mod:`~egcbf.control.sparse_solvers` the qpsolvers back-ends), the
-constraint rows they read (:mod:`~egcbf.control.constraints`), the acceleration-level barriers of every control-affine
-point-mass robot (:mod:`~egcbf.control.point_mass_qp`), and the registry of hand-crafted controllers
-(:mod:`~egcbf.control.controllers`, ``make_controller``).
+"""Controllers as plug-ins: the registry of hand-crafted controllers and the one place that builds any controller
+from a name ``METHOD[:FILTER]`` and a checkpoint (:mod:`~egcbf.control.controllers`), the run-time safety filters
+(:mod:`~egcbf.control.filters`) and the controller and filter names (:mod:`~egcbf.control.names`).
 
-A robot's own controllers (its nominal controller, inner loop and hand-crafted barriers) live with the robot in
-:mod:`egcbf.robots` (the quadrotor's in :mod:`egcbf.robots.quadrotor`).
+A robot's own controllers (its nominal law, inner loop and hand-crafted barriers and CBF-QPs) live with the robot in
+:mod:`egcbf.robots`, which declares them; the QP cores are :mod:`egcbf.qp`.
 """

@@ -1,11 +1,18 @@
-"""Controllers with one call signature, for evaluation: ``u, info = controller(state, env_config)``.
+"""Hand-crafted controllers with one call signature, for evaluation: ``u, info = controller(state, env_config)``.
 
 ``state`` is an :class:`egcbf.env.SwarmState` (``B`` environments of ``N`` agents), ``env_config`` its
-:class:`egcbf.env.EnvConfig`; ``u`` ``(B, N, 4)`` body-frame ``(tau, F3)`` in ``state.x``'s dtype and device, clipped
-to the actuators; ``info`` a dict with at least ``qp_ms`` (wall time of the controller's optimization, 0 for the
-nominal controller), ``num_slack`` and ``num_failed`` (QPs that needed slack / fell back; 0 for the nominal one).
+:class:`egcbf.env.EnvConfig`; ``u`` ``(B, N, control_dim)`` (the quadrotor: body-frame ``(tau, F3)``) in ``state.x``'s
+dtype and device, clipped to the actuators; ``info`` a dict with at least ``qp_ms`` (wall time of the controller's
+optimization, 0 for the nominal controller), ``num_slack`` and ``num_failed`` (QPs that needed slack / fell back; 0
+for the nominal one).
 
-    ctrl = make_controller("ccbf")            # "nominal", "brisk", "ccbf", "dcbf"
+Every robot has its nominal law (``"nominal"``) and its brisk law (``"brisk"``); its CBF-QP baselines are the ones
+it declares (``Robot.cbf_qps``: the quadrotor's ``"ccbf"`` and ``"dcbf"``, the point masses' and cars'
+acceleration-level ones). A controller with a learned part, or behind a run-time filter, is built by
+:func:`egcbf.control.resolve.resolve`::
+
+    ctrl = make_controller("ccbf")                          # the quadrotor's centralized CBF-QP
+    ctrl = make_controller("dcbf", robot="double_integrator")
     u, info = ctrl(state, env.config)
 """
 
@@ -15,40 +22,25 @@ import time
 
 from torch import Tensor
 
-from ..robots.quadrotor.cbf_qp import CBFQPConfig, CentralizedCBFQP
-from ..robots.quadrotor.dcbf_qp import DecentralizedCBFQP
-from ..robots.quadrotor.nominal import DEFAULT_GAINS, DEFAULT_MAX_POSITION_ERROR, NominalGains, nominal_control
+from ..robots import DEFAULT_ROBOT, ROBOTS, make_robot
 
-__all__ = [
-    "CONTROLLERS",
-    "BriskController",
-    "CBFQPConfig",
-    "CentralizedCBFQP",
-    "DecentralizedCBFQP",
-    "NominalController",
-    "make_controller",
-]
+__all__ = ["CONTROLLERS", "GENERIC_CONTROLLERS", "BriskController", "NominalController", "make_controller",
+           "robot_controllers"]  # fmt: skip
+
+
+def _info(t0: float) -> dict:
+    return {"qp_ms": 0.0, "num_slack": 0, "num_failed": 0, "ctrl_ms": 1e3 * (time.perf_counter() - t0)}
 
 
 class NominalController:
-    """The equivariant nominal controller, no safety: the quadrotor's geometric controller
-    (:func:`~.quadrotor.nominal.nominal_control`, with ``gains`` and ``max_position_error``), or another robot's
-    own ``Robot.nominal_control``."""
+    """The robot's equivariant nominal controller (``Robot.nominal_control``), no safety."""
 
     name = "nominal"
 
-    def __init__(self, gains: NominalGains = DEFAULT_GAINS, max_position_error: float = DEFAULT_MAX_POSITION_ERROR):
-        self.gains = gains
-        self.max_position_error = max_position_error
-
     def __call__(self, state, env_config) -> tuple[Tensor, dict]:
         t0 = time.perf_counter()
-        if env_config.robot == "quadrotor":
-            u = nominal_control(state.x, state.goals, env_config.params, self.gains, self.max_position_error)
-        else:
-            u = env_config.make_robot().nominal_control(state.x, state.goals)
-        info = {"qp_ms": 0.0, "num_slack": 0, "num_failed": 0, "ctrl_ms": 1e3 * (time.perf_counter() - t0)}
-        return u, info
+        u = env_config.make_robot().nominal_control(state.x, state.goals)
+        return u, _info(t0)
 
 
 class BriskController:
@@ -61,40 +53,31 @@ class BriskController:
     def __call__(self, state, env_config) -> tuple[Tensor, dict]:
         t0 = time.perf_counter()
         u = env_config.make_robot().brisk_control(state.x, state.goals)
-        info = {"qp_ms": 0.0, "num_slack": 0, "num_failed": 0, "ctrl_ms": 1e3 * (time.perf_counter() - t0)}
-        return u, info
+        return u, _info(t0)
 
 
-CONTROLLERS = {
-    "nominal": NominalController,
-    "brisk": BriskController,
-    "ccbf": CentralizedCBFQP,
-    "dcbf": DecentralizedCBFQP,
-}
-#: robots whose "dcbf" is the control-affine dCBF-QP (:mod:`egcbf.control.point_mass_qp`): GCBF+'s point masses and
-#: its cars
-POINT_MASSES = ("single_integrator", "double_integrator", "linear_drone", "dubins_car", "unicycle")
+#: the controllers of every robot
+GENERIC_CONTROLLERS = {"nominal": NominalController, "brisk": BriskController}
 
 
-def make_controller(name: str, robot: str = "quadrotor", **kwargs):
-    """Controller by name: ``"nominal"``, ``"brisk"`` (:class:`BriskController`), ``"ccbf"`` (centralized
-    CBF-QP), ``"dcbf"`` (decentralized CBF-QP), for ``robot`` (the quadrotor's QPs; for GCBF+'s point masses and
-    cars ``"dcbf"`` is :class:`egcbf.control.point_mass_qp.PointMassDCBF` and ``"ccbf"`` its centralized
-    :class:`~egcbf.control.point_mass_qp.PointMassCCBF`).
+def robot_controllers(robot: str = DEFAULT_ROBOT) -> dict[str, type]:
+    """Controller name -> class of ``robot``'s hand-crafted controllers: :data:`GENERIC_CONTROLLERS` and the CBF-QPs
+    the robot declares (``Robot.cbf_qps``). Raises ``ValueError`` for a robot not registered."""
+    if robot not in ROBOTS:
+        raise ValueError(f"unknown robot {robot!r}; choose one of {sorted(ROBOTS)}")
+    return {**GENERIC_CONTROLLERS, **make_robot(robot).cbf_qps()}
 
-    Keyword arguments go to the constructor: for the CBF-QPs a ``config=CBFQPConfig(...)`` and/or overrides of its
-    fields or of :class:`egcbf.robots.quadrotor.barriers.BarrierConfig`'s (e.g. ``make_controller("ccbf", kind="hocbf",
-    solver="proxsuite")``); for the nominal controller ``gains`` and ``max_position_error``.
-    """
-    if name in ("ccbf", "dcbf") and robot in POINT_MASSES:
-        from .point_mass_qp import PointMassCCBF, PointMassDCBF
 
-        return (PointMassCCBF if name == "ccbf" else PointMassDCBF)(**kwargs)
-    if name in ("ccbf", "dcbf") and robot != "quadrotor":
-        names = ", ".join(POINT_MASSES)
-        raise ValueError(f"the hand-crafted CBF-QPs are written for the quadrotor and {names}; not a {robot}")
-    try:
-        cls = CONTROLLERS[name]
-    except KeyError:
-        raise ValueError(f"unknown controller {name!r}; choose one of {sorted(CONTROLLERS)}") from None
-    return cls(**kwargs)
+#: the default robot's hand-crafted controllers, name -> class (``egcbf eval --controller``)
+CONTROLLERS = robot_controllers()
+
+
+def make_controller(name: str, robot: str = DEFAULT_ROBOT, **kwargs):
+    """The hand-crafted controller ``name`` of ``robot`` (:func:`robot_controllers`), built with ``kwargs``: for
+    the quadrotor's CBF-QPs a ``config=CBFQPConfig(...)`` and/or overrides of its fields or of
+    :class:`egcbf.robots.quadrotor.barriers.BarrierConfig`'s (e.g. ``make_controller("ccbf", kind="hocbf",
+    solver="proxsuite")``). Raises ``ValueError`` naming the robot's controllers for an unknown ``name``."""
+    available = robot_controllers(robot)
+    if name not in available:
+        raise ValueError(f"unknown controller {name!r} for the {robot}; choose one of {sorted(available)}")
+    return available[name](**kwargs)

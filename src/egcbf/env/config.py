@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
-from ..robots import Robot, make_robot
+from ..robots import DEFAULT_ROBOT, Robot, make_robot
 from ..robots.quadrotor import dynamics as dyn
 from .scenes import SCENES
 
@@ -102,7 +102,7 @@ class EnvConfig:
     scene_yaw: float = 0.0
     max_travel: float | None = None
     params: Any = None
-    robot: str = "quadrotor"
+    robot: str = DEFAULT_ROBOT
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, what: str) -> None:
@@ -203,6 +203,23 @@ class EnvConfig:
         """The LiDAR ray length: ``lidar_range``, or ``comm_radius`` when it is ``None``."""
         return float(self.comm_radius if self.lidar_range is None else self.lidar_range)
 
+    def scan(self, positions, heading, obstacles, ray_faults=None):
+        """:func:`egcbf.env.lidar.lidar_scan` with this configuration's ray pattern, range and hit count: a
+        :class:`~egcbf.env.lidar.LidarScan` of the agents at ``positions`` ``(B, N, d)`` with headings ``heading``
+        ``(B, N, d)`` (``Robot.heading``) among ``obstacles`` (``B`` environments); ``ray_faults``: the sensor's
+        faults on single rays."""
+        from .lidar import lidar_scan
+
+        return lidar_scan(
+            positions,
+            heading,
+            obstacles,
+            n_rays=self.n_rays,
+            max_range=self.resolved_lidar_range,
+            max_hits=self.lidar_max_hits,
+            ray_faults=ray_faults,
+        )
+
     @property
     def density(self) -> float:
         """Agents per unit volume (3-D) or area (2-D), ``N / l^d`` (the paper's density axis)."""
@@ -218,5 +235,5 @@ class EnvConfig:
     def from_dict(cls, d: dict) -> EnvConfig:
         d = dict(d)
         if isinstance(d.get("params"), dict):
-            d["params"] = type(make_robot(d.get("robot", "quadrotor")).params)(**d["params"])
+            d["params"] = type(make_robot(d.get("robot", DEFAULT_ROBOT)).params)(**d["params"])
         return cls(**d)

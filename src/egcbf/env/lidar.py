@@ -41,8 +41,8 @@ from torch import Tensor
 
 from groupcanon.frames import planar_frame
 
+from ..geometry.rectangles import ray_distances
 from .obstacles import Obstacles
-from .rectangles import ray_distances
 
 __all__ = ["LidarScan", "RayFaults", "lidar_scan", "ray_directions"]
 

@@ -6,7 +6,7 @@ the same last dimension. All coordinates are in the world frame.
 GCBF+'s CrazyFlie environment uses spheres with radius uniform in ``[0.05, 0.3]`` and centres uniform in the
 arena ``[0, l]^3``; that is what :func:`sample_obstacles` draws (``dim=2``: discs with centres uniform in
 ``[0, l]^2``). GCBF+'s planar environments use rotated rectangles (:meth:`Obstacles.rectangles`,
-:func:`sample_rectangle_obstacles`; the geometry is :mod:`egcbf.env.rectangles`): ``boxes`` ``(B, K, 4)`` then
+:func:`sample_rectangle_obstacles`; the geometry is :mod:`egcbf.geometry.rectangles`): ``boxes`` ``(B, K, 4)`` then
 holds each rectangle's half sides and orientation ``(cos, sin)``, and ``radii`` its circumradius (the bounding
 disc, which the neighbour searches use before the exact distance).
 """
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..neighbors import radius_search
+from ..geometry.neighbors import radius_search
 
 __all__ = ["Obstacles", "sample_obstacles", "sample_rectangle_obstacles"]
 
@@ -68,8 +68,8 @@ class Obstacles:
         return cls(centers, radii, boxes if boxes is not None and boxes.shape[-1] else None)
 
     def geometry(self):
-        """The rectangles as :class:`egcbf.env.rectangles.Rectangles` (rectangle obstacles only)."""
-        from .rectangles import Rectangles
+        """The rectangles as :class:`egcbf.geometry.rectangles.Rectangles` (rectangle obstacles only)."""
+        from ..geometry.rectangles import Rectangles
 
         if self.boxes is None:
             raise ValueError("these obstacles are round, not rectangles")
@@ -110,7 +110,7 @@ class Obstacles:
         c = self.centers[env, k].to(points.dtype)
         if self.boxes is None:
             return (points - c).norm(dim=-1) - self.radii[env, k].to(points.dtype)
-        from .rectangles import signed_distance
+        from ..geometry.rectangles import signed_distance
 
         box = self.boxes[env, k].to(points.dtype)
         return signed_distance(points, c, box[..., :2], box[..., 2:])
@@ -172,14 +172,14 @@ class Obstacles:
 
     def surface_distance(self, points: Tensor) -> Tensor:
         """Signed distance of ``points`` ``(B, M, d)`` to every obstacle, ``(B, M, K)``: ``||p - c_k|| - r_k`` for
-        round ones, the rectangle's signed distance (:func:`egcbf.env.rectangles.signed_distance`) for rectangles.
+        round ones, the rectangle's signed distance (:func:`egcbf.geometry.rectangles.signed_distance`) for rectangles.
 
         Dense over obstacles (``K`` is small), linear in the number of points. Broadcasts over environments: ``B``
         may be 1 on either side (the result then has the larger ``B``).
         """
         self._check_points(points, batched=True, broadcast=True)
         if self.boxes is not None:
-            from .rectangles import signed_distance
+            from ..geometry.rectangles import signed_distance
 
             b = max(points.shape[0], self.num_envs)
             box = self.boxes.expand(b, -1, -1)[:, None]
@@ -288,8 +288,8 @@ def sample_rectangle_obstacles(
     dtype: torch.dtype = torch.float64,
 ) -> Obstacles:
     """GCBF+'s planar obstacles: rotated rectangles, centres uniform in ``[0, l]^2``, each side from ``side_range``,
-    orientations uniform (:func:`egcbf.env.rectangles.sample_rectangles`)."""
-    from .rectangles import sample_rectangles
+    orientations uniform (:func:`egcbf.geometry.rectangles.sample_rectangles`)."""
+    from ..geometry.rectangles import sample_rectangles
 
     r = sample_rectangles(num_envs, num_obstacles, area_size, side_range, generator=generator, dtype=dtype)
     return Obstacles.rectangles(r.centers, r.half_sizes, r.orientations)

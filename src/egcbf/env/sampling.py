@@ -21,7 +21,7 @@ import math
 import torch
 from torch import Tensor
 
-from ..neighbors import radius_neighbors
+from ..geometry.neighbors import radius_neighbors
 from .obstacles import Obstacles
 
 __all__ = ["packing_feasible", "sample_separated_points"]

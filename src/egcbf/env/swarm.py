@@ -5,7 +5,7 @@ planar unicycle (2-D: positions, goals, obstacles and LiDAR live in the plane). 
 
 Everything is batched over ``B = num_envs`` environments of ``N = num_agents`` agents and vectorized: no Python
 loop over agents or environments. Agent–agent proximity always goes through the sparse cell-list search
-(:func:`egcbf.neighbors.radius_neighbors`), never a dense ``N x N`` matrix.
+(:func:`egcbf.geometry.neighbors.radius_neighbors`), never a dense ``N x N`` matrix.
 
 Conventions (GCBF+, see ``docs/metrics.md``), with ``r`` the agent radius:
 
@@ -34,11 +34,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..neighbors import radius_neighbors
-from ..robots import Robot, make_robot
-from ..robots.quadrotor import dynamics as dyn
+from ..geometry.neighbors import radius_neighbors
+from ..robots import DEFAULT_ROBOT, Robot, make_robot
 from .config import EnvConfig, _is_int
-from .lidar import LidarScan, RayFaults, lidar_scan
+from .lidar import LidarScan, RayFaults
 from .obstacles import Obstacles, sample_obstacles, sample_rectangle_obstacles
 from .sampling import sample_separated_points
 from .scenes import cos_sin_degrees, rotate_about_center, scene_boxes, wrap_angle
@@ -77,7 +76,8 @@ class SwarmState:
         t: steps taken since reset (all environments step together).
         robot: the robot the states belong to (``None``: the quadrotor).
         sensing: ``None`` (a perfect world), or how the agents perceive it under faults
-            (:class:`egcbf.faults.Sensing`: ``x`` is then what the agents estimate, and :func:`egcbf.graph.build_graph`
+            (:class:`egcbf.faults.Sensing`: ``x`` is then what the agents estimate, and
+            :func:`egcbf.env.graph.build_graph`
             takes its LiDAR scan and its messages from it). Only :mod:`egcbf.faults` sets it.
     """
 
@@ -90,7 +90,7 @@ class SwarmState:
 
     def __post_init__(self) -> None:
         if self.robot is None:
-            self.robot = make_robot("quadrotor")
+            self.robot = make_robot(DEFAULT_ROBOT)
         s, d = self.robot.state_dim, self.robot.dim
         if self.x.dim() != 3 or self.x.shape[-1] != s:
             raise ValueError(f"{self.robot.name} state x must be (B, N, {s}), got {tuple(self.x.shape)}")
@@ -131,9 +131,7 @@ class SwarmState:
     @property
     def attitudes(self) -> Tensor:
         """``(B, N, 3, 3)`` body-to-world rotations (a view; quadrotor only)."""
-        if self.robot.name != "quadrotor":
-            raise AttributeError(f"a {self.robot.name} has no attitude matrix")
-        return self.x[..., dyn.ROT].reshape(*self.x.shape[:2], 3, 3)
+        return self.robot.attitudes(self.x)
 
     def to(self, *args, **kwargs) -> SwarmState:
         return SwarmState(
@@ -304,21 +302,12 @@ def advance(robot: Robot, config: EnvConfig, x: Tensor, u: Tensor, goals: Tensor
 def cast_lidar(
     config: EnvConfig, positions: Tensor, heading: Tensor, obstacles: Obstacles, ray_faults: RayFaults | None = None
 ) -> LidarScan:
-    """:func:`egcbf.env.lidar.lidar_scan` with the ray pattern, range and hit count of ``config``.
-
-    ``positions`` and ``heading`` (``Robot.heading``: the body x axes of quadrotors, whose horizontal part turns the
-    pattern; the unit headings of planar robots) are ``(B, N, d)``; ``obstacles`` has ``B`` environments;
-    ``ray_faults``: the sensor's faults on single rays (:func:`~egcbf.env.lidar.lidar_scan`).
+    """:meth:`EnvConfig.scan <egcbf.env.config.EnvConfig.scan>` of ``config``: the LiDAR scan of the agents at
+    ``positions`` with headings ``heading`` (``Robot.heading``: the body x axes of quadrotors, whose horizontal part
+    turns the pattern; the unit headings of planar robots), both ``(B, N, d)``, among ``obstacles`` (``B``
+    environments); ``ray_faults``: the sensor's faults on single rays (:func:`~egcbf.env.lidar.lidar_scan`).
     """
-    return lidar_scan(
-        positions,
-        heading,
-        obstacles,
-        n_rays=config.n_rays,
-        max_range=config.resolved_lidar_range,
-        max_hits=config.lidar_max_hits,
-        ray_faults=ray_faults,
-    )
+    return config.scan(positions, heading, obstacles, ray_faults)
 
 
 class SwarmEnv:

@@ -1,7 +1,7 @@
 """The faults of one batch of episodes, step by step: what the controller sees, what the rotors do, what the wind
 pushes (:class:`FaultProcess`).
 
-The evaluation loop (:func:`egcbf.evaluate.run_episodes`) runs, each step::
+The evaluation loop (:func:`egcbf.evaluate.episodes.run_episodes`) runs, each step::
 
     seen = faults.observe(state)            # the agents' estimates, with a Sensing for scans and messages
     u, info = controller(seen, env_config)  # the controller is unchanged
@@ -28,9 +28,9 @@ from torch import Tensor
 
 from ..env.config import EnvConfig
 from ..env.swarm import SwarmState
-from ..onboard import Onboard, hover_commands
 from ..robots import Robot
 from . import draws
+from .onboard import Onboard, hover_commands
 from .sensing import STREAMS, Sensing
 from .spec import FaultConfig
 
@@ -105,7 +105,7 @@ class FaultProcess:
         faults: the fault levels.
         env_config: the environment (``dt``, ``num_agents``).
         robot: the agents' robot.
-        seeds: the episode seed of each environment (:func:`egcbf.evaluate.episode_seed`).
+        seeds: the episode seed of each environment (:func:`egcbf.evaluate.episodes.episode_seed`).
         rotation: ``None``, or a ``(d, d)`` rotation applied to every world-frame draw and to the wind.
     """
 

@@ -1,7 +1,7 @@
 """What the agents perceive under faults: their LiDAR scans and the messages on the graph's edges.
 
 A :class:`Sensing` rides on the observed :class:`egcbf.env.SwarmState` that :class:`egcbf.faults.FaultProcess` hands
-to the controller (``state.sensing``); :func:`egcbf.graph.build_graph` takes the scan from :meth:`Sensing.scan` and
+to the controller (``state.sensing``); :func:`egcbf.env.graph.build_graph` takes the scan from :meth:`Sensing.scan` and
 passes the graph it built through :meth:`Sensing.messages`. So every controller that builds its graph from the state
 (the learned policies and the filters around them) perceives the faults, with no change to the controller.
 
@@ -24,7 +24,8 @@ passes the graph it built through :meth:`Sensing.messages`. So every controller 
 
 A controller declares the channels it perceives in its ``reads_sensing`` attribute (:data:`CHANNELS`,
 :func:`unread_faults`): ``True`` for every channel (it builds its whole graph from the observed state), or a
-collection of channel names; :func:`egcbf.evaluate.run_episodes` refuses a fault on a channel the controller would
+collection of channel names; :func:`egcbf.evaluate.episodes.run_episodes` refuses a fault on a channel the controller
+would
 ignore.
 """
 
@@ -36,10 +37,10 @@ import torch
 from torch import Tensor
 
 from ..env.config import EnvConfig
+from ..env.graph import KIND_AGENT, SwarmGraph, agent_features, edge_vectors
 from ..env.lidar import LidarScan
 from ..env.obstacles import Obstacles
 from ..env.swarm import cast_lidar
-from ..graph import KIND_AGENT, SwarmGraph, agent_features, edge_vectors
 from ..robots import Robot
 from . import draws
 from .spec import CHANNELS, INERT_FIELDS, FaultConfig

@@ -104,15 +104,16 @@ class FaultConfig:
             hover command: the nominal control to the agent's own position).
         act_predict: not a fault, the agents' handling of ``act_delay`` (inert without it): 1: every agent
             commands for its state ``act_delay`` steps ahead, its estimate rolled through the robot's dynamics with
-            its own commands still in flight (a Smith predictor, :class:`egcbf.onboard.Onboard`; gain errors and
+            its own commands still in flight (a Smith predictor, :class:`egcbf.faults.onboard.Onboard`; gain errors and
             wind unknown to it, or, with ``dist_obs``, their estimate added back), and broadcasts that prediction;
             0: it commands for its current estimate.
         dist_obs: not a fault, the agents' handling of disturbances (wind, gusts, the translational effect of gain
             and torque errors): 1: every agent
             estimates the acceleration acting on it beyond its model (its velocity estimate minus its model's
             prediction from its previous estimate under the command it knows acted, low-passed with time constant
-            :data:`egcbf.onboard.DIST_OBS_TAU`) and cancels it in its command
-            (:meth:`egcbf.robots.Robot.reject_disturbance`: a disturbance observer, :class:`egcbf.onboard.Onboard`);
+            :data:`egcbf.faults.onboard.DIST_OBS_TAU`) and cancels it in its command
+            (:meth:`egcbf.robots.Robot.reject_disturbance`: a disturbance observer,
+            :class:`egcbf.faults.onboard.Onboard`);
             0: it does not. With exact estimates and no disturbance its estimate is exactly zero; under sensing noise
             alone it carries about ``vel_noise / 0.25 s`` of noise.
 

@@ -33,10 +33,8 @@ Each is the other's adjoint, with the transpose ``(E, N heads)`` for the gradien
 (:class:`_ColumnSums`, also ``embedding_bag``), so gradients cost about as much as the forward and are
 differentiable again (double backward).
 
-Measured on the project's CPU (one thread, float32, captured 512-agent graphs of 13 000 to 21 000 edges), against
-the per-edge path kept below: x2.2-2.6 in inference and x2.6-3.2 forward + backward with one source row per edge
-(EGCBF+), x1.5-1.7 and x1.7-2.0 with sources per node (GCBF+). A padded per-receiver ``(N, max degree, in)``
-layout with batched products and ``torch.sparse.mm`` for the weighted sums were both slower.
+How it compares with the per-edge path kept below, and with the layouts tried and dropped (a padded per-receiver
+``(N, max degree, in)`` layout, ``torch.sparse.mm`` for the weighted sums): docs/benchmarks.md.
 
 The results equal ``TransformerConv.forward`` up to float rounding (tested). The receiver-side path runs on CPU in
 float32 and float64; on other devices the per-edge path (:meth:`EdgeAttention._forward_per_edge`: keys and values
@@ -194,7 +192,7 @@ class EdgeAttention(TransformerConv):
     ``(N_dst, heads * out_channels)``. Receivers without incoming edges get zeros, as in PyG.
 
     ``receiver_side = False`` (an instance attribute) keeps it on the per-edge path on every device: dense and
-    scatter operations only, which tracing and ONNX export can record (:mod:`egcbf.export`).
+    scatter operations only, which tracing and ONNX export can record (:mod:`egcbf.deploy.export`).
     """
 
     receiver_side: bool = True

@@ -12,10 +12,9 @@ soft-min of the closest-approach distances minus ``D``: a barrier whose gradient
 neighbour that is closing in. ``b_free = 1 - D`` is the value with nothing in range.
 
 Why (docs/learning.md, "Why the learned CBF-QP teacher failed"): a CBF trained on safe/unsafe labels alone is free
-to have any gradient in the velocities, and the learned-CBF QP steers along that gradient. Measured at 8 agents per
-m^3, a one-layer graph transformer CBF trained this way gave a QP teacher no safer than the nominal controller,
-while the same QP on this head's untrained value was 91-97 % safe. Every term is an invariant of the receiver's
-frame, so the head keeps the CBF SE2xR-invariant (tested).
+to have any gradient in the velocities, and the learned-CBF QP steers along that gradient; this head starts from a
+barrier whose gradient is already right (the measurements are in docs/learning.md). Every term is an invariant of
+the receiver's frame, so the head keeps the CBF SE2xR-invariant (tested).
 """
 
 from __future__ import annotations
@@ -26,7 +25,7 @@ from torch import Tensor, nn
 from groupcanon import FieldType, Group
 from groupcanon.features import Vector
 
-from ..graph import KIND_GOAL, KIND_HIT, SwarmGraph
+from ..env.graph import KIND_GOAL, KIND_HIT, SwarmGraph
 from .layers import mlp, mlp_on_edges
 
 __all__ = ["EdgeMinHead", "closest_approach", "edge_features", "segment_logsumexp"]

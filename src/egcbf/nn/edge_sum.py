@@ -34,7 +34,7 @@ from torch import Tensor, nn
 from groupcanon import FieldType, Group
 from groupcanon.features import Vector
 
-from ..graph import KIND_GOAL, KIND_HIT, SwarmGraph
+from ..env.graph import KIND_GOAL, KIND_HIT, SwarmGraph
 from .edge_min import closest_approach, segment_logsumexp
 from .layers import mlp, mlp_on_edges
 

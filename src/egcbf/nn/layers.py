@@ -2,7 +2,7 @@
 
     f_v' = mu( f_v + A(F)_v ),   A(F)_v = sum_{u in N(v)} softmax_u( q_v . k_{uv} ) v_{uv}
 
-One layer reads the bipartite graph of :mod:`egcbf.graph` (senders: agents, goals, LiDAR hits; receivers:
+One layer reads the bipartite graph of :mod:`egcbf.env.graph` (senders: agents, goals, LiDAR hits; receivers:
 agents) and returns one feature vector per receiver:
 
 * node encoder: an MLP on the raw 18 node channels (kind one-hot, v, R, w), shared by senders and receivers;
@@ -78,7 +78,7 @@ class GraphTransformerLayer(nn.Module):
     """Encoders + local attention + residual + feed-forward (module doc).
 
     Args:
-        node_dim: raw node channels (18 for :data:`egcbf.graph.NODE_TYPE`).
+        node_dim: raw node channels (18 for :data:`egcbf.env.graph.NODE_TYPE`).
         edge_dim: raw edge channels (3: the relative position ``dp``; 6: ``dp`` and the relative velocity ``dv``);
             the length of the first three (``|dp|``) is appended inside.
         hidden: width of every hidden representation and of the output.

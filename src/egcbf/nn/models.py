@@ -37,8 +37,8 @@ from groupcanon import Canonicalize, FieldType, Group
 from groupcanon.features import Scalar, Vector
 from groupcanon.groups import SE2, CyclicSE2, CyclicSE2xR, SE2xR, Trivial
 
-from ..graph import KIND_GOAL, SwarmGraph
-from ..robots import make_robot
+from ..env.graph import KIND_GOAL, SwarmGraph
+from ..robots import DEFAULT_ROBOT, make_robot
 from .edge_min import EdgeMinHead, closest_approach
 from .edge_sum import EdgeSumHead
 from .layers import GraphTransformerLayer, mlp
@@ -81,9 +81,9 @@ def make_group(name: str) -> Group:
         raise ValueError(f"unknown group {name!r}; choose one of {sorted(GROUPS)}") from None
 
 
-def node_type(group: Group, robot: str = "quadrotor") -> FieldType:
+def node_type(group: Group, robot: str = DEFAULT_ROBOT) -> FieldType:
     """The node features of ``robot`` declared over ``group`` (quadrotor: kind one-hot, world velocity, attitude,
-    body rate; :data:`egcbf.graph.NODE_TYPE`)."""
+    body rate; :data:`egcbf.env.graph.NODE_TYPE`)."""
     return make_robot(robot).node_type(group)
 
 
@@ -142,7 +142,8 @@ class ModelConfig:
             velocity of an agent hovering alone at its goal, and the derivative term then pushes a thrust bias
             that shifts every hover point (docs/learning.md, "cpu-torque recipe"). GCBF+ feeds the goal to both.
         cbf_z_symmetric: average the CBF over the mirror image of the scene in a horizontal plane,
-            ``h = tanh((m(G) + m(sigma G)) / 2)`` (:meth:`egcbf.graph.SwarmGraph.reflect_z`). The safe set (distances)
+            ``h = tanh((m(G) + m(sigma G)) / 2)`` (:meth:`egcbf.env.graph.SwarmGraph.reflect_z`). The safe set
+            (distances)
             is mirror-symmetric; without this, an untrained CBF's ``dh/dv_z`` has one sign almost everywhere, and
             since the learned-CBF QP can only act through thrust within one step (the CBF has relative degree 2 in
             the torques), ``u_QP`` pushes every agent up (or every agent down) whenever anything approaches: a
@@ -198,7 +199,7 @@ class ModelConfig:
     """
 
     group: str = "se2xr"
-    robot: str = "quadrotor"
+    robot: str = DEFAULT_ROBOT
     hidden: int = 64
     heads: int = 4
     head_hidden: int = 64
@@ -372,7 +373,7 @@ class CBFNet(nn.Module):
 
     def raw(self, graph: SwarmGraph) -> Tensor:
         """The pre-``tanh`` value ``(M,)`` (mirror-averaged with ``cbf_z_symmetric``; averaged over each agent's
-        frames when it has several, :meth:`egcbf.graph.SwarmGraph.expand_frames`)."""
+        frames when it has several, :meth:`egcbf.env.graph.SwarmGraph.expand_frames`)."""
         f = graph.frames_per_agent if not isinstance(self.encoder.group, Trivial) else 1
         if f > 1:
             return self.raw(graph.expand_frames()).view(-1, f).mean(1)
@@ -441,4 +442,4 @@ def sensing(graph: SwarmGraph) -> Tensor:
     """``(M,)`` bool: the agent has an incoming edge from another agent or a LiDAR hit."""
     sensed = (graph.edge_kind != KIND_GOAL).to(graph.edge_attr.dtype)
     count = graph.edge_attr.new_zeros(graph.num_dst).index_add(0, graph.edge_index[1], sensed)
-    return count > 0  # a sum over the edges, not index_fill: traceable (egcbf.export)
+    return count > 0  # a sum over the edges, not index_fill: traceable (egcbf.deploy.export)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ..report import relative_link
+from ..io.report import relative_link
 from .paper import LABELS, LEARNED, METHODS, base_method, method_filter
 from .plan import Cell, SweepConfig
 from .stats import episodes_text, label, scale_text, seed_rows, stat
@@ -128,7 +128,7 @@ def _fine_tuned_from(path: Path) -> Path | None:
 
 def convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
     """The training curves of every learned checkpoint under ``cfg.checkpoints`` that has its ``metrics.csv``."""
-    from ..curves import training_curves
+    from ..viz.curves import training_curves
 
     runs, started = {}, set()
     for m in LEARNED:
@@ -167,7 +167,7 @@ def convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
 
 def contour_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
     """The learned CBF of EGCBF+ and GCBF+ (training seed 0) over a plane, in a scene and in its transformed copy."""
-    from ..contour import cbf_contour_figure
+    from ..viz.contour import cbf_contour_figure
 
     ckpts = {}
     for m in ("egcbf+", "gcbf+"):
@@ -186,5 +186,5 @@ def contour_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
     return (
         f"![CBF contour]({relative_link(png, report)})\n\n"
         "The learned CBF of one agent (training seed 0) over the horizontal "
-        f"plane in a scene G and in its transformed copy phi_g(G) (`egcbf.contour`); max |h(g . G) - h(G)|: {gaps}."
+        f"plane in a scene G and in its transformed copy phi_g(G) (`egcbf.viz.contour`); max |h(g . G) - h(G)|: {gaps}."
     )

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from ..config import LEARNED_METHODS
-from ..filter_names import filter_label, split_method
+from ..algo.config import LEARNED_METHODS
+from ..control.names import filter_label, split_method
 
 __all__ = [
     "BASELINES",
@@ -19,11 +19,11 @@ __all__ = [
     "method_filter",
 ]
 
-#: the learned methods (``egcbf.config.LEARNED_METHODS``: each one's group and reference controller)
+#: the learned methods (``egcbf.algo.config.LEARNED_METHODS``: each one's group and reference controller)
 LEARNED = tuple(LEARNED_METHODS)
 BASELINES = ("dcbf", "ccbf", "nominal")
 #: controllers behind a run-time safety filter (``egcbf eval --filter``, docs/safety_filters.md), ``METHOD:FILTER``
-#: (:mod:`egcbf.filter_names`), not in the paper: the learned policy behind the dCBF filter (EGCBF+, GCBF+), behind
+#: (:mod:`egcbf.control.names`), not in the paper: the learned policy behind the dCBF filter (EGCBF+, GCBF+), behind
 #: its own learned CBF and behind the untrained prior CBF (the ablation that shows what the learned CBF adds), and
 #: the nominal controller behind the dCBF filter (the ablation that shows what the learned policy adds)
 FILTERED = ("egcbf+:dcbf", "gcbf+:dcbf", "egcbf+:cbf", "egcbf+:prior", "nominal:dcbf")

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
-from ..filter_names import path_name
+from ..control.names import path_name
 from .paper import BASELINES, DEFAULT_SIZES, FILTERED, LEARNED, METHODS, SCALE_SIZES, base_method, method_filter
 
 __all__ = ["BACKENDS", "Cell", "SweepConfig", "cell_key", "filter_settings"]
@@ -123,7 +123,8 @@ class SweepConfig:
     under them (``egcbf robustness`` makes one sweep per fault level); ``"none"``: the perfect world.
 
     ``seed`` is the evaluation seed (episode ``e`` at size ``N`` resets from
-    ``egcbf.evaluate.episode_seed(seed, N, e)``), ``max_steps`` the episode length (``None``: the environment's 256
+    ``egcbf.evaluate.episodes.episode_seed(seed, N, e)``), ``max_steps`` the episode length (``None``: the
+    environment's 256
     steps of 25 ms). ``checkpoints`` holds the learned methods' checkpoints, ``out`` the cell files, ``baselines``
     earlier ``egcbf eval`` outputs to import baseline cells from (``None``: never import). ``workers`` parallel
     cells, ``threads`` torch threads per cell, ``backend`` ``"process"`` or ``"ray"``.
@@ -260,7 +261,7 @@ def filter_settings(method: str) -> dict | None:
     kind = method_filter(method)
     if kind == "none":
         return None
-    from ..algo.filtered import FilterConfig
+    from ..control.filters import FilterConfig
 
     return {"filter": kind, "filter_config": FilterConfig.for_kind(kind).settings()}
 

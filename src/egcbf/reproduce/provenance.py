@@ -18,7 +18,7 @@ import shlex
 from collections import Counter
 from pathlib import Path
 
-from ..report import md_table
+from ..io.report import md_table
 from ..robots.quadrotor.dynamics import DEFAULT_DT, DEFAULT_MAX_STEPS
 from .paper import LABELS, METHODS
 from .plan import Cell, SweepConfig
@@ -263,7 +263,8 @@ def provenance_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
         "(scalability), one file per cell (metrics row + meta); a method behind a run-time filter, `METHOD:FILTER`, "
         "in `METHOD_FILTER[-s<seed>]_obs<k>/`.",
         f"- Evaluation seed {cfg.seed}; episode e at size N resets from `episode_seed({cfg.seed}, N, e)` "
-        f"(`egcbf.evaluate`); {episodes_text(cfg)}; episode length {cfg.max_steps or DEFAULT_MAX_STEPS} steps of "
+        f"(`egcbf.evaluate.episodes`); {episodes_text(cfg)}; "
+        f"episode length {cfg.max_steps or DEFAULT_MAX_STEPS} steps of "
         f"{1e3 * DEFAULT_DT:g} ms; l = {cfg.area:g} m; obstacle setting: "
         + (f"{cfg.obstacles} obstacles" if cfg.obstacles > 0 else "none")
         + f"; scalability: {scale_text(cfg)}.",
@@ -293,7 +294,7 @@ def provenance_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
         parts = [f"{n} by `{c}`" for c, n in sorted((c, n) for c, n in codes.items() if c)]
         if codes.get(None):
             parts.append(f"{codes[None]} not recorded (computed before versions were recorded)")
-        lines.append("- Code version of the computed cells (`egcbf.report.code_version`): " + "; ".join(parts) + ".")
+        lines.append("- Code version of the computed cells (`egcbf.io.report.code_version`): " + "; ".join(parts) + ".")
     total = sum(float(i.get("wall_s") or 0.0) for i in invocations)
     status = [i.get("status", "finished") for i in invocations]
     killed = status.count("running") + status.count("interrupted")

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..atomic import write_text_atomic
-from ..report import replace_block, section_block
+from ..io.atomic import write_text_atomic
+from ..io.report import replace_block, section_block
 from .figures import contour_section, convergence_section, scalability_section
 from .plan import Cell, SweepConfig
 from .provenance import provenance_markdown, regenerate_caveat

@@ -5,7 +5,8 @@ Cells run largest ``N`` first (:mod:`~egcbf.reproduce.workers`); each is written
 (the sweep raises :class:`CellsFailed` at the end); stopping a sweep (Ctrl-C, ``kill``) stops its workers at once
 and loses only the cells in progress; the same command resumes it. A stored cell made with other settings
 (episodes, seed, area, episode length) is never overwritten unless asked (``recompute=True``); a cell whose
-checkpoint changed is recomputed. One sweep at a time may write into a results directory (:class:`egcbf.locks.DirLock`).
+checkpoint changed is recomputed. One sweep at a time may write into a results directory
+(:class:`egcbf.io.locks.DirLock`).
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from ..locks import DirLock
-from ..report import code_version, machine_info
+from ..io.locks import DirLock
+from ..io.report import code_version, machine_info
 from .paper import LEARNED, METHODS, base_method, method_filter
 from .plan import Cell, SweepConfig
 from .store import (
@@ -60,7 +61,7 @@ def _check_filters(cfg: SweepConfig, ckpts: dict[tuple[str, int], CheckpointInfo
     """Refuse, before any cell runs, a checkpoint that a filtered method cannot put behind its filter (what
     ``egcbf eval --filter`` would refuse): the filters act on the ``accel`` interface's command, and the ``cbf``
     filter reads the soft-min CBF head's per-edge barriers."""
-    from ..checkpoint import read_config
+    from ..train.checkpoint import read_config
 
     for m, s in dict.fromkeys((c.method, c.train_seed) for c in cfg.cells() if c.train_seed is not None):
         kind = method_filter(m)

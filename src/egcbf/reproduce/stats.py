@@ -3,8 +3,8 @@ mean and range, and the words for the sweep's settings.
 
 A *setting* is ``(method, obstacles, N, scale)``: one cell per training seed of the method (one cell for a
 hand-crafted controller). :func:`seed_rows` returns those cells with their training seed, :class:`Stat` a metric over
-them; rates print with :func:`egcbf.report.pct` (never ``100.0`` for a rate below 1), costs with
-:func:`egcbf.report.number` (a cost above 0 never prints as ``0.000``).
+them; rates print with :func:`egcbf.io.report.pct` (never ``100.0`` for a rate below 1), costs with
+:func:`egcbf.io.report.number` (a cost above 0 never prints as ``0.000``).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import statistics
 from typing import NamedTuple
 
-from ..report import pct
+from ..io.report import pct
 from .paper import LABELS
 from .plan import Cell, SweepConfig
 
@@ -74,7 +74,7 @@ class Stat:
 
     def text(self) -> str:
         """A rate in %: ``92.7`` (one seed) or ``92.7 (90.6-95.3)`` (mean, min-max over the seeds), each value
-        formatted by :func:`egcbf.report.pct`."""
+        formatted by :func:`egcbf.io.report.pct`."""
         if self.n == 1:
             return pct(self.mean)
         return f"{pct(self.mean)} ({pct(self.lo)}-{pct(self.hi)})"

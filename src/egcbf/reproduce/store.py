@@ -25,8 +25,9 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..atomic import write_json_atomic
-from ..checkpoint import sha256
+from ..io.atomic import write_json_atomic
+from ..robots import DEFAULT_ROBOT
+from ..train.checkpoint import sha256
 from .paper import BASELINES, LABELS, base_method
 from .plan import Cell, SweepConfig, cell_key, filter_settings
 
@@ -87,10 +88,10 @@ def find_method_checkpoint(root: str | Path, method: str, train_seed: int = 0) -
     """The checkpoint of ``method`` trained with ``train_seed`` under ``root`` (:func:`checkpoint_dir`, or its
     ``best`` subdirectory).
 
-    Raises ``FileNotFoundError`` if there is none, :class:`~egcbf.checkpoint.CheckpointError` (a ``ValueError``
+    Raises ``FileNotFoundError`` if there is none, :class:`~egcbf.train.checkpoint.CheckpointError` (a ``ValueError``
     naming the file) if its files are corrupted, truncated or of another method, and ``ValueError`` if its config
     was trained with another seed."""
-    from ..checkpoint import check_identity, read_config, read_state, read_tensors
+    from ..train.checkpoint import check_identity, read_config, read_state, read_tensors
 
     base = checkpoint_dir(root, method, train_seed)
     path = next((d for d in (base, base / "best") if (d / "model.safetensors").exists()), None)
@@ -153,7 +154,7 @@ _FREE_VALUE_FLAGS = frozenset(
     ("--controller", "--num-agents", "--area", "--obstacles", "--episodes", "--seed", "--out", "--threads")
 )
 _SWITCHES = frozenset(("--render", "--no-render", "--progress", "--no-progress", "--overwrite"))
-_REQUIRED_VALUES = {"--device": "cpu", "--dtype": "float32", "--robot": "quadrotor"}
+_REQUIRED_VALUES = {"--device": "cpu", "--dtype": "float32", "--robot": DEFAULT_ROBOT}
 
 
 def _importable_command(command: str) -> bool:

@@ -18,7 +18,7 @@ Table I, :mod:`~egcbf.reproduce.paper`). The bullets, each present only when its
 
 from __future__ import annotations
 
-from ..report import pct
+from ..io.report import pct
 from .paper import FILTERED, LABELS, LEARNED, METHODS, PAPER_TABLE_I, base_method
 from .plan import Cell, SweepConfig
 from .stats import Stat, seed_rows, setting_text, so_far, stat

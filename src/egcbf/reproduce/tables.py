@@ -17,7 +17,7 @@ A row label says ``(2 of 3 seeds)`` while some training seeds of its method are 
 
 from __future__ import annotations
 
-from ..report import md_table, number
+from ..io.report import md_table, number
 from .paper import FILTERED, LABELS, METHODS, PAPER_TABLE_I, PaperRow, base_method, method_filter
 from .plan import Cell, SweepConfig
 from .provenance import timing_text

@@ -1,6 +1,6 @@
 """Evaluate one cell of ``egcbf reproduce``, and many at once on local processes or Ray.
 
-One cell runs :func:`egcbf.evaluate.evaluate` for a single ``N`` (the same function, seeds and batching as
+One cell runs :func:`egcbf.evaluate.episodes.evaluate` for a single ``N`` (the same function, seeds and batching as
 ``egcbf eval``, so a cell's metrics equal those of ``egcbf eval`` at that ``N``; a ``METHOD:FILTER`` cell equals
 ``egcbf eval --checkpoint ... --filter FILTER``, or ``--controller nominal --filter FILTER``). A backend takes the
 cells' tasks in order (largest ``N`` first) and yields ``(task, result, error)`` as each finishes:
@@ -27,10 +27,10 @@ from pathlib import Path
 
 import torch
 
-from ..report import code_version, machine_info
+from ..io.report import code_version, machine_info
 from .plan import Cell
 
-__all__ = ["CellTask", "Outcome", "execute", "require_ray", "run_cell"]
+__all__ = ["CellTask", "Outcome", "execute", "require_ray", "run_cell", "run_processes"]
 
 
 # ---------------------------------------------------------------------------------------------------- one cell
@@ -52,28 +52,22 @@ class CellTask:
 
 
 def _evaluate_cell(task: CellTask) -> dict:
-    from ..algo.filtered import FilterConfig, FilteredController, load_filtered_controller
-    from ..control.controllers import make_controller
-    from ..evaluate import evaluate
+    from ..control.names import join_method
+    from ..control.resolve import resolve
+    from ..evaluate.episodes import evaluate
     from ..faults import parse_faults
 
-    kind = task.cell.filter  # a run-time filter with `egcbf eval --filter KIND`'s defaults (or "none")
-    config = None if kind == "none" else FilterConfig.for_kind(kind)
+    name = join_method(task.cell.method, task.cell.filter)  # a filter with `egcbf eval --filter KIND`'s defaults
     learned, env_overrides = None, None
     with tempfile.TemporaryDirectory(prefix="egcbf-ckpt-") as tmp:
         if task.checkpoint_files is not None or task.checkpoint_dir is not None:  # as `egcbf eval --checkpoint`
-            from ..checkpoint import load_controller
-
             path = task.checkpoint_dir or _write_checkpoint(tmp, task.checkpoint_files)
-            if config is None:
-                learned, train_cfg = load_controller(path, device=task.device, dtype=torch.float32)
-            else:
-                learned, train_cfg = load_filtered_controller(path, config, device=task.device, dtype=torch.float32)
-            env_overrides = dict(train_cfg.env_overrides)
-        elif config is not None:  # `egcbf eval --controller nominal --filter KIND`
-            learned = FilteredController(None, None, config)
+            built = resolve(name, path, device=task.device, dtype=torch.float32)
+            learned, env_overrides = built.controller, built.env_overrides
+        elif task.cell.filter != "none":  # `egcbf eval --controller nominal --filter KIND`
+            learned = resolve(name).controller
     rows, _ = evaluate(
-        (lambda cfg: learned) if learned is not None else (lambda cfg: make_controller(task.cell.method)),
+        (lambda cfg: learned) if learned is not None else (lambda cfg: resolve(task.cell.method).controller),
         [task.cell.num_agents],
         area_size=task.area,
         num_obstacles=task.cell.obstacles,
@@ -167,7 +161,7 @@ _DIED = (
 )
 
 
-def _run_processes(
+def run_processes(
     tasks: Sequence[CellTask], workers: int, fn: Callable[[CellTask], Outcome] = _run_cell_caught
 ) -> Iterator[Outcome]:
     """``fn`` over ``tasks`` on ``workers`` spawned processes, dispatched in order, yielded as they finish.
@@ -262,7 +256,7 @@ def execute(tasks: Sequence[CellTask], backend: str, workers: int) -> Iterator[O
 
 
 def _run_on_disk(tasks: Sequence[CellTask], workers: int) -> Iterator[Outcome]:
-    """:func:`_run_processes` with each checkpoint written once to a temporary directory that the tasks name, so
+    """:func:`run_processes` with each checkpoint written once to a temporary directory that the tasks name, so
     a task crosses the process boundary in a few kilobytes, not the checkpoint's bytes (a task larger than a pipe's
     buffer can hang a broken pool's shutdown on Python < 3.11.5, CPython gh-94777)."""
     with tempfile.TemporaryDirectory(prefix="egcbf-sweep-") as root:
@@ -278,6 +272,6 @@ def _run_on_disk(tasks: Sequence[CellTask], workers: int) -> Iterator[Outcome]:
                 directory.mkdir()
                 dirs[key] = _write_checkpoint(directory, task.checkpoint_files)
             local.append(dataclasses.replace(task, checkpoint_files=None, checkpoint_dir=dirs[key]))
-        originals = {id(t): task for t, task in zip(local, tasks)}  # _run_processes yields the objects it got
-        for task, res, err in _run_processes(local, workers):
+        originals = {id(t): task for t, task in zip(local, tasks)}  # run_processes yields the objects it got
+        for task, res, err in run_processes(local, workers):
             yield originals[id(task)], res, err

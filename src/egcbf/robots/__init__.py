@@ -17,6 +17,7 @@ from .unicycle import Unicycle, UnicycleParams
 
 __all__ = [
     "BUILTIN_ROBOTS",
+    "DEFAULT_ROBOT",
     "ROBOTS",
     "DoubleIntegrator",
     "DubinsCar",
@@ -44,6 +45,8 @@ ROBOTS: dict[str, type[Robot]] = {
 }
 
 
+#: the robot of the paper, and of every setting that names none (``EnvConfig.robot``, ``--robot``)
+DEFAULT_ROBOT = "quadrotor"
 #: the robots shipped with egcbf: never replaced by a registration
 BUILTIN_ROBOTS = frozenset(ROBOTS)
 

@@ -90,6 +90,18 @@ class Robot:
     #: named groups of control channels (:mod:`egcbf.faults`: a per-agent gain error on ``"thrust"``, a gain and a
     #: bias on ``"torque"``); a robot without them only takes the faults' ``gain`` on every channel
     actuator_groups: ClassVar[dict[str, tuple[int, ...]]] = {}
+    #: whether the run-time safety filters (:mod:`egcbf.control.filters`: per-agent QPs over a world acceleration
+    #: command, the attitude loop tracking it) apply to this robot's learned policies
+    run_time_filters: ClassVar[bool] = False
+    #: whether the robot's decentralized CBF-QP can read its obstacle rows from each agent's own LiDAR hits instead
+    #: of the obstacle map (``egcbf eval --obstacle-sensing lidar``)
+    lidar_obstacle_rows: ClassVar[bool] = False
+    #: whether the graph's mirror in a horizontal plane is defined (``SwarmGraph.reflect_z``: a 3-D robot whose
+    #: node features are a velocity, a body-to-world rotation and body rates)
+    mirror_z: ClassVar[bool] = False
+    #: which training recipes of :mod:`egcbf.algo.presets` the robot takes: ``"paper"`` (the paper's quadrotor
+    #: recipes) or ``"planar"`` (the recipe of GCBF+'s benchmark robots and of any new robot)
+    training_recipe: ClassVar[str] = "planar"
 
     #: the robot's parameters (a frozen dataclass; ``None`` if it has none)
     params: Any = None
@@ -213,6 +225,17 @@ class Robot:
         ``(*batch, dim)``, clipped to the actuator box unless the robot documents otherwise (the Dubins car's law
         is the reference's, unclipped: the environment clips every command before it acts)."""
         raise _not_implemented(self, "nominal_control")
+
+    def attitudes(self, x: Tensor) -> Tensor:
+        """``(*batch, 3, 3)`` body-to-world rotations of states ``x`` ``(*batch, S)``; ``AttributeError`` for a robot
+        without an attitude matrix."""
+        raise AttributeError(f"a {self.name} has no attitude matrix")
+
+    def cbf_qps(self) -> dict[str, type]:
+        """The robot's hand-crafted CBF-QP baselines by controller name (``{"ccbf": ..., "dcbf": ...}``): classes
+        whose instances are controllers ``u, info = ctrl(state, env_config)`` (:mod:`egcbf.control.controllers`),
+        built with their keyword arguments. ``{}``: none (the robot still has its nominal and brisk laws)."""
+        return {}
 
     def parked(self, x: Tensor) -> Tensor:
         """The state ``(*batch, S)`` an agent frozen at its goal holds (:attr:`goal_freeze_radius`): ``x`` at rest,

@@ -83,6 +83,11 @@ class DubinsCar(HeadingSpeedRobot):
         "unsafe_approach_obstacle_distance": 2.0,
     }
 
+    def cbf_qps(self) -> dict[str, type]:
+        from .point_mass_qp import POINT_MASS_CBF_QPS
+
+        return dict(POINT_MASS_CBF_QPS)
+
     def __init__(self, params: DubinsParams | None = None):
         if params is not None and not isinstance(params, DubinsParams):
             raise TypeError(f"DubinsCar params must be a DubinsParams, got {type(params).__name__}")

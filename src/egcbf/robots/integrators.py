@@ -25,7 +25,7 @@ Symmetry: the per-axis boxes and clips are invariant only under the rotations by
 planar translations, ``C4 x| R^2`` (:class:`groupcanon.groups.CyclicSE2` ``(4)``; config name ``"se2c4"``), and a
 point mass carries no heading from which to build a frame (a velocity vanishes at rest). So each agent gets the set of
 its four frames, the rotations by ``k 90`` degrees at its position (:func:`groupcanon.frames.cyclic_frames`), and
-the equivariant networks average over them (:meth:`egcbf.graph.SwarmGraph.expand_frames`): exact at every state,
+the equivariant networks average over them (:meth:`egcbf.env.graph.SwarmGraph.expand_frames`): exact at every state,
 zero velocity included, for four times the network's work. LiDAR rays are fixed in the world frame, as in the
 reference (:meth:`heading` is the world x axis): with a number of rays divisible by 4 the ray set is invariant under
 the group, so the hits move with the scene.
@@ -115,6 +115,11 @@ class _PointMass(Robot):
     #: the LiDAR rays are fixed in the world (``heading`` is no vector of the group): check_robot skips that claim
     world_fixed_lidar: ClassVar[bool] = True
     position_index = slice(0, 2)
+
+    def cbf_qps(self) -> dict[str, type]:
+        from .point_mass_qp import POINT_MASS_CBF_QPS
+
+        return dict(POINT_MASS_CBF_QPS)
 
     def __init__(self, params: IntegratorParams | None = None):
         if params is not None and not isinstance(params, IntegratorParams):

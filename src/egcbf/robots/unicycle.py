@@ -106,6 +106,11 @@ class Unicycle(HeadingSpeedRobot):
         "max_steps": 256,
     }
 
+    def cbf_qps(self) -> dict[str, type]:
+        from .point_mass_qp import POINT_MASS_CBF_QPS
+
+        return dict(POINT_MASS_CBF_QPS)
+
     def __init__(self, params: UnicycleParams | None = None):
         if params is not None and not isinstance(params, UnicycleParams):
             raise TypeError(f"Unicycle params must be a UnicycleParams, got {type(params).__name__}")

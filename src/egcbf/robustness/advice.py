@@ -4,9 +4,9 @@ controller keeps 99 % safe and the one to choose there."""
 
 from __future__ import annotations
 
+from ..control.names import FILTER_LABELS
 from ..faults import parse_faults
 from ..faults.sensing import unread_fields
-from ..filter_names import FILTER_LABELS
 from ..reproduce.paper import LABELS, method_filter
 from .cells import code_list, paired_change, paired_interval, pct
 from .plan import AXES, Axis, RobustnessConfig, axis
@@ -113,7 +113,7 @@ def _filter_spared(m: str, spec: str) -> str:
     kind = method_filter(m)
     if kind == "none":
         return ""
-    from ..algo.filtered import filter_reads_sensing
+    from ..control.filters import filter_reads_sensing
 
     unread = unread_fields(filter_reads_sensing(kind, has_policy=False), parse_faults(spec))
     if not unread:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections import Counter
 
-from ..bootstrap import Interval, mean_ci
+from ..evaluate.bootstrap import Interval, mean_ci
 from ..reproduce.paper import BASELINES, base_method
 from ..reproduce.plan import Cell
 from ..reproduce.provenance import machine_text

@@ -5,7 +5,7 @@ paired over the same scenes."""
 from __future__ import annotations
 
 from ..faults import DEFAULT_FIELD
-from ..onboard import DIST_OBS_TAU
+from ..faults.onboard import DIST_OBS_TAU
 from ..reproduce.paper import LABELS
 from .cells import before_after
 from .plan import RECEIVER_HOLD, RobustnessConfig, axis
@@ -137,8 +137,8 @@ def _disturbance_section(cfg: RobustnessConfig, cells: dict) -> list[str]:
         f"`vel_noise / {DIST_OBS_TAU:g} s`: "
         f"{DEFAULT_FIELD.vel_noise / DIST_OBS_TAU:.2g} m/s^2 at the default field's "
         f"{100 * DEFAULT_FIELD.vel_noise:g} cm/s). Both agent-side fixes, this one and the actuation predictor, "
-        "are `egcbf.onboard.Onboard`, which a robot runs around its own controller (docs/deploy.md, \"Latency and "
-        "wind on board\"; `examples/onboard_robot.py`).",
+        "are `egcbf.faults.onboard.Onboard`, which a robot runs around its own controller (docs/deploy.md, "
+        "\"Latency and wind on board\"; `examples/onboard_robot.py`).",
         "",
         *tables,
     ]  # fmt: skip

@@ -22,7 +22,6 @@ from pathlib import Path
 from ..faults import DEFAULT_FIELD, parse_faults
 from ..faults.sensing import unread_fields
 from ..reproduce import SweepConfig
-from ..reproduce.paper import base_method, method_filter
 
 __all__ = ["AXES", "Axis", "RobustnessConfig", "axis", "perceived", "reads_sensing", "state_level"]
 
@@ -133,19 +132,10 @@ def axis(name: str) -> Axis:
 
 
 def reads_sensing(method: str):
-    """``method``'s controller's ``reads_sensing`` declaration (:func:`egcbf.faults.sensing.unread_faults`): ``True``
-    (a learned policy, alone or filtered: its whole graph from what the agents perceive), a set of channel names (the
-    dCBF-QP, a filter of a hand-crafted command: :func:`egcbf.algo.filtered.filter_reads_sensing`), or ``False``."""
-    from ..control.controllers import CONTROLLERS
+    """``method``'s controller's ``reads_sensing`` declaration (:func:`egcbf.control.resolve.reads_sensing`)."""
+    from ..control.resolve import reads_sensing as declared
 
-    base, kind = base_method(method), method_filter(method)
-    if kind != "none":
-        from ..algo.filtered import filter_reads_sensing
-
-        return filter_reads_sensing(kind, has_policy=base not in CONTROLLERS)
-    if base in CONTROLLERS:
-        return getattr(CONTROLLERS[base], "reads_sensing", False)
-    return True  # a learned policy alone (egcbf.algo.learner.LearnedController)
+    return declared(method)
 
 
 def perceived(method: str, spec: str) -> str:

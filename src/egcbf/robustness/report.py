@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..atomic import write_text_atomic
 from ..faults import parse_faults
-from ..report import quote_section, relative_link
+from ..io.atomic import write_text_atomic
+from ..io.report import quote_section, relative_link
 from ..reproduce.paper import LABELS
 from .advice import advice, headline
 from .cells import before_after, code_list, computed_where, load_records, rate_band, stale_records, stored_cell

@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from ..atomic import write_json_atomic
+from ..io.atomic import write_json_atomic
 from .plan import EVAL_SEED, ROOT, Arm, RotatedCell, Run, rotated_cells
 
 __all__ = [
@@ -67,7 +67,7 @@ def pending_cells(arm: Arm, root: str | Path = ROOT) -> int:
     """How many evaluation cells of ``arm``'s trained runs have no up-to-date stored result in ``root`` (missing, or
     made with other settings or weights): what ``egcbf study`` would evaluate. Runs not trained yet count none
     (:func:`pending_runs` names them)."""
-    from ..checkpoint import sha256
+    from ..train.checkpoint import sha256
 
     missing = set(pending_runs([arm], root))
     if arm.evaluation == "rotated":
@@ -97,7 +97,7 @@ def _collect(run: Run, runs_dir: Path, root: Path) -> None:
     for name in ("config.json", "model.safetensors", "state.json"):
         shutil.copy2(best / name, tmp / name)
     shutil.copy2(out / "metrics.csv", tmp / "metrics.csv")
-    from ..report import machine_info
+    from ..io.report import machine_info
 
     write_json_atomic(tmp / "machine.json", machine_info())  # where the CPU-minute budget was spent
     shutil.rmtree(dest, ignore_errors=True)
@@ -197,9 +197,10 @@ def evaluate_rotated(
     checkpoint; returns how many were computed."""
     import torch
 
-    from ..checkpoint import load_controller, sha256
-    from ..evaluate import evaluate
-    from ..report import machine_info
+    from ..control.resolve import POLICY, resolve
+    from ..evaluate.episodes import evaluate
+    from ..io.report import machine_info
+    from ..train.checkpoint import sha256
 
     ckpt = run.checkpoint_dir(root)
     sha = sha256(ckpt / "model.safetensors")
@@ -211,7 +212,8 @@ def evaluate_rotated(
         if _rotated_stored(run, cell, root, sha):
             continue
         if controller is None:
-            controller, train_cfg = load_controller(ckpt, device="cpu", dtype=torch.float32)
+            built = resolve(POLICY, ckpt, device="cpu", dtype=torch.float32)
+            controller, train_cfg = built.controller, built.train_config
         t0 = time.perf_counter()
         rows, _ = evaluate(
             lambda cfg, ctrl=controller: ctrl,
@@ -254,7 +256,7 @@ def evaluate_rotated_many(
 ) -> int:
     """:func:`evaluate_rotated` for every run of ``runs``, the cells not stored yet spread over ``workers``
     processes (one cell each, largest swarms first); returns how many cells were computed."""
-    from ..checkpoint import sha256
+    from ..train.checkpoint import sha256
 
     cells = rotated_cells() if cells is None else list(cells)
     todo = []

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..config import TrainConfig
+from ..algo.config import TrainConfig
 
 __all__ = [
     "ARMS",
@@ -66,7 +66,7 @@ class Run:
 
 @dataclass(frozen=True)
 class Arm:
-    """A training recipe (``preset`` with ``overrides`` of :class:`egcbf.config.TrainConfig` fields, ``minutes`` of
+    """A training recipe (``preset`` with ``overrides`` of :class:`egcbf.algo.config.TrainConfig` fields, ``minutes`` of
     the training process's CPU time per run, one torch thread: ``max_cpu_minutes``, a budget the other jobs on the
     machine do not eat into, with the preset's wall-time limit lifted), the ``(algo, seed)`` runs made with it, and
     its evaluation: ``table`` (Table I's sizes at ``l = 4`` with ``episodes`` each, and ``scale_sizes`` at the

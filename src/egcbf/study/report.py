@@ -1,7 +1,7 @@
 """docs/equivariance.md: the equivariance study's tables, figures, effects with 95 % intervals and verdicts, written
 from the result files under ``docs/results/equivariance`` (nothing is computed here).
 
-Each claim's verdict is a rule on its effects (EGCBF(+) minus GCBF(+), :mod:`egcbf.bootstrap` intervals):
+Each claim's verdict is a rule on its effects (EGCBF(+) minus GCBF(+), :mod:`egcbf.evaluate.bootstrap` intervals):
 ``supported`` when every effect's interval lies above 0, ``not supported`` when none does (``the world-frame method
 is better`` when one lies below 0 and none above), ``mixed`` otherwise, and ``pending`` while a cell it needs is not
 computed. The sections between ``<!-- name:begin/end -->`` markers are regenerated; text around them is kept.
@@ -13,9 +13,9 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..atomic import write_text_atomic
-from ..bootstrap import Interval, difference_ci, mean_ci
-from ..report import md_table, pct, quote_section, relative_link, replace_block
+from ..evaluate.bootstrap import Interval, difference_ci, mean_ci
+from ..io.atomic import write_text_atomic
+from ..io.report import md_table, pct, quote_section, relative_link, replace_block
 from ..reproduce.paper import LABELS
 from .figures import curves_figure, rotated_figure, zero_shot_figure
 from .plan import ARMS, ROOT, Arm, arm, rotated_cells

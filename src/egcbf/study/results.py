@@ -1,5 +1,5 @@
 """Reading the equivariance study's results (:mod:`egcbf.study.plan`) and turning them into effects with confidence
-intervals (:mod:`egcbf.bootstrap`): the zero-shot cells of an arm, the rotated-world cells of a run, and the
+intervals (:mod:`egcbf.evaluate.bootstrap`): the zero-shot cells of an arm, the rotated-world cells of a run, and the
 validation curves of the training runs."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import json
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..bootstrap import Interval, difference_ci, mean_ci
+from ..evaluate.bootstrap import Interval, difference_ci, mean_ci
 from .plan import ROOT, Arm, RotatedCell, Run, rotated_cells
 
 __all__ = [
@@ -55,7 +55,7 @@ def arm_cells(arm: Arm, root: str | Path = ROOT) -> dict[tuple[str, int, int, bo
 
 
 def _current_sha(run: Run, root: str | Path) -> str | None:
-    from ..checkpoint import sha256
+    from ..train.checkpoint import sha256
 
     try:
         return sha256(run.checkpoint_dir(root) / "model.safetensors")

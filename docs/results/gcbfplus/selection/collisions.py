@@ -13,9 +13,9 @@ import sys
 
 import torch
 
-from egcbf.checkpoint import load_controller
+from egcbf.train.checkpoint import load_controller
 from egcbf.env import EnvConfig, SwarmEnv
-from egcbf.evaluate import concat_states, episode_seed
+from egcbf.evaluate.episodes import concat_states, episode_seed
 
 torch.set_num_threads(1)
 if os.environ.get("STALE") == "1":

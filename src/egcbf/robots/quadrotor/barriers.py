@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ...control.constraints import Constraints
+from ...qp.constraints import Constraints
 
 __all__ = [
     "LIDAR_HITS",

@@ -39,8 +39,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...control.constraints import Constraints
-from ...control.qp import SlackPenalty, assemble_centralized, polish_sparse, require_solver, solve_sparse
+from ...qp.constraints import Constraints
+from ...qp.sparse_qp import SlackPenalty, assemble_centralized, polish_sparse, require_solver, solve_sparse
 from .barriers import (
     LIDAR_HITS,
     AccelBounds,
@@ -128,7 +128,7 @@ class CBFQPConfig:
         bounds: acceleration bounds; ``None``: :func:`default_bounds` of the environment's quadrotor.
         penalty: slack cost ``1/2 w2 s^2 + w1 s`` (s in m/s^2).
         solver: centralized sparse solver, any of ``qpsolvers.available_solvers`` (through qpsolvers,
-            :mod:`egcbf.control.sparse_solvers`): ``"piqp"`` (default, fastest measured), ``"proxsuite"`` (qpsolvers'
+            :mod:`egcbf.qp.sparse_solvers`): ``"piqp"`` (default, fastest measured), ``"proxsuite"`` (qpsolvers'
             ``"proxqp"``), ``"osqp"``, ``"clarabel"``, ``"highs"``, ``"qpalm"``, ... ``fallback_solver`` is tried
             when it fails.
         dcbf_solver: per-agent QPs: ``"ipm"`` (batched interior point + polishing, on the state's device; default,
@@ -148,7 +148,7 @@ class CBFQPConfig:
         lidar_hits: with ``obstacle_sensing = "lidar"``, what one hit stands for (:data:`LIDAR_HITS`): ``"plane"``
             (default: the plane through the hit normal to the ray) or ``"point"`` (a point obstacle, which lets an
             agent sliding along a large obstacle close on it); must stay ``"plane"`` with the map.
-        polish: refine each centralized solution by an active-set KKT solve (:func:`egcbf.control.qp.polish_sparse`),
+        polish: refine each centralized solution by an active-set KKT solve (:func:`egcbf.qp.sparse_qp.polish_sparse`),
             kept only when it is provably the exact optimum; makes the result independent of the solver's tolerance.
     """
 

@@ -20,8 +20,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...control.constraints import Constraints
-from ...control.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm, verified
+from ...qp.constraints import Constraints
+from ...qp.dense_qp import assemble_decentralized, solve_dense_batch, solve_dense_batch_ipm, verified
 from .barriers import (
     agent_pairs,
     build_constraints,
@@ -38,7 +38,7 @@ __all__ = ["DecentralizedCBFQP"]
 class DecentralizedCBFQP(_CBFQPBase):
     """dCBF-QP: one QP per agent in ``(a_i, s_i)``; agent ``i`` enforces ``n . a_i >= b / 2`` for each neighbour
     (the other half is its neighbour's) and the whole obstacle rows. All ``B N`` QPs are solved in one batch by a
-    batched interior-point method (:func:`egcbf.control.dense_qp.solve_dense_batch_ipm`, on the device of
+    batched interior-point method (:func:`egcbf.qp.dense_qp.solve_dense_batch_ipm`, on the device of
     ``state.x``; or proxsuite's ``dense.BatchQP`` + ``solve_in_parallel`` with ``dcbf_solver="proxsuite"``).
 
     Under message faults (``state.sensing``, :mod:`egcbf.faults`; module doc) agent ``i``'s pair rows come from its
@@ -76,7 +76,7 @@ class DecentralizedCBFQP(_CBFQPBase):
     ) -> tuple[Tensor, dict]:
         """The dCBF-QP around a reference acceleration: each agent's QP keeps ``a_i`` closest to ``a_ref[b, i]``
         ``(B, N, 3)`` (world frame, m/s^2; ``None``: the nominal acceleration, the dCBF-QP baseline). Used as the
-        ``dcbf`` run-time filter of a learned policy (:mod:`egcbf.algo.filtered`).
+        ``dcbf`` run-time filter of a learned policy (:mod:`egcbf.control.filters`).
 
         ``lookahead`` (s): the barriers read every agent at its state ``lookahead`` seconds ahead under its
         current acceleration ``accel`` ``(B, N, 3)`` (m/s^2, world frame; ``None``: zero), ``p + T v + T^2 a / 2``
@@ -160,13 +160,11 @@ class DecentralizedCBFQP(_CBFQPBase):
         it (under LiDAR faults, :meth:`egcbf.faults.Sensing.scan`), each hit read as ``lidar_hits`` says (a plane
         or a point, :func:`~egcbf.robots.quadrotor.barriers.hit_constraints`) at the (look-ahead) state of the
         barriers; ``(owner, normal, rhs, constraints)``, redundant rows pruned."""
-        from ...env.swarm import cast_lidar  # at call time: the environment imports the robots
-
         sensing = state.sensing
         if sensing is not None:
             scan = sensing.scan(env_config)
         else:
-            scan = cast_lidar(env_config, state.positions, state.robot.heading(state.x), state.obstacles)
+            scan = env_config.scan(state.positions, state.robot.heading(state.x), state.obstacles)
         points = scan.points.detach().to(torch.float64).cpu().numpy().reshape(m, -1, 3)
         valid = scan.valid.detach().cpu().numpy().reshape(m, -1)
         cons = prune_redundant(hit_constraints(prep.p.reshape(m, 3), prep.v.reshape(m, 3), points, valid,

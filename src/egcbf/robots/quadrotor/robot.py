@@ -38,6 +38,10 @@ class Quadrotor(Robot):
     env_defaults: ClassVar[dict] = {}  # EnvConfig's own defaults are the quadrotor's
     position_index, velocity_index = dyn.P, dyn.V
     actuator_groups: ClassVar[dict[str, tuple[int, ...]]] = {"torque": (0, 1, 2), "thrust": (3,)}
+    run_time_filters: ClassVar[bool] = True
+    lidar_obstacle_rows: ClassVar[bool] = True
+    mirror_z: ClassVar[bool] = True
+    training_recipe: ClassVar[str] = "paper"
 
     def __init__(self, params: dyn.QuadrotorParams | None = None):
         if params is not None and not isinstance(params, dyn.QuadrotorParams):
@@ -109,6 +113,15 @@ class Quadrotor(Robot):
     # ------------------------------------------------------------------------------------------- control
     def nominal_control(self, x: Tensor, goals: Tensor) -> Tensor:
         return nominal_control(x, goals, self.params)
+
+    def attitudes(self, x: Tensor) -> Tensor:
+        return x[..., dyn.ROT].reshape(*x.shape[:-1], 3, 3)
+
+    def cbf_qps(self) -> dict[str, type]:
+        from .cbf_qp import CentralizedCBFQP
+        from .dcbf_qp import DecentralizedCBFQP
+
+        return {"ccbf": CentralizedCBFQP, "dcbf": DecentralizedCBFQP}
 
     def reject_disturbance(self, x: Tensor, u: Tensor, accel: Tensor) -> Tensor:
         return reject_disturbance(x, u, accel, self.params)

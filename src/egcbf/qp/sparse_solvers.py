@@ -1,4 +1,4 @@
-"""Solving the centralized CBF-QP (:class:`~egcbf.control.qp.SparseQP`) with any sparse QP solver, through
+"""Solving the centralized CBF-QP (:class:`~egcbf.qp.sparse_qp.SparseQP`) with any sparse QP solver, through
 `qpsolvers <https://qpsolvers.github.io/qpsolvers/>`_.
 
 ``qpsolvers`` gives one calling convention, ``min 1/2 x'Px + q'x  s.t.  G x <= h, A x = b, lb <= x <= ub``, to some
@@ -8,16 +8,16 @@ twenty solvers and keeps up with their APIs. What it does not know, and this mod
   go to ``lb, ub`` (``+-inf`` where unbounded);
 * the tolerance and iteration limit are mapped to each solver's own setting names (:data:`SETTINGS`); a solver not
   listed there runs with its defaults, so ``eps_abs`` and ``max_iter`` do not reach it;
-* the outcome is a :class:`~egcbf.control.qp.SolveResult`: a failed or crashed solve is ``ok=False`` with a status
+* the outcome is a :class:`~egcbf.qp.sparse_qp.SolveResult`: a failed or crashed solve is ``ok=False`` with a status
   (never an exception for the caller), the iteration count where the solver reports one (else -1);
 * names: ``solver`` is any of ``qpsolvers.available_solvers``; ``"proxsuite"`` is kept as an alias of
   qpsolvers' ``"proxqp"``; a known solver that is not installed is named with its pip package, an unknown name with
   the installed ones.
 
-The active-set polish of a solution (:func:`~egcbf.control.qp.polish_sparse`) stays on top of whatever solver
+The active-set polish of a solution (:func:`~egcbf.qp.sparse_qp.polish_sparse`) stays on top of whatever solver
 returned it. The decentralized QPs (the dCBF-QP, the run-time filters, the learned CBF's QP target) do not go
-through here: they are one batched interior-point solve in torch (:mod:`egcbf.control.dense_qp`,
-:mod:`egcbf.control.ipm`), which runs on a GPU and over thousands of small QPs at once, which no qpsolvers
+through here: they are one batched interior-point solve in torch (:mod:`egcbf.qp.dense_qp`,
+:mod:`egcbf.qp.ipm`), which runs on a GPU and over thousands of small QPs at once, which no qpsolvers
 backend does.
 """
 
@@ -32,7 +32,7 @@ import scipy.sparse as sp
 
 from .ipm import INF
 
-#: a :class:`egcbf.control.qp.SparseQP` (not imported here: qp imports this module)
+#: a :class:`egcbf.qp.sparse_qp.SparseQP` (not imported here: qp imports this module)
 SparseQP = Any
 
 __all__ = [

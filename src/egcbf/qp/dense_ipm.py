@@ -1,11 +1,11 @@
-"""Many small dense QPs by the batched interior-point method (:mod:`egcbf.control.ipm`), with active-set polishing.
+"""Many small dense QPs by the batched interior-point method (:mod:`egcbf.qp.ipm`), with active-set polishing.
 
     min 1/2 x'Px + q'x   s.t.  G x <= h,        P (n, n) or (M, n, n), q (M, n), G (M, m, n), h (M, m)
 
 :class:`DenseKKT` is the dense Newton linear algebra (one ``n x n`` Cholesky of ``P + G' diag(z / s) G`` per QP and
 iteration, vectorized over the batch); :func:`solve_dense_ipm` solves the batch and polishes the converged
 solutions (:func:`polish_dense`). Used for the per-agent QPs of the
-decentralized CBF-QP baseline (:func:`egcbf.control.dense_qp.solve_dense_batch_ipm`).
+decentralized CBF-QP baseline (:func:`egcbf.qp.dense_qp.solve_dense_batch_ipm`).
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ class _DenseNewton(NamedTuple):
 @dataclass
 class DenseKKT:
     """Dense batch ``P`` ``(n, n)`` (shared) or ``(M, n, n)``, ``q`` ``(M, n)``, ``G`` ``(M, m, n)``, ``h``
-    ``(M, m)`` as a :class:`egcbf.control.ipm.KKTSystem`: ``dual_scale = 1 + |q|_inf``,
+    ``(M, m)`` as a :class:`egcbf.qp.ipm.KKTSystem`: ``dual_scale = 1 + |q|_inf``,
     ``primal_scale = 1 + |h|_inf`` over the finite entries of ``h`` (below ``INF / 2``). Also kept: ``G'``
     ``(M, n, m)`` contiguous, whose rows are the columns of ``G`` (faster products at small ``n``), and
     ``P + 1e-14 I`` (the Newton matrix's regularized Hessian)."""

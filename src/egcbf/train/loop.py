@@ -1,7 +1,8 @@
-"""Training runs: the loop, logging, evaluation rollouts and resuming (the checkpoint files: :mod:`egcbf.checkpoint`).
+"""Training runs: the loop, logging, evaluation rollouts and resuming (the checkpoint files:
+:mod:`egcbf.train.checkpoint`).
 
-    from egcbf.config import TrainConfig
-    from egcbf.train import train
+    from egcbf.algo.config import TrainConfig
+    from egcbf.train.loop import train
     train(TrainConfig.preset("egcbf+", "cpu", steps=200), "runs/egcbf+")
 
 Layout of a run directory ``OUT``::
@@ -10,7 +11,7 @@ Layout of a run directory ``OUT``::
     OUT/metrics.csv                 evaluation rollouts: step, wall_s, safe/reach/success rates, cost, reward
     OUT/scalars.csv                 every logged scalar, long format (step, wall_s, tag, value)
     OUT/tb/                         TensorBoard events (``tensorboard=True``: the optional ``tensorboard`` extra)
-    OUT/checkpoints/step_000100/    a checkpoint (:mod:`egcbf.checkpoint`): config.json, model.safetensors,
+    OUT/checkpoints/step_000100/    a checkpoint (:mod:`egcbf.train.checkpoint`): config.json, model.safetensors,
                                     training_state.pt, buffers.safetensors (newest checkpoint only), state.json
     OUT/best/                       the policy with the best evaluation rollouts so far (highest success rate,
                                     ties to the higher safe rate, then to the later update): config.json,
@@ -21,8 +22,8 @@ seed 0 of the reported results; ``egcbf eval --seed`` should stay away from trai
 is a validation choice: the learned policies can degrade late in
 a run (docs/learning.md), and the best one seen is the one to ship.
 
-A checkpoint directory alone is enough to evaluate (:func:`egcbf.checkpoint.load_controller`). Checkpoints and
-``OUT/best`` are swapped into place whole (:mod:`egcbf.checkpoint`), so a kill at any moment leaves a complete
+A checkpoint directory alone is enough to evaluate (:func:`egcbf.train.checkpoint.load_controller`). Checkpoints and
+``OUT/best`` are swapped into place whole (:mod:`egcbf.train.checkpoint`), so a kill at any moment leaves a complete
 directory (the new one or the previous one). ``resume=True`` continues from the newest checkpoint that loads (losing
 at most ``checkpoint_interval`` updates; a corrupted newer one is set aside as ``step_XXXXXX.corrupt`` and said so),
 cuts the CSV logs back to its step by writing a copy and renaming it over the original (never rewriting a log in
@@ -41,8 +42,10 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from .algo.learner import GraphCBFLearner
-from .atomic import write_json_atomic, write_text_atomic, writing
+from ..algo.config import TrainConfig
+from ..algo.learner import GraphCBFLearner
+from ..evaluate.episodes import episode_seed, run_episodes
+from ..io.atomic import write_json_atomic, write_text_atomic, writing
 from .checkpoint import (
     CheckpointError,
     best_metrics,
@@ -56,8 +59,6 @@ from .checkpoint import (
     set_aside,
     warm_start,
 )
-from .config import TrainConfig
-from .evaluate import episode_seed, run_episodes
 
 __all__ = ["METRICS_FIELDS", "evaluate_policy", "require_tensorboard", "train"]
 
@@ -82,7 +83,7 @@ def require_tensorboard():
     return SummaryWriter
 
 
-#: what a failed append to a CSV log keeps (:func:`egcbf.atomic.writing`)
+#: what a failed append to a CSV log keeps (:func:`egcbf.io.atomic.writing`)
 _ROWS_KEPT = "the rows logged before are intact (--resume drops a partial last row)"
 
 
@@ -159,7 +160,7 @@ def _selection_key(row: dict) -> tuple[float, float] | None:
 
 def evaluate_policy(learner: GraphCBFLearner, config: TrainConfig) -> dict:
     """Evaluation rollouts of the current policy on fixed episodes (the same at every call): the metrics row of
-    :mod:`egcbf.metrics` (rates in ``[0, 1]``)."""
+    :mod:`egcbf.evaluate.metrics` (rates in ``[0, 1]``)."""
     env_cfg = config.eval_env_config()
     seeds = [episode_seed(config.seed + 1_000, env_cfg.num_agents, e) for e in range(config.eval_episodes)]
     stats, _, _ = run_episodes(learner.controller(), env_cfg, seeds, device=learner.device, dtype=learner.dtype)

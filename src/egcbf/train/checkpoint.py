@@ -21,7 +21,7 @@ another's name. Weights written before format 2 carry no header identity: their 
 (format 1: with all three keys and the hash; unversioned: checked on ``algo`` only). A missing, corrupted, truncated
 or mismatched file raises :class:`CheckpointError` (a ``ValueError``) naming the file instead of a raw parser error.
 
-Directories are written into ``NAME.tmp`` and swapped into place (:mod:`egcbf.atomic`), so a kill at any moment
+Directories are written into ``NAME.tmp`` and swapped into place (:mod:`egcbf.io.atomic`), so a kill at any moment
 leaves a complete directory (the new one or the previous one); every reader recovers a swap killed half-way.
 """
 
@@ -34,6 +34,7 @@ import os
 import platform
 import re
 import shutil
+import struct
 import sys
 import warnings
 from pathlib import Path
@@ -43,18 +44,20 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from .atomic import WriteError, recover_dir, replace_dir, writing
+from ..io.atomic import WriteError, recover_dir, replace_dir, writing
 
 if TYPE_CHECKING:
-    from .algo.learner import GraphCBFLearner, LearnedController
-    from .config import TrainConfig
-    from .nn import CBFNet, PolicyNet
+    from ..algo.config import TrainConfig
+    from ..algo.learner import GraphCBFLearner, LearnedController
+    from ..nn import CBFNet, PolicyNet
 
 __all__ = [
     "CHECKPOINTS_DIR",
     "FORMAT_VERSION",
+    "CheckpointContents",
     "CheckpointError",
     "best_metrics",
+    "build_network",
     "check_identity",
     "check_sizes",
     "checkpoint_step",
@@ -65,6 +68,7 @@ __all__ = [
     "load_learner",
     "load_network",
     "no_checkpoint",
+    "read_checkpoint",
     "read_config",
     "read_state",
     "read_tensors",
@@ -96,7 +100,7 @@ class CheckpointError(ValueError):
 
 # ---------------------------------------------------------------------------------------------------- reading files
 def identity(config: TrainConfig) -> dict:
-    """What a checkpoint of ``config`` (a :class:`~egcbf.config.TrainConfig`) is, as stored in ``state.json``."""
+    """What a checkpoint of ``config`` (a :class:`~egcbf.algo.config.TrainConfig`) is, as stored in ``state.json``."""
     return {
         "format_version": FORMAT_VERSION,
         "algo": config.algo,
@@ -135,8 +139,8 @@ def sha256(path: Path) -> str:
 
 
 def read_config(ckpt: Path) -> TrainConfig:
-    """The :class:`~egcbf.config.TrainConfig` of ``ckpt/config.json``."""
-    from .config import TrainConfig
+    """The :class:`~egcbf.algo.config.TrainConfig` of ``ckpt/config.json``."""
+    from ..algo.config import TrainConfig
 
     path = Path(ckpt) / "config.json"
     try:
@@ -182,19 +186,28 @@ def read_training_state(path: Path) -> dict:
         raise CheckpointError(f"{path} is corrupted or truncated ({type(err).__name__}: {err})") from None
 
 
-def check_identity(ckpt: Path, config: TrainConfig, state: dict | None = None) -> None:
+def check_identity(
+    ckpt: Path,
+    config: TrainConfig,
+    state: dict | None = None,
+    *,
+    stored: dict | None = None,
+    weights_sha256: str | None = None,
+) -> None:
     """Raise :class:`CheckpointError` unless the weights of ``ckpt`` are what ``config`` (its ``config.json``) says.
 
     What the weights are is read from the header of ``model.safetensors`` (format 2, :func:`weights_identity`), which
     editing ``config.json`` or ``state.json`` does not change; for weights without it (format 0-1) from
     ``state.json``, which must then exist. ``state.json``, when present, must agree too, and its ``weights_sha256``
-    must be the hash of the weights file."""
+    must be the hash of the weights file. ``stored`` and ``weights_sha256``: the header identity and the hash of the
+    weights when the caller has read the file already (:func:`read_checkpoint`), else read here."""
     ckpt = Path(ckpt)
     weights = ckpt / "model.safetensors"
     state_path = ckpt / "state.json"
     if state is None:
         state = read_state(ckpt) if state_path.exists() else None
-    stored = weights_identity(weights) if weights.exists() else {}
+    if stored is None:
+        stored = weights_identity(weights) if weights.exists() else {}
     if not stored and state is None:
         raise CheckpointError(
             f"{state_path} is missing, and {weights} does not record what it is (written before format 2): the "
@@ -227,7 +240,9 @@ def check_identity(ckpt: Path, config: TrainConfig, state: dict | None = None) -
             )
     if version >= 1 and "weights_sha256" not in state:
         raise CheckpointError(f"{state_path} has no weights_sha256 (format {version} writes one); it was edited")
-    if "weights_sha256" in state and weights.exists() and sha256(weights) != state["weights_sha256"]:
+    if weights_sha256 is None and "weights_sha256" in state and weights.exists():
+        weights_sha256 = sha256(weights)
+    if "weights_sha256" in state and weights_sha256 is not None and weights_sha256 != state["weights_sha256"]:
         raise CheckpointError(
             f"{weights} is not the file its state.json was written with (SHA-256 differs): replaced by another "
             "run's weights, or corrupted; copy the whole checkpoint directory"
@@ -251,10 +266,10 @@ def _to_cpu(obj):
 
 def write_checkpoint_dir(learner: GraphCBFLearner, final: Path, state: dict, extra=None) -> Path:
     """Write ``config.json``, ``model.safetensors``, ``state.json`` (and whatever ``extra(tmp_dir, at)`` adds, each
-    file passed through ``at``, :func:`egcbf.atomic.writing`) into ``final.tmp``, then swap it into place
-    (:func:`egcbf.atomic.replace_dir`): a kill at any moment leaves a complete ``final`` (new or previous) or a
-    previous one that :func:`egcbf.atomic.recover_dir` restores. A full disk or the file-size limit raises
-    :class:`egcbf.atomic.WriteError` naming the file, with ``final.tmp`` removed and ``final`` unchanged."""
+    file passed through ``at``, :func:`egcbf.io.atomic.writing`) into ``final.tmp``, then swap it into place
+    (:func:`egcbf.io.atomic.replace_dir`): a kill at any moment leaves a complete ``final`` (new or previous) or a
+    previous one that :func:`egcbf.io.atomic.recover_dir` restores. A full disk or the file-size limit raises
+    :class:`egcbf.io.atomic.WriteError` naming the file, with ``final.tmp`` removed and ``final`` unchanged."""
     tmp = final.with_name(final.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
@@ -438,7 +453,7 @@ def _optim_to(learner: GraphCBFLearner, device) -> None:
 
 def load_learner(path: str | Path, device=None, dtype=None, config: TrainConfig | None = None) -> GraphCBFLearner:
     """The learner of checkpoint ``path`` (a checkpoint or run directory): weights, optimizers, RNG, buffers."""
-    from .algo.learner import GraphCBFLearner
+    from ..algo.learner import GraphCBFLearner
 
     _check_path(path, "load_learner")
     ckpt = find_checkpoint(path)
@@ -503,29 +518,85 @@ def warm_start(learner: GraphCBFLearner, path: str | Path, sha: str | None = Non
     return ckpt, digest
 
 
+@dataclasses.dataclass(frozen=True)
+class CheckpointContents:
+    """What an evaluation needs of a checkpoint directory, each file read once and checked (:func:`read_checkpoint`).
+
+    ``directory``: the checkpoint directory (of a run: the one :func:`find_checkpoint` picked); ``config``: its
+    ``config.json``; ``weights``: every tensor of its ``model.safetensors`` on the CPU; ``weights_sha256``: the hex
+    SHA-256 of that file's bytes."""
+
+    directory: Path
+    config: TrainConfig
+    weights: dict[str, torch.Tensor]
+    weights_sha256: str
+
+
+def _read_file(path: Path) -> bytes:
+    """The bytes of a checkpoint file (every read of :func:`read_checkpoint` goes through here)."""
+    if not path.exists():
+        raise CheckpointError(f"{path} is missing")
+    return path.read_bytes()
+
+
+def _parse_weights(path: Path, data: bytes) -> tuple[dict[str, torch.Tensor], dict]:
+    """``(tensors, header identity)`` of the bytes ``data`` of the safetensors file ``path`` (the identity as
+    :func:`weights_identity` reads it)."""
+    from safetensors.torch import load as load_bytes
+
+    try:
+        tensors = load_bytes(data)
+        (length,) = struct.unpack("<Q", data[:8])
+        meta = json.loads(data[8 : 8 + length]).get("__metadata__") or {}
+    except Exception as err:  # safetensors raises its own SafetensorError on bad files
+        raise CheckpointError(f"{path} is corrupted or truncated ({type(err).__name__}: {err})") from None
+    return tensors, {k: meta[k] for k in ("format_version", *IDENTITY_KEYS) if k in meta}
+
+
+def read_checkpoint(path: str | Path) -> CheckpointContents:
+    """A checkpoint (or run) directory's ``config.json`` and ``model.safetensors``, each read once, checked
+    (:func:`check_identity`, :func:`check_sizes`). Of a run directory: its ``best/`` (selected on validation
+    episodes) if it has one, else its newest checkpoint. Raises :class:`CheckpointError` or ``FileNotFoundError``
+    naming the file."""
+    _check_path(path, "read_checkpoint")
+    ckpt = find_checkpoint(path, prefer_best=True)
+    cfg = read_config(ckpt)
+    data = _read_file(ckpt / "model.safetensors")
+    weights, stored = _parse_weights(ckpt / "model.safetensors", data)
+    sha = hashlib.sha256(data).hexdigest()
+    check_identity(ckpt, cfg, stored=stored, weights_sha256=sha)
+    check_sizes(ckpt, cfg, weights)
+    return CheckpointContents(ckpt, cfg, weights, sha)
+
+
+def build_network(
+    contents: CheckpointContents, part: str, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
+) -> CBFNet | PolicyNet:
+    """The trained network ``part = "policy"`` or ``"cbf"`` of a checkpoint read by :func:`read_checkpoint` (its
+    ``<part>.*`` weights), on ``device`` in ``dtype``, in eval mode."""
+    from ..nn import CBFNet, PolicyNet
+
+    nets = {"policy": PolicyNet, "cbf": CBFNet}
+    if part not in nets:
+        raise ValueError(f"part must be one of {sorted(nets)}, got {part!r}")
+    net = nets[part](contents.config.model)
+    prefix = part + "."
+    weights = {k[len(prefix) :]: v for k, v in contents.weights.items() if k.startswith(prefix)}
+    _load_state_dict(contents.directory, lambda: net.load_state_dict(weights))
+    return net.to(device=device, dtype=dtype).eval()
+
+
 def load_network(
     path: str | Path, part: str, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
 ) -> tuple[CBFNet | PolicyNet, TrainConfig]:
     """One trained network, ``part = "policy"`` or ``"cbf"``, of a checkpoint (or run) directory, in eval mode, and
-    the training config; needs only ``config.json`` and ``model.safetensors`` (the ``<part>.*`` weights). Of a run
-    directory: its ``best/`` (selected on validation episodes) if it has one, else its newest checkpoint."""
-    from .nn import CBFNet, PolicyNet
-
+    the training config; needs only ``config.json`` and ``model.safetensors`` (:func:`read_checkpoint`,
+    :func:`build_network`)."""
     _check_path(path, "load_network")
-    nets = {"policy": PolicyNet, "cbf": CBFNet}
-    if part not in nets:
-        raise ValueError(f"part must be one of {sorted(nets)}, got {part!r}")
-    ckpt = find_checkpoint(path, prefer_best=True)
-    cfg = read_config(ckpt)
-    weights = read_tensors(ckpt / "model.safetensors")
-    check_identity(ckpt, cfg)
-    check_sizes(ckpt, cfg, weights)
-    net = nets[part](cfg.model)
-    prefix = part + "."
-    _load_state_dict(
-        ckpt, lambda: net.load_state_dict({k[len(prefix) :]: v for k, v in weights.items() if k.startswith(prefix)})
-    )
-    return net.to(device=device, dtype=dtype).eval(), cfg
+    if part not in ("policy", "cbf"):
+        raise ValueError(f"part must be one of ['cbf', 'policy'], got {part!r}")
+    contents = read_checkpoint(path)
+    return build_network(contents, part, device, dtype), contents.config
 
 
 def load_controller(
@@ -533,7 +604,7 @@ def load_controller(
 ) -> tuple[LearnedController, TrainConfig]:
     """An evaluation controller ``(state, env_config) -> (u, info)`` from a checkpoint (or run) directory; needs only
     its ``config.json`` and ``model.safetensors``. Returns the controller and the training config."""
-    from .algo.learner import LearnedController
+    from ..algo.learner import LearnedController
 
     _check_path(path, "load_controller")
     policy, cfg = load_network(path, "policy", device, dtype)

@@ -23,7 +23,7 @@ A pair's condition is split in halves (each agent enforces its own, assuming the
 dCBF-QP of the quadrotor and of GCBF+'s reference do the same); an obstacle's is the agent's alone. The rows read
 only relative positions and velocities and the box is per axis, so the controller commutes with the quarter turns
 and translations of the point masses (and with every rotation for the cars, whose controls are invariant). All
-agents' QPs are one batch of the dense interior-point solver (:func:`egcbf.control.dense_ipm.solve_dense_ipm`); an
+agents' QPs are one batch of the dense interior-point solver (:func:`egcbf.qp.dense_ipm.solve_dense_ipm`); an
 agent whose QP fails gets its box-clipped nominal control and is counted (``num_failed``). In the full box (before
 session 38) a row at a speed limit was met on paper by pushing a little less hard into the limit, which the clip
 turns into a full push: the double integrator's dCBF-QP went from 98.4 to 100 % safe on a validation episode (seed
@@ -38,10 +38,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..neighbors import radius_neighbors
-from .dense_ipm import solve_dense_ipm
+from ..geometry.neighbors import radius_neighbors
+from ..qp.dense_ipm import solve_dense_ipm
 
-__all__ = ["AFFINE_ROBOTS", "BarrierRows", "PointMassCBFConfig", "PointMassCCBF", "PointMassDCBF",
+__all__ = ["AFFINE_ROBOTS", "POINT_MASS_CBF_QPS", "BarrierRows", "PointMassCBFConfig", "PointMassCCBF", "PointMassDCBF",
            "acceleration_affine", "barrier_rows", "solve_own_qps"]  # fmt: skip
 
 #: the robots this dCBF-QP drives
@@ -152,7 +152,7 @@ def solve_own_qps(
 class PointMassCCBF:
     """The centralized CBF-QP of the point masses and cars: one QP per environment over every agent's control,
     one whole row per pair (no split) and per obstacle, a slack per row (``w1 s + w2 s^2 / 2``), the box as bounds;
-    solved through qpsolvers (``solver``, :mod:`egcbf.control.sparse_solvers`). An environment whose QP fails keeps
+    solved through qpsolvers (``solver``, :mod:`egcbf.qp.sparse_solvers`). An environment whose QP fails keeps
     its agents' box-clipped nominal controls (counted in ``num_failed``); ``num_slack`` counts rows with slack."""
 
     name = "ccbf"
@@ -165,9 +165,9 @@ class PointMassCCBF:
         import numpy as np
         import scipy.sparse as sp
 
-        from .ipm import INF
-        from .qp import SparseQP
-        from .sparse_solvers import solve_with_qpsolvers
+        from ..qp.ipm import INF
+        from ..qp.sparse_qp import SparseQP
+        from ..qp.sparse_solvers import solve_with_qpsolvers
 
         t0 = time.perf_counter()
         rows = barrier_rows(state, env_config, self.config, pairs="whole")
@@ -308,7 +308,11 @@ def _nearest_surface_point(obs, points: Tensor, env: Tensor, k: Tensor) -> Tenso
     if obs.boxes is None:  # a sphere or disc: along the ray from its centre
         d = points - c
         return c + d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12) * obs.radii[env, k].to(points.dtype)[:, None]
-    from ..env.rectangles import nearest_point
+    from ..geometry.rectangles import nearest_point
 
     box = obs.boxes[env, k].to(points.dtype)
     return nearest_point(points, c, box[:, :2], box[:, 2:])
+
+
+#: the CBF-QP baselines of every control-affine point-mass robot and car (``Robot.cbf_qps``)
+POINT_MASS_CBF_QPS = {"ccbf": PointMassCCBF, "dcbf": PointMassDCBF}

@@ -25,10 +25,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .env import EnvConfig
-from .nn.models import ModelConfig
+from ..env import EnvConfig
+from ..nn.models import ModelConfig
+from ..robots import DEFAULT_ROBOT, make_robot
 from .presets import GCBFPLUS_TRAINING, LEARNED_METHODS, PRESETS, method_group, preset_fields
-from .robots import make_robot
 
 __all__ = ["GCBFPLUS_TRAINING", "LEARNED_METHODS", "PRESETS", "TrainConfig", "method_group"]
 
@@ -96,7 +96,7 @@ class TrainConfig:
 
     Warm start (fine-tuning): ``init_from`` (a checkpoint or run directory; a run's ``best/``) gives the networks'
     starting weights (CBF, its target copy and policy; fresh optimizers, buffers and update count), and
-    ``init_sha256`` the SHA-256 of its ``model.safetensors``: recorded by :func:`egcbf.train.train` when ``None``,
+    ``init_sha256`` the SHA-256 of its ``model.safetensors``: recorded by :func:`egcbf.train.loop.train` when ``None``,
     checked when given, so a config beside a checkpoint says exactly which weights the run started from.
     """
 
@@ -309,9 +309,9 @@ class TrainConfig:
 
     # ------------------------------------------------------------------------------------------- presets
     @classmethod
-    def preset(cls, algo: str, name: str = "cpu", robot: str = "quadrotor", **changes) -> TrainConfig:
+    def preset(cls, algo: str, name: str = "cpu", robot: str = DEFAULT_ROBOT, **changes) -> TrainConfig:
         """The config of method ``algo`` under preset ``name`` for ``robot`` (the recipes:
-        :func:`egcbf.presets.preset_fields`). ``changes`` override fields (``model`` may be a dict of
+        :func:`egcbf.algo.presets.preset_fields`). ``changes`` override fields (``model`` may be a dict of
         :class:`ModelConfig` overrides)."""
         model, base = preset_fields(algo, name, robot)
         model.update(changes.pop("model", {}) or {})

@@ -1,7 +1,8 @@
 """Confidence intervals for learned controllers' metrics by a two-level bootstrap over training seeds and episodes.
 
 A method's value in a cell is measured as ``runs``: one list per training seed of per-episode values (an evaluation
-row's ``per_episode[key]``, :data:`egcbf.evaluate.PER_EPISODE_KEYS`). Its estimate is the mean over seeds of each
+row's ``per_episode[key]``, :data:`egcbf.evaluate.episodes.PER_EPISODE_KEYS`). Its estimate is the mean over seeds of
+each
 seed's mean over episodes. A resample draws the seeds with replacement, then, within each drawn seed, its episodes
 with replacement, and takes the same mean: the interval (percentile, ``level``) covers both the training seeds'
 spread and the episodes' noise. With one seed only the episodes are resampled, and the interval says nothing of how

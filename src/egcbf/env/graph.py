@@ -48,11 +48,11 @@ from groupcanon import FieldType
 from groupcanon.features import Vector
 from groupcanon.groups import SE2xR
 
-from .env.config import EnvConfig
-from .env.lidar import LidarScan
-from .env.swarm import SwarmState, cast_lidar
-from .neighbors import radius_neighbors
-from .robots import Robot, make_robot
+from ..geometry.neighbors import radius_neighbors
+from ..robots import DEFAULT_ROBOT, Robot, make_robot
+from .config import EnvConfig
+from .lidar import LidarScan
+from .swarm import SwarmState, cast_lidar
 
 __all__ = [
     "EDGE_TYPE",
@@ -73,7 +73,7 @@ __all__ = [
 
 #: the quadrotor's graph types (other robots: ``robot.node_type(group)``, ``FieldType(group, {"dp": Vector(d)})``)
 GROUP = SE2xR()
-NODE_TYPE = make_robot("quadrotor").node_type(GROUP)  # kind 3 | v 3 | R 9 | w 3 (declared by the robot)
+NODE_TYPE = make_robot(DEFAULT_ROBOT).node_type(GROUP)  # kind 3 | v 3 | R 9 | w 3 (declared by the robot)
 EDGE_TYPE = FieldType(GROUP, {"dp": Vector(3)})
 NODE_DIM = NODE_TYPE.dim  # 18
 KIND_AGENT, KIND_GOAL, KIND_HIT = 0, 1, 2
@@ -117,7 +117,7 @@ class SwarmGraph:
 
     def __post_init__(self) -> None:
         if self.robot is None:
-            self.robot = make_robot("quadrotor")
+            self.robot = make_robot(DEFAULT_ROBOT)
 
     @property
     def num_dst(self) -> int:
@@ -152,8 +152,8 @@ class SwarmGraph:
         every SE(2) x R element, so averaging a network over ``{G, G.reflect_z()}`` keeps SE2xR invariance.
         Quadrotor graphs only.
         """
-        if self.robot.name != "quadrotor":
-            raise ValueError(f"reflect_z is defined for quadrotor graphs, not for a {self.robot.name}")
+        if not self.robot.mirror_z:
+            raise ValueError(f"reflect_z is defined for quadrotor graphs (Robot.mirror_z), not for a {self.robot.name}")
         like = self.x_src
         layout = self.robot.node_layout
         v, r, w = layout.slice("v").start, layout.slice("R").start, layout.slice("w").start

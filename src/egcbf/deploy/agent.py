@@ -33,7 +33,7 @@ neighbours, its goal, its hits). :class:`AgentPolicy` is that computation with *
 ``max_neighbours`` neighbour rows and ``max_hits`` hit rows, each with a validity mask. Its graph has two
 receivers, the agent and a sink: every neighbour, goal and hit is an edge, valid ones into the agent and masked
 ones (and neighbours out of range) into the sink, whose output is dropped. So the masked rows change nothing, the
-tensor shapes never depend on the data, and the same module is what :mod:`egcbf.export` writes to TorchScript and
+tensor shapes never depend on the data, and the same module is what :mod:`egcbf.deploy.export` writes to TorchScript and
 ONNX. :class:`AgentController` pads a variable-size observation into it (the nearest rows first). It is the same
 computation as the swarm-level :class:`egcbf.algo.learner.LearnedController` for that agent
 (``tests/egcbf/test_deploy.py``: every agent of random scenes within 1e-9 in float64).
@@ -49,15 +49,15 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor, nn
 
-from .algo.interface import make_interface
-from .algo.learner import policy_command
-from .env import EnvConfig
-from .graph import KIND_AGENT, KIND_GOAL, KIND_HIT, SwarmGraph, agent_features, edge_vectors, static_features
-from .nn import ModelConfig, PolicyNet
-from .robots import Robot
+from ..algo.interface import make_interface
+from ..algo.learner import policy_command
+from ..env import EnvConfig
+from ..env.graph import KIND_AGENT, KIND_GOAL, KIND_HIT, SwarmGraph, agent_features, edge_vectors, static_features
+from ..nn import ModelConfig, PolicyNet
+from ..robots import Robot
 
 if TYPE_CHECKING:
-    from .algo.filtered import FilterConfig
+    from ..control.filters import FilterConfig
 
 __all__ = ["AgentController", "AgentFilteredController", "AgentPolicy"]
 
@@ -173,9 +173,10 @@ class AgentController:
     ) -> AgentController:
         """The controller of a checkpoint directory (or run directory: its ``best/``), loaded safely; ``max_hits``
         defaults to the training environment's ``lidar_max_hits``."""
-        from .checkpoint import load_controller
+        from ..control.resolve import POLICY, resolve
 
-        learned, train_cfg = load_controller(path, device=device, dtype=dtype)
+        built = resolve(POLICY, path, device=device, dtype=dtype)
+        learned, train_cfg = built.controller, built.train_config
         env = EnvConfig.for_robot(train_cfg.robot, num_agents=1, **dict(train_cfg.env_overrides))
         hits = env.lidar_max_hits if max_hits is None else max_hits
         return cls(learned.policy, learned.model_config, env, max_neighbours=max_neighbours, max_hits=hits)
@@ -254,14 +255,14 @@ class AgentController:
 
 @dataclass
 class AgentFilteredController:
-    """One agent's policy behind the decentralized ``dcbf`` run-time filter (:mod:`egcbf.algo.filtered`,
+    """One agent's policy behind the decentralized ``dcbf`` run-time filter (:mod:`egcbf.control.filters`,
     docs/safety_filters.md): what the recommended controller runs on board.
 
     ``u, info = ctrl(state, goal, neighbours, hits, obstacles=(centers (O, 3), radii (O,)), accelerations=None)``.
     The policy reads ``neighbours`` and ``hits`` as :class:`AgentController` does. The filter reads the neighbours'
     states (pass every neighbour heard: it keeps those within its range at the look-ahead positions, as the swarm
     filter does; in simulation without message faults that filter also counts a neighbour not yet within radio
-    range but within range at the look-ahead positions, :mod:`egcbf.algo.filtered`), the sphere obstacles the agent
+    range but within range at the look-ahead positions, :mod:`egcbf.control.filters`), the sphere obstacles the agent
     senses, and, for the look-ahead, ``accelerations`` ``(1 + K, 3)``: the agent's own and each neighbour's realized
     acceleration over the last control step, ``(v_t - v_{t-1}) / dt`` from two consecutive broadcasts (``None``:
     zero, as at an episode's first step). It solves the agent's own QP
@@ -275,8 +276,8 @@ class AgentFilteredController:
     filter_config: FilterConfig | None = None
 
     def __post_init__(self) -> None:
-        from .algo.filtered import FilterConfig
-        from .robots.quadrotor.dcbf_qp import DecentralizedCBFQP
+        from ..control.filters import FilterConfig
+        from ..robots.quadrotor.dcbf_qp import DecentralizedCBFQP
 
         self.filter_config = self.filter_config or FilterConfig.for_kind("dcbf")
         cfg = self.filter_config
@@ -305,8 +306,8 @@ class AgentFilteredController:
     def __call__(self, state: Tensor, goal: Tensor, neighbours: Tensor, hits: Tensor,
                  obstacles: tuple[Tensor, Tensor] | None = None,
                  accelerations: Tensor | None = None) -> tuple[Tensor, dict]:  # fmt: skip
-        from .env import SwarmState
-        from .env.obstacles import Obstacles
+        from ..env import SwarmState
+        from ..env.obstacles import Obstacles
 
         ctrl, robot = self.controller, self.controller.robot
         _, info = ctrl(state, goal, neighbours, hits)

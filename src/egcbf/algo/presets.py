@@ -1,7 +1,7 @@
 """The training presets: which method is which point of the method grid, and each preset's field values.
 
-:meth:`egcbf.config.TrainConfig.preset` builds a config from them (``TrainConfig.preset("egcbf+", "cpu")``); this
-module holds only the tables and the recipes (plain dicts of :class:`egcbf.config.TrainConfig` and
+:meth:`egcbf.algo.config.TrainConfig.preset` builds a config from them (``TrainConfig.preset("egcbf+", "cpu")``); this
+module holds only the tables and the recipes (plain dicts of :class:`egcbf.algo.config.TrainConfig` and
 :class:`egcbf.nn.models.ModelConfig` fields), so that the config class stays one job.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .robots import make_robot
+from ..robots import DEFAULT_ROBOT, make_robot
 
 __all__ = ["GCBFPLUS_TRAINING", "LEARNED_METHODS", "PRESETS", "method_group", "preset_fields"]
 
@@ -22,7 +22,7 @@ LEARNED_METHODS: dict[str, tuple[str, str]] = {
 }
 
 
-def method_group(algo: str, robot: str = "quadrotor") -> str:
+def method_group(algo: str, robot: str = DEFAULT_ROBOT) -> str:
     """The config name of the networks' group of method ``algo`` for ``robot``: ``"trivial"`` or the robot's."""
     group = LEARNED_METHODS[algo][0]
     return make_robot(robot).group_name if group == "equivariant" else group
@@ -41,7 +41,7 @@ GCBFPLUS_TRAINING = {
 
 
 def preset_fields(algo: str, name: str, robot: str) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The :class:`~egcbf.nn.models.ModelConfig` and :class:`~egcbf.config.TrainConfig` fields (two dicts; ``algo``
+    """The :class:`~egcbf.nn.models.ModelConfig` and :class:`~egcbf.algo.config.TrainConfig` fields (two dicts; ``algo``
     and ``reference`` not among them) of method ``algo`` under preset ``name`` for ``robot``:
 
     * ``"cpu"``: the default CPU recipe on the acceleration command (ideal command model): 32 agents in arenas
@@ -66,7 +66,8 @@ def preset_fields(algo: str, name: str, robot: str) -> tuple[dict[str, Any], dic
       ``alpha = 1``; for a GPU;
     * ``"tiny"``: a seconds-long smoke configuration (tests).
 
-    ``robot`` (:mod:`egcbf.robots`): ``"quadrotor"`` (the recipes above) or another robot (the planar recipe,
+    ``robot`` (:mod:`egcbf.robots`): a robot whose ``training_recipe`` is ``"paper"`` (the quadrotor: the recipes
+    above) or another robot (the planar recipe,
     :func:`_planar_fields`: ``"cpu"``, ``"tiny"`` and, for GCBF+'s benchmark robots, ``"gcbfplus"``).
     """
     if algo not in LEARNED_METHODS:
@@ -74,8 +75,7 @@ def preset_fields(algo: str, name: str, robot: str) -> tuple[dict[str, Any], dic
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose one of {PRESETS}")
     _, reference = LEARNED_METHODS[algo]
-    make_robot(robot)  # a clear error for an unknown robot
-    if robot != "quadrotor":
+    if make_robot(robot).training_recipe != "paper":  # (a clear error for an unknown robot)
         return _planar_fields(algo, name, robot)
     if name == "gcbfplus":
         raise ValueError(f"preset 'gcbfplus' is GCBF+'s setting for its benchmark robots {list(GCBFPLUS_TRAINING)}")

@@ -12,11 +12,11 @@ ordinary GNN (GCBF, GCBF+, world-frame features) they differ wherever the rotati
 * :func:`cbf_contour_figure`: one row per method, three panels: contours in the original scene, contours in the
   transformed scene (in its own world coordinates), and ``|h(g . G) - h(G)|`` pulled back to the original grid.
 
-Every placement is a separate environment of one batched graph (:func:`egcbf.graph.build_graph`), evaluated in
+Every placement is a separate environment of one batched graph (:func:`egcbf.env.graph.build_graph`), evaluated in
 chunks; the LiDAR of the placed agent is recast for every placement (the other agents' scans do not depend on
 where it is: the LiDAR sees only the static obstacles, so they are cast once).
 
-    from egcbf.contour import cbf_contour_figure
+    from egcbf.viz.contour import cbf_contour_figure
     diffs = cbf_contour_figure({"EGCBF+": Path("checkpoints/egcbf+"), "GCBF+": Path("checkpoints/gcbf+")},
                                Path("out/cbf_contours.png"))
 """
@@ -32,12 +32,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .env.config import EnvConfig
-from .env.lidar import LidarScan
-from .env.swarm import SwarmEnv, SwarmState, cast_lidar
-from .graph import build_graph
-from .nn import CBFNet
-from .robots.quadrotor import dynamics as dyn
+from ..env.config import EnvConfig
+from ..env.graph import build_graph
+from ..env.lidar import LidarScan
+from ..env.swarm import SwarmEnv, SwarmState, cast_lidar
+from ..nn import CBFNet
+from ..robots.quadrotor import dynamics as dyn
 
 __all__ = ["cbf_contour_figure", "cbf_slice", "load_cbf", "pick_agent", "transform_element"]
 
@@ -60,7 +60,7 @@ def load_cbf(path: str | Path, device: str | torch.device = "cpu", dtype: torch.
 
     Needs only ``config.json`` and ``model.safetensors`` (the ``cbf.*`` weights).
     """
-    from .checkpoint import load_network
+    from ..train.checkpoint import load_network
 
     return load_network(path, "cbf", device, dtype)
 

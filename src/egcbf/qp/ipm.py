@@ -7,9 +7,9 @@ Each of the ``B`` problems of a batch is
 solved in the form ``G x + s = h``, ``s >= 0``, with multipliers ``z >= 0``. The iteration (:func:`solve_ipm`) is
 written once; a problem supplies its data and its Newton linear algebra through :class:`KKTSystem`:
 
-* :class:`egcbf.control.dense_ipm.DenseKKT`: explicit ``P`` and ``G``, one ``n x n`` Cholesky of
+* :class:`egcbf.qp.dense_ipm.DenseKKT`: explicit ``P`` and ``G``, one ``n x n`` Cholesky of
   ``P + G' diag(z / s) G`` per problem and iteration; the per-agent QPs of the decentralized CBF-QP baseline
-  (:func:`egcbf.control.dense_qp.solve_dense_batch_ipm`).
+  (:func:`egcbf.qp.dense_qp.solve_dense_batch_ipm`).
 * :class:`egcbf.algo.qp.CBFQPKKT`: the learned-CBF QP target, whose slack block is eliminated (one ``kN x kN``
   Cholesky per environment and iteration).
 

@@ -1,6 +1,6 @@
 """Export one agent's learned controller to a self-contained file a robot can run: TorchScript or ONNX.
 
-The exported computation is :class:`egcbf.deploy.AgentPolicy`: one agent's observation in fixed shapes with
+The exported computation is :class:`egcbf.deploy.agent.AgentPolicy`: one agent's observation in fixed shapes with
 validity masks, to its body control and command. The file holds the weights, the group actions (the agent's frame
 from its attitude, the canonicalization), the nominal controller and, for the acceleration interface, the attitude
 loop that turns the command into torque and thrust: nothing else is needed on board. ONNX files run under
@@ -23,7 +23,7 @@ Inputs and outputs (float32; names as in the ONNX graph, positional in TorchScri
 ``command``         ``(k,)``    output: the policy's command in its interface's units (accel: acceleration / 5 m/s^2)
 =================== =========== =====================================================================================
 
-With more neighbours or hits than rows, pass the nearest (as :class:`egcbf.deploy.AgentController` does). The
+With more neighbours or hits than rows, pass the nearest (as :class:`egcbf.deploy.agent.AgentController` does). The
 layout, limits and the checkpoint's identity are written beside the model: into the ONNX file's metadata
 (``metadata_props``, key ``egcbf``), the TorchScript file's extra file ``egcbf.json``, and ``OUT.json``.
 """
@@ -41,9 +41,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from .atomic import write_json_atomic
-from .deploy import AgentController, AgentPolicy
-from .nn.attention import EdgeAttention
+from ..io.atomic import write_json_atomic
+from ..nn.attention import EdgeAttention
+from .agent import AgentController, AgentPolicy
 
 __all__ = ["FORMATS", "INPUT_NAMES", "OUTPUT_NAMES", "example_inputs", "export_controller", "exportable", "layout"]
 
@@ -73,7 +73,7 @@ def example_inputs(module: AgentPolicy, env_config=None, seed: int = 0) -> tuple
     parameters; default: the robot's defaults). For tracing, and to check a file."""
     import dataclasses
 
-    from .env import EnvConfig, SwarmEnv
+    from ..env import EnvConfig, SwarmEnv
 
     robot, k, h = module.robot, module.max_neighbours, module.max_hits
     base = env_config if env_config is not None else EnvConfig.for_robot(robot.name, num_agents=1)
@@ -110,7 +110,7 @@ def layout(ctrl: AgentController, checkpoint: str | Path | None = None) -> dict:
         "command_unit": getattr(m.interface, "accel_unit", None),  # the acceleration interface's A (m/s^2)
     }
     if checkpoint is not None:
-        from .checkpoint import find_checkpoint, sha256
+        from ..train.checkpoint import find_checkpoint, sha256
 
         ckpt = find_checkpoint(checkpoint, prefer_best=True)
         info["checkpoint"] = str(checkpoint)

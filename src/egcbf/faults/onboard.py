@@ -10,7 +10,8 @@ runs inside::
     u = onboard.command(u)                  # what to send to the actuators
 
 The simulator's fault process (:mod:`egcbf.faults`, the ``act_predict`` and ``dist_obs`` handling) runs one for
-the whole swarm; a robot runs one for itself around :class:`egcbf.deploy.AgentController` (docs/deploy.md). Shapes:
+the whole swarm; a robot runs one for itself around :class:`egcbf.deploy.agent.AgentController` (docs/deploy.md).
+Shapes:
 any batch of agents ``(*batch,)``; states ``(*batch, S)``, commands ``(*batch, k)``, goals and the disturbance
 ``(*batch, d)`` (world frame; the disturbance in m/s^2).
 
@@ -31,9 +32,9 @@ from collections import deque
 import torch
 from torch import Tensor
 
-from .env.config import EnvConfig
-from .env.swarm import advance
-from .robots import Robot
+from ..env.config import EnvConfig
+from ..env.swarm import advance
+from ..robots import Robot
 
 __all__ = ["DIST_OBS_TAU", "Onboard", "hover_commands"]
 

@@ -1,9 +1,9 @@
 """Training curves: safety, reach and success of the evaluation rollouts of training runs, against update and wall time.
 
-    from egcbf.curves import training_curves
+    from egcbf.viz.curves import training_curves
     training_curves({"EGCBF+": "checkpoints/egcbf+", "GCBF+": "checkpoints/gcbf+"}, "docs/figures/training_curves.png")
 
-Each run is a directory holding the ``metrics.csv`` that :func:`egcbf.train.train` writes (one row per evaluation:
+Each run is a directory holding the ``metrics.csv`` that :func:`egcbf.train.loop.train` writes (one row per evaluation:
 ``step, wall_s, safe_rate, reach_rate, success_rate, ...``); a shipped checkpoint directory keeps a copy of it.
 """
 

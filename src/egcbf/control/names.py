@@ -9,14 +9,14 @@ and the reproduction import it without torch) is the one place that parses and w
     join_method("egcbf+", "dcbf") == "egcbf+:dcbf"
     path_name("egcbf+:dcbf") == "egcbf+_dcbf"      # a folder or file name (no colon in paths)
 
-The filters themselves are :mod:`egcbf.algo.filtered` (docs/safety_filters.md).
+The filters themselves are :mod:`egcbf.control.filters` (docs/safety_filters.md).
 """
 
 from __future__ import annotations
 
 __all__ = ["FILTERS", "FILTER_LABELS", "filter_label", "join_method", "path_name", "split_method"]
 
-#: the run-time filters of ``egcbf eval --filter`` (``"none"``: the policy alone); :mod:`egcbf.algo.filtered`
+#: the run-time filters of ``egcbf eval --filter`` (``"none"``: the policy alone); :mod:`egcbf.control.filters`
 FILTERS = ("none", "cbf", "prior", "dcbf")
 #: what each filter is, in a label: ``"EGCBF+ + dCBF filter"``
 FILTER_LABELS = {"dcbf": "dCBF filter", "cbf": "learned-CBF filter", "prior": "prior-CBF filter"}

@@ -25,10 +25,11 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from .env import EnvConfig, SwarmEnv, SwarmState
-from .env.obstacles import Obstacles
-from .faults import FaultConfig, FaultProcess
-from .faults.sensing import unread_faults
+from ..env import EnvConfig, SwarmEnv, SwarmState
+from ..env.obstacles import Obstacles
+from ..faults import FaultConfig, FaultProcess
+from ..faults.sensing import unread_faults
+from ..robots import DEFAULT_ROBOT
 from .metrics import EpisodeStats, summarize
 
 __all__ = [
@@ -205,7 +206,7 @@ def evaluate(
     show_progress: bool = True,
     env_overrides: dict | None = None,
     on_size: Callable[[list[dict], EpisodeRecord | None], None] | None = None,
-    robot: str = "quadrotor",
+    robot: str = DEFAULT_ROBOT,
     faults: FaultConfig | None = None,
 ) -> tuple[list[dict], dict[int, EpisodeRecord]]:
     """Evaluate a controller at each swarm size; returns one metrics row per size (see ``docs/metrics.md``; its

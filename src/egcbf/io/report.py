@@ -63,7 +63,7 @@ def code_version() -> str:
     not count), e.g. ``0.4.0+g1a2b3c4-dirty``, for provenance records; never raises."""
     import subprocess
 
-    from ._version import __version__
+    from .._version import __version__
 
     here = Path(__file__).resolve().parent
 
@@ -172,7 +172,7 @@ def replace_block(text: str, name: str, body: str, heading: str | None = None) -
 
 def replace_section(path: str | Path, name: str, body: str, heading: str | None = None) -> None:
     """Replace (or append) the block between ``<!-- name:begin -->`` and ``<!-- name:end -->`` in ``path``
-    (:func:`replace_block`); the file is replaced atomically (:func:`egcbf.atomic.write_text_atomic`)."""
+    (:func:`replace_block`); the file is replaced atomically (:func:`egcbf.io.atomic.write_text_atomic`)."""
     path = Path(path)
     text = path.read_text() if path.exists() else ""
     path.parent.mkdir(parents=True, exist_ok=True)

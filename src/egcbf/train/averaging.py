@@ -70,9 +70,10 @@ def average_checkpoints(
     holding ``lam`` x the weights of checkpoint ``a`` + ``(1 - lam)`` x those of ``b``. ``a`` and ``b`` are checkpoint
     or run directories (a run's ``best/``) of the same method, group, interface and network shapes, and of one
     training lineage (:func:`related`; ``allow_unrelated`` lifts that); anything else raises
-    :class:`~egcbf.checkpoint.CheckpointError` before anything is written, as does an ``out`` that exists but is not
+    :class:`~egcbf.train.checkpoint.CheckpointError` before anything is written, as does an ``out`` that exists but is
+    not
     a checkpoint directory, or that is or holds one of the inputs. Returns ``out``."""
-    from .algo.learner import GraphCBFLearner
+    from ..algo.learner import GraphCBFLearner
 
     if not 0.0 <= lam <= 1.0:
         raise CheckpointError(f"lam must be in [0, 1], got {lam}")

@@ -2,7 +2,7 @@
 a[j[c]]) >= rhs[c]``, one row per agent pair or agent-obstacle pair (``j[c] = -1``), in units of acceleration.
 
 The barriers that produce them are the robot's (the quadrotor's in :mod:`egcbf.robots.quadrotor.barriers`); the QP
-cores (:mod:`egcbf.control.qp`) only read them.
+cores (:mod:`egcbf.qp.sparse_qp`) only read them.
 """
 
 from __future__ import annotations

@@ -10,8 +10,9 @@ own graph neighbourhood, then solves one small QP over its own acceleration only
 and the attitude loop tracks the result. Nothing is exchanged between agents: each pair row is split in halves, each
 agent enforcing its own half (the ``dCBF-QP``'s convention), so the two halves add up to the pair's condition when
 both agents keep their halves. All ``B N`` QPs are one batch of the interior-point solver of the dCBF-QP
-(:func:`egcbf.control.dense_qp.solve_dense_batch_ipm`); an agent whose QP fails (or whose solution fails the check)
-brakes. Three filters (``FILTERS``):
+(:func:`egcbf.qp.dense_qp.solve_dense_batch_ipm`); an agent whose QP fails (or whose solution fails the check)
+brakes. Three filters (``FILTERS``), each a :class:`SafetyFilter` registered under its kind (``FILTER_CLASSES``:
+:class:`EdgeBarrierFilter`, :class:`PriorBarrierFilter`, :class:`BrakingBarrierFilter`):
 
 * ``"cbf"``: the checkpoint's **learned per-edge barriers**. The soft-min CBF head
   (:class:`egcbf.nn.edge_min.EdgeMinHead`) computes one barrier value ``b_ij(dp, dv; z_i)`` (m) per edge before
@@ -45,12 +46,10 @@ command (``READS_SENSING``).
 Every piece is an invariant or an equivariant of the agent's frame (edge vectors rotate with the scene, the box
 turns with the agent, the policy is equivariant for EGCBF+), so the filtered controller of EGCBF+ stays SE2xR
 equivariant (tested), and every input of agent ``i``'s QP lies within its sensing radius (tested). One difference
-from the per-agent filter a robot runs (:class:`egcbf.deploy.AgentFilteredController`): without message faults the
+from the per-agent filter a robot runs (:class:`egcbf.deploy.agent.AgentFilteredController`): without message faults the
 ``dcbf`` rows take the neighbours within range at the look-ahead positions, so a neighbour closing from up to
 ``T`` times the closing speed beyond the radius (a few cm) counts, where a robot keeps only the ones it heard (as
-the filter does under message faults). Measured: EGCBF+ behind the filter, 8 obstacles, validation seed 7, the
-per-episode safe, reach and success rates are identical under both rules (N = 128, 20 episodes; N = 512, 8
-episodes); the rewards differ.
+the filter does under message faults); docs/safety_filters.md ("Cost") measures both rules.
 """
 
 from __future__ import annotations
@@ -58,33 +57,39 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..config import TrainConfig
-from ..control.qp import SlackPenalty
+from ..algo.config import TrainConfig
+from ..algo.edge_qp import BRAKE_GAIN, SLACK_TOL, EdgeRows, edge_qp_commands, edge_rows
+from ..algo.interface import make_interface
+from ..algo.learner import policy_command
 from ..env import EnvConfig, SwarmState
-from ..filter_names import FILTERS
-from ..graph import SwarmGraph, build_graph
+from ..env.graph import build_graph
 from ..nn.models import CBFNet, ModelConfig, PolicyNet
+from ..qp.sparse_qp import SlackPenalty
 from ..robots.quadrotor.barriers import BarrierConfig
 from ..robots.quadrotor.cbf_qp import OBSTACLE_SENSING, check_lidar_hits
 from ..robots.quadrotor.dcbf_qp import DecentralizedCBFQP
-from .edge_qp import BRAKE_GAIN, SLACK_TOL, EdgeRows, edge_qp_commands, edge_rows
-from .interface import AccelInterface, make_interface
-from .learner import policy_command
+from .names import FILTERS
 
 __all__ = [
     "FILTERS",
+    "FILTER_CLASSES",
     "READS_SENSING",
+    "BrakingBarrierFilter",
+    "EdgeBarrierFilter",
     "EdgeRows",
     "FilterConfig",
     "FilteredController",
+    "PriorBarrierFilter",
+    "SafetyFilter",
     "edge_rows",
     "filter_reads_sensing",
-    "load_filtered_controller",
+    "register_filter",
 ]
 
 
@@ -95,18 +100,6 @@ __all__ = [
 DCBF_FILTER_BARRIER = BarrierConfig(margin=0.02, gamma=50.0, brake_accel=3.0)
 #: the ``dcbf`` filter's look-ahead (s) under the realized acceleration: the attitude loop's lag (docs)
 DCBF_FILTER_LOOKAHEAD = 0.05
-#: per filter kind, the channels of ``state.sensing`` (:data:`egcbf.faults.sensing.CHANNELS`) that the filter's rows
-#: perceive (module doc)
-READS_SENSING = {"cbf": True, "prior": True, "dcbf": DecentralizedCBFQP.reads_sensing}
-
-
-def filter_reads_sensing(kind: str, has_policy: bool):
-    """A filtered controller's ``reads_sensing`` (:func:`egcbf.faults.sensing.unread_faults`): every channel with a
-    policy (it builds its graph from what the agents perceive, LiDAR included), else its filter rows' channels
-    (:data:`READS_SENSING`)."""
-    if kind not in READS_SENSING:
-        raise ValueError(f"unknown filter kind {kind!r}; choose from {sorted(READS_SENSING)}")
-    return True if has_policy else READS_SENSING[kind]
 
 
 @dataclass(frozen=True)
@@ -159,27 +152,15 @@ class FilterConfig:
         clearance: ``alpha``, ``margin`` for ``cbf`` and ``prior``; the barrier's ``gamma``, ``margin`` for ``dcbf``;
         ``obstacle_sensing`` the ``dcbf`` filter's obstacle rows (``"map"`` or ``"lidar"``) and ``lidar_hits`` what
         one LiDAR hit stands for in them (``"plane"`` or ``"point"``)."""
+        if kind not in FILTER_CLASSES:
+            raise ValueError(f"FilterConfig.kind must be one of {FILTERS[1:]}, got {kind!r}")
         sensing = {"obstacle_sensing": obstacle_sensing, "lidar_hits": lidar_hits}
-        if kind != "dcbf":
-            return cls(kind=kind, **sensing,
-                       **{k: v for k, v in (("alpha", alpha), ("margin", margin)) if v is not None})  # fmt: skip
-        changes = {k: v for k, v in (("gamma", alpha), ("margin", margin)) if v is not None}
-        try:
-            return cls(kind=kind, barrier=replace(DCBF_FILTER_BARRIER, **changes), **sensing)
-        except ValueError as err:  # name the filter's fields, not the barrier's
-            raise ValueError(str(err).replace("BarrierConfig.gamma", "FilterConfig.alpha").replace(
-                "BarrierConfig.margin", "FilterConfig.margin")) from None  # fmt: skip
+        return FILTER_CLASSES[kind].make_config(cls, kind, alpha, margin, sensing)
 
     def settings(self) -> dict:
         """What a result records of the filter (``egcbf eval``'s run.json, ``egcbf reproduce``'s cells): its gain
         and clearance as the filter reads them (the barrier's for ``dcbf``)."""
-        if self.kind == "dcbf":
-            b = self.barrier
-            lidar = (
-                {"obstacle_sensing": "lidar", "lidar_hits": self.lidar_hits} if self.obstacle_sensing == "lidar" else {}
-            )
-            return {"barrier": b.kind, "gamma": b.gamma, "margin": b.margin, "brake_accel": b.brake_accel, **lidar}
-        return {"alpha": self.alpha, "margin": self.margin}
+        return FILTER_CLASSES[self.kind].settings(self)
 
     def __post_init__(self) -> None:
         if self.kind not in FILTERS or self.kind == "none":
@@ -197,6 +178,150 @@ class FilterConfig:
         for name in ("brake_gain", "slack_tol", "active_tol"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"FilterConfig.{name} must be > 0, got {getattr(self, name)!r}")
+
+
+class SafetyFilter:
+    """A run-time filter's rows as a plug-in (module doc): registered under its ``kind`` (:func:`register_filter`),
+    built by :class:`FilteredController` from a :class:`FilterConfig` of that kind.
+
+    Given every agent's proposed acceleration ``a_pi`` ``(B, N, 3)`` (float64, world frame), a filter returns the
+    safe accelerations ``a`` (same shape), optionally the control ``u`` that realizes them (``None``: the
+    acceleration interface's attitude loop tracks ``a``), and its counts (``num_slack``, ``num_failed``,
+    ``max_slack``, ``slack_mask`` / ``failed_mask`` ``(B, N)``).
+    """
+
+    #: the name it is registered under (``FilterConfig.kind``, ``METHOD:KIND``)
+    kind: ClassVar[str] = ""
+    #: whether its rows read a checkpoint's CBF network
+    needs_cbf: ClassVar[bool] = False
+    #: whether its rows read the agents' graph (built anyway with a policy)
+    uses_graph: ClassVar[bool] = True
+    #: whether it reads every agent's realized acceleration (``FilterConfig.lookahead``)
+    uses_lookahead: ClassVar[bool] = False
+    #: the channels of ``state.sensing`` its rows perceive (:func:`egcbf.faults.sensing.unread_faults`)
+    rows_read: ClassVar[Any] = True
+
+    def __init__(self, config: FilterConfig, model_config: ModelConfig, cbf: CBFNet | None = None):
+        self.config, self.model_config, self.cbf = config, model_config, cbf
+        #: what this instance's rows perceive (may depend on its settings)
+        self.reads_sensing = self.rows_read
+
+    @classmethod
+    def make_config(cls, config_cls, kind: str, alpha, margin, sensing: dict) -> FilterConfig:
+        """:meth:`FilterConfig.for_kind` of this filter: ``alpha`` and ``margin`` (``None``: the defaults) override
+        its class-K gain and clearance."""
+        given = {k: v for k, v in (("alpha", alpha), ("margin", margin)) if v is not None}
+        return config_cls(kind=kind, **sensing, **given)
+
+    @staticmethod
+    def settings(config: FilterConfig) -> dict:
+        """What a result records of ``config`` (:meth:`FilterConfig.settings`)."""
+        return {"alpha": config.alpha, "margin": config.margin}
+
+    def __call__(self, state, s, env_config, graph, itf, a_pi, accel) -> tuple[Tensor, Tensor | None, dict]:
+        """``(a, u or None, info)`` for the proposals ``a_pi`` (class doc); ``state`` as the controller got it, ``s``
+        in the policy's dtype and device, ``graph`` the agents' graph (``None`` if neither the policy nor the rows
+        read it), ``itf`` the acceleration interface, ``accel`` the realized accelerations or ``None``."""
+        raise NotImplementedError(f"{type(self).__name__} must implement __call__")
+
+
+#: filter kind -> class (:func:`register_filter`); the kinds are :data:`FILTERS` (``"none"`` aside)
+FILTER_CLASSES: dict[str, type[SafetyFilter]] = {}
+
+
+def register_filter(cls: type[SafetyFilter]) -> type[SafetyFilter]:
+    """Register a :class:`SafetyFilter` subclass under its ``kind`` (a class decorator); its kind must be one of
+    :data:`FILTERS`, the names the command line and the controller names parse."""
+    if not (isinstance(cls, type) and issubclass(cls, SafetyFilter)) or cls.kind not in FILTERS[1:]:
+        raise ValueError(f"register_filter needs a SafetyFilter whose kind is one of {FILTERS[1:]}, got {cls!r}")
+    FILTER_CLASSES[cls.kind] = cls
+    return cls
+
+
+@register_filter
+class EdgeBarrierFilter(SafetyFilter):
+    """``"cbf"``: the checkpoint's learned per-edge barriers, one linear row per edge (module doc)."""
+
+    kind = "cbf"
+    needs_cbf = True
+
+    def __call__(self, state, s, env_config, graph, itf, a_pi, accel):
+        cfg, mc = self.config, self.model_config
+        a, info = edge_qp_commands(
+            graph, s.x, itf, a_pi, alpha=cfg.alpha, margin=cfg.margin, cbf=self.cbf, distance=mc.cbf_distance,
+            horizon=mc.closest_approach_horizon, penalty=cfg.penalty, brake_gain=cfg.brake_gain,
+            slack_tol=cfg.slack_tol,
+        )  # fmt: skip
+        return a, None, info
+
+
+@register_filter
+class PriorBarrierFilter(EdgeBarrierFilter):
+    """``"prior"``: the same rows from the CBF head's untrained prior (module doc)."""
+
+    kind = "prior"
+    needs_cbf = False
+
+    def __init__(self, config: FilterConfig, model_config: ModelConfig, cbf: CBFNet | None = None):
+        super().__init__(config, model_config, None)
+
+
+@register_filter
+class BrakingBarrierFilter(SafetyFilter):
+    """``"dcbf"``: the dCBF-QP's hand-crafted braking-distance barriers with the filter's own settings and a
+    look-ahead under the realized accelerations (module doc)."""
+
+    kind = "dcbf"
+    uses_graph = False
+    uses_lookahead = True
+    rows_read = DecentralizedCBFQP.reads_sensing
+
+    def __init__(self, config: FilterConfig, model_config: ModelConfig, cbf: CBFNet | None = None):
+        super().__init__(config, model_config, None)
+        self.qp = DecentralizedCBFQP(
+            barrier=config.barrier, penalty=config.penalty, brake_gain=config.brake_gain,
+            obstacle_sensing=config.obstacle_sensing, lidar_hits=config.lidar_hits,
+        )  # fmt: skip
+        self.reads_sensing = self.qp.reads_sensing
+
+    @classmethod
+    def make_config(cls, config_cls, kind: str, alpha, margin, sensing: dict) -> FilterConfig:
+        changes = {k: v for k, v in (("gamma", alpha), ("margin", margin)) if v is not None}
+        try:
+            return config_cls(kind=kind, barrier=replace(DCBF_FILTER_BARRIER, **changes), **sensing)
+        except ValueError as err:  # name the filter's fields, not the barrier's
+            raise ValueError(str(err).replace("BarrierConfig.gamma", "FilterConfig.alpha").replace(
+                "BarrierConfig.margin", "FilterConfig.margin")) from None  # fmt: skip
+
+    @staticmethod
+    def settings(config: FilterConfig) -> dict:
+        b = config.barrier
+        lidar = (
+            {"obstacle_sensing": "lidar", "lidar_hits": config.lidar_hits} if config.obstacle_sensing == "lidar" else {}
+        )
+        return {"barrier": b.kind, "gamma": b.gamma, "margin": b.margin, "brake_accel": b.brake_accel, **lidar}
+
+    def __call__(self, state, s, env_config, graph, itf, a_pi, accel):
+        u, qinfo = self.qp.filter(state, env_config, a_pi.cpu().numpy(), self.config.lookahead, accel)
+        a = torch.as_tensor(qinfo["a_safe"], dtype=torch.float64, device=a_pi.device)
+        info = {k: qinfo[k] for k in ("num_slack", "num_failed", "max_slack")}
+        info["slack_mask"] = qinfo["slack"] > self.qp.config.slack_tol
+        info["failed_mask"] = qinfo["failed"]
+        return a, u, info
+
+
+#: per filter kind, the channels of ``state.sensing`` (:data:`egcbf.faults.sensing.CHANNELS`) that the filter's rows
+#: perceive (module doc)
+READS_SENSING = {kind: cls.rows_read for kind, cls in FILTER_CLASSES.items()}
+
+
+def filter_reads_sensing(kind: str, has_policy: bool):
+    """A filtered controller's ``reads_sensing`` (:func:`egcbf.faults.sensing.unread_faults`): every channel with a
+    policy (it builds its graph from what the agents perceive, LiDAR included), else its filter rows' channels
+    (:data:`READS_SENSING`)."""
+    if kind not in READS_SENSING:
+        raise ValueError(f"unknown filter kind {kind!r}; choose from {sorted(READS_SENSING)}")
+    return True if has_policy else READS_SENSING[kind]
 
 
 class FilteredController:
@@ -220,11 +345,12 @@ class FilteredController:
         config: FilterConfig,
         cbf: CBFNet | None = None,
     ):
+        rows = FILTER_CLASSES[config.kind]
         if policy is None:  # the nominal controller's command behind the filter (an ablation: what the policy adds)
-            if config.kind == "cbf" and (cbf is None or model_config is None):
+            if rows.needs_cbf and (cbf is None or model_config is None):
                 raise ValueError(
-                    "the 'cbf' filter reads a checkpoint's CBF: pass its CBF network and model config (cbf=..., "
-                    "model_config=...) to filter the nominal command with it"
+                    f"the {config.kind!r} filter reads a checkpoint's CBF: pass its CBF network and model config "
+                    "(cbf=..., model_config=...) to filter the nominal command with it"
                 )
             model_config = model_config or TrainConfig.preset("egcbf+", "cpu").model  # the prior's D and horizon
         elif model_config.interface != "accel":
@@ -232,19 +358,14 @@ class FilteredController:
                 f"run-time filters act on the acceleration command; this policy's interface is "
                 f"{model_config.interface!r}"
             )
-        if config.kind == "cbf" and cbf is None:
-            raise ValueError("the 'cbf' filter needs the checkpoint's CBF network")
+        if rows.needs_cbf and cbf is None:
+            raise ValueError(f"the {config.kind!r} filter needs the checkpoint's CBF network")
         self.policy, self.model_config, self.config, self.cbf = policy, model_config, config, cbf
-        self._dcbf = None
+        #: the filter's rows (:class:`SafetyFilter`)
+        self.rows = rows(config, model_config, cbf)
         self._last: tuple[int, np.ndarray] | None = None  # (step, velocities) of the previous call: lookahead only
-        self.reads_sensing = filter_reads_sensing(config.kind, policy is not None)
-        if config.kind == "dcbf":
-            self._dcbf = DecentralizedCBFQP(
-                barrier=config.barrier, penalty=config.penalty, brake_gain=config.brake_gain,
-                obstacle_sensing=config.obstacle_sensing, lidar_hits=config.lidar_hits,
-            )  # fmt: skip
-            if policy is None:  # the nominal command behind it perceives what its rows read
-                self.reads_sensing = self._dcbf.reads_sensing
+        # a policy builds its graph from everything the agents perceive; the nominal command, what the rows read
+        self.reads_sensing = True if policy is not None else self.rows.reads_sensing
 
     @torch.no_grad()
     def __call__(self, state: SwarmState, env_config: EnvConfig) -> tuple[Tensor, dict]:
@@ -256,7 +377,7 @@ class FilteredController:
             s = state
         robot = env_config.make_robot()
         itf = make_interface("accel", robot)
-        graph = build_graph(s, env_config) if self.policy is not None or self._dcbf is None else None
+        graph = build_graph(s, env_config) if self.policy is not None or self.rows.uses_graph else None
         if self.policy is None:
             c_pi = itf.nominal(s.x, s.goals)
         else:
@@ -264,15 +385,9 @@ class FilteredController:
         a_pi = (itf.accel_unit * c_pi).to(torch.float64)
         u_nom = robot.nominal_control(s.x, s.goals)
         t1 = time.perf_counter()
-        if self._dcbf is not None:
-            accel = self._realized_acceleration(s, env_config)
-            u, qinfo = self._dcbf.filter(state, env_config, a_pi.cpu().numpy(), self.config.lookahead, accel)
-            a = torch.as_tensor(qinfo["a_safe"], dtype=torch.float64, device=a_pi.device)
-            info = {k: qinfo[k] for k in ("num_slack", "num_failed", "max_slack")}
-            info["slack_mask"] = qinfo["slack"] > self._dcbf.config.slack_tol
-            info["failed_mask"] = qinfo["failed"]
-        else:
-            a, info = self._filter(graph, s, itf, a_pi)
+        accel = self._realized_acceleration(s, env_config) if self.rows.uses_lookahead else None
+        a, u, info = self.rows(state, s, env_config, graph, itf, a_pi, accel)
+        if u is None:
             u = itf.apply(s.x, (a / itf.accel_unit).to(s.x.dtype))
         active = (a - a_pi).norm(dim=-1) > self.config.active_tol
         info.update(
@@ -298,23 +413,3 @@ class FilteredController:
         if prev is None or prev[0] != s.t - 1 or prev[1].shape != v.shape:
             return None
         return (v - prev[1]) / env_config.dt
-
-    def _filter(self, graph: SwarmGraph, s: SwarmState, itf: AccelInterface, a_pi: Tensor) -> tuple[Tensor, dict]:
-        cfg, mc = self.config, self.model_config
-        return edge_qp_commands(
-            graph, s.x, itf, a_pi, alpha=cfg.alpha, margin=cfg.margin, cbf=self.cbf if cfg.kind == "cbf" else None,
-            distance=mc.cbf_distance, horizon=mc.closest_approach_horizon, penalty=cfg.penalty,
-            brake_gain=cfg.brake_gain, slack_tol=cfg.slack_tol,
-        )  # fmt: skip
-
-
-def load_filtered_controller(
-    path, config: FilterConfig, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
-):
-    """``(FilteredController, TrainConfig)`` from a checkpoint (or run) directory: its policy, and for
-    ``config.kind == "cbf"`` its CBF network (``model.safetensors`` holds both)."""
-    from ..checkpoint import load_network
-
-    policy, train_cfg = load_network(path, "policy", device, dtype)
-    cbf = load_network(path, "cbf", device, dtype)[0] if config.kind == "cbf" else None
-    return FilteredController(policy, train_cfg.model, config, cbf), train_cfg

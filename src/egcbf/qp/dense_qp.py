@@ -8,7 +8,7 @@ Agent ``i``'s QP, variables ``z = (a_i (3), s_i (1))``, one slack shared by its 
 
 :func:`assemble_decentralized` scatters the agents' rows into padded blocks (:class:`DenseBatchQP`);
 :func:`solve_dense_batch_ipm` solves them all at once with the batched interior-point method
-(:func:`egcbf.control.dense_ipm.solve_dense_ipm`, on any torch device), :func:`solve_dense_batch` with proxsuite's
+(:func:`egcbf.qp.dense_ipm.solve_dense_ipm`, on any torch device), :func:`solve_dense_batch` with proxsuite's
 ``dense.BatchQP`` (one QP object per agent), the controller's ``dcbf_solver="proxsuite"``.
 """
 
@@ -22,7 +22,7 @@ from torch import Tensor
 
 from .dense_ipm import solve_dense_ipm
 from .ipm import INF
-from .qp import SlackPenalty
+from .sparse_qp import SlackPenalty
 
 __all__ = [
     "DenseBatchQP",
@@ -164,7 +164,7 @@ def inequality_form(
 def solve_dense_batch_ipm(
     qps: DenseBatchQP, tol: float = 1e-12, max_iter: int = 60, device: torch.device | str | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-agent QPs of :class:`DenseBatchQP` by :func:`egcbf.control.dense_ipm.solve_dense_ipm` on ``device``
+    """Per-agent QPs of :class:`DenseBatchQP` by :func:`egcbf.qp.dense_ipm.solve_dense_ipm` on ``device``
     (default: the CPU); same returns as :func:`solve_dense_batch` (numpy).
 
     Agents whose nominal ``(a_nom, s = 0)`` satisfies all their rows are solved exactly (it is the unconstrained

@@ -1,5 +1,5 @@
 """The centralized CBF-QP (cCBF-QP baseline): sparse assembly, solving (any sparse solver, through qpsolvers:
-:mod:`egcbf.control.sparse_solvers`), active-set polishing.
+:mod:`egcbf.qp.sparse_solvers`), active-set polishing.
 
 Centralized QP of one environment (``N`` agents, ``S`` CBF rows), variables ``z = [a (3N), s (S)]``:
 
@@ -12,7 +12,7 @@ It is always feasible (``s`` absorbs any CBF conflict, the bounds contain ``a = 
 penalty: when the CBF rows are jointly feasible and ``w1`` exceeds their multipliers, the slack is zero; ``w2`` keeps
 the Hessian positive definite. All matrices are built at once from edge lists (COO -> CSC), no loop over agents.
 
-The decentralized baseline's per-agent QPs (same cost, one slack per agent) are in :mod:`egcbf.control.dense_qp`.
+The decentralized baseline's per-agent QPs (same cost, one slack per agent) are in :mod:`egcbf.qp.dense_qp`.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ __all__ = [
     "solve_sparse",
 ]
 
-#: the solvers egcbf tests and sets tolerances for (:data:`egcbf.control.sparse_solvers.SETTINGS`; ``"proxsuite"`` is
+#: the solvers egcbf tests and sets tolerances for (:data:`egcbf.qp.sparse_solvers.SETTINGS`; ``"proxsuite"`` is
 #: qpsolvers' ``"proxqp"``): piqp and proxsuite are core dependencies, the others come with the ``solvers`` extra. Any
 #: other solver qpsolvers lists works too, with its own default settings.
 SOLVERS = ("piqp", "proxsuite", "osqp", "clarabel", "highs", "qpalm")
@@ -159,7 +159,7 @@ def solve_sparse(
     x0: np.ndarray | None = None,
 ) -> SolveResult:
     """Solve a :class:`SparseQP` with ``solver`` (any of ``qpsolvers.available_solvers``, or ``"proxsuite"``) through
-    :mod:`egcbf.control.sparse_solvers`; never raises on a solver failure (``ok=False`` instead). ``ImportError`` /
+    :mod:`egcbf.qp.sparse_solvers`; never raises on a solver failure (``ok=False`` instead). ``ImportError`` /
     ``ValueError`` for a solver that is not installed / not known (:func:`require_solver`)."""
     return solve_with_qpsolvers(qp, solver, eps_abs, max_iter, x0)
 

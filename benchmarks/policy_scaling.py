@@ -3,9 +3,8 @@
 Every measurement is a fresh process that runs the CLI's own evaluation (``egcbf.evaluate.episodes.evaluate``: the
 controller builds its graph, casts LiDAR and acts, then the environment steps) with the CLI's process defaults
 (:func:`egcbf.io.allocator.keep_freed_memory`, threads from :func:`egcbf.io.threads.choose_threads` unless
-``--threads``)
-and reports the median ms per environment step over ``--steps`` steps of one episode, and its peak resident memory
-above what the process held before the first step (``ru_maxrss``; on CUDA the peak allocation). Cases:
+``--threads``) and reports the median ms per environment step over ``--steps`` steps of one episode, and its peak
+resident memory above what the process held before the first step (``ru_maxrss``; on CUDA the peak allocation). Cases:
 
 * fixed density (8 agents per m^3, the paper's N = 512 at l = 4): N = 512, 1024, 2048, 4096 at l = 4 (N / 512)^(1/3);
 * fixed area l = 4: N = 512, 1024 (denser than any evaluation);

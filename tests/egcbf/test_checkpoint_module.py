@@ -1,6 +1,5 @@
 """`egcbf.train.checkpoint` is the on-disk format alone: evaluating, plotting and reproducing from checkpoints never
-import
-the trainer, and reading a checkpoint's metadata needs no network code."""
+import the trainer, and reading a checkpoint's metadata needs no network code."""
 
 import subprocess
 import sys

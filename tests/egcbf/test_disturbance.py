@@ -174,8 +174,7 @@ def test_a_robot_without_rejection_is_refused():
 
 def test_one_onboard_per_agent_is_what_the_simulator_runs_for_the_swarm():
     """A robot running its own :class:`egcbf.faults.onboard.Onboard` on its ``(S,)`` state does what the fault process
-    does
-    for it in the swarm: the same trajectories (two periods of actuation delay with the prediction, the observer,
+    does for it in the swarm: the same trajectories (two periods of actuation delay with the prediction, the observer,
     wind and thrust errors acting)."""
     faults = FaultConfig(act_delay=2, act_predict=1, dist_obs=1, wind=(0.5, 0.2, 0.0), thrust_gain=0.2)
     env = SwarmEnv(CFG, dtype=F64)

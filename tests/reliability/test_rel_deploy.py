@@ -1,6 +1,5 @@
 """The per-agent controller a robot runs (``egcbf.deploy.agent``) refuses what the simulator refuses: an attitude that
-is
-not a rotation (all zeros, ``2 I``), and a controller that would hear no neighbour (``max_neighbours = 0``)."""
+is not a rotation (all zeros, ``2 I``), and a controller that would hear no neighbour (``max_neighbours = 0``)."""
 
 from pathlib import Path
 

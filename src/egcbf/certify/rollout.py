@@ -1,11 +1,9 @@
 """Closed-loop rollouts that record what a certificate needs: every agent's barrier values, collisions and QP status.
 
 :func:`roll_out` runs a controller on a batch of episodes exactly as :func:`egcbf.evaluate.episodes.run_episodes` does
-(the
-same seeds, resets and steps, no faults) and keeps, per step ``t = 0 .. T`` and agent, each barrier's value at the
+(the same seeds, resets and steps, no faults) and keeps, per step ``t = 0 .. T`` and agent, each barrier's value at the
 state ``x_t``, whether ``x_t`` is in collision (``x_0`` never is), and for ``t < T`` whether the controller's run-time
-filter needed slack or braked at ``x_t`` (``None`` for a controller without a filter).
-"""
+filter needed slack or braked at ``x_t`` (``None`` for a controller without a filter)."""
 
 from __future__ import annotations
 

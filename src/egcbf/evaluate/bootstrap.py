@@ -2,11 +2,10 @@
 
 A method's value in a cell is measured as ``runs``: one list per training seed of per-episode values (an evaluation
 row's ``per_episode[key]``, :data:`egcbf.evaluate.episodes.PER_EPISODE_KEYS`). Its estimate is the mean over seeds of
-each
-seed's mean over episodes. A resample draws the seeds with replacement, then, within each drawn seed, its episodes
-with replacement, and takes the same mean: the interval (percentile, ``level``) covers both the training seeds'
-spread and the episodes' noise. With one seed only the episodes are resampled, and the interval says nothing of how
-another training seed would do (:attr:`Interval.seeds` tells).
+each seed's mean over episodes. A resample draws the seeds with replacement, then, within each drawn seed, its episodes
+with replacement, and takes the same mean: the interval (percentile, ``level``) covers both the training seeds' spread
+and the episodes' noise. With one seed only the episodes are resampled, and the interval says nothing of how another
+training seed would do (:attr:`Interval.seeds` tells).
 
 :func:`difference_ci` bootstraps ``mean(a) - mean(b)`` with ``a`` and ``b`` resampled independently (different
 training runs of different methods; the evaluation episodes are the same scenes, but each method's episodes are its

@@ -11,8 +11,7 @@ runs inside::
 
 The simulator's fault process (:mod:`egcbf.faults`, the ``act_predict`` and ``dist_obs`` handling) runs one for
 the whole swarm; a robot runs one for itself around :class:`egcbf.deploy.agent.AgentController` (docs/deploy.md).
-Shapes:
-any batch of agents ``(*batch,)``; states ``(*batch, S)``, commands ``(*batch, k)``, goals and the disturbance
+Shapes: any batch of agents ``(*batch,)``; states ``(*batch, S)``, commands ``(*batch, k)``, goals and the disturbance
 ``(*batch, d)`` (world frame; the disturbance in m/s^2).
 
 The prediction rolls the estimate through :func:`egcbf.env.swarm.advance` (the simulator's own period: clip,

@@ -25,9 +25,7 @@ passes the graph it built through :meth:`Sensing.messages`. So every controller 
 A controller declares the channels it perceives in its ``reads_sensing`` attribute (:data:`CHANNELS`,
 :func:`unread_faults`): ``True`` for every channel (it builds its whole graph from the observed state), or a
 collection of channel names; :func:`egcbf.evaluate.episodes.run_episodes` refuses a fault on a channel the controller
-would
-ignore.
-"""
+would ignore."""
 
 from __future__ import annotations
 

@@ -143,8 +143,8 @@ class ModelConfig:
             that shifts every hover point (docs/learning.md, "cpu-torque recipe"). GCBF+ feeds the goal to both.
         cbf_z_symmetric: average the CBF over the mirror image of the scene in a horizontal plane,
             ``h = tanh((m(G) + m(sigma G)) / 2)`` (:meth:`egcbf.env.graph.SwarmGraph.reflect_z`). The safe set
-            (distances)
-            is mirror-symmetric; without this, an untrained CBF's ``dh/dv_z`` has one sign almost everywhere, and
+            (distances) is mirror-symmetric; without this, an untrained CBF's ``dh/dv_z`` has one sign almost
+            everywhere, and
             since the learned-CBF QP can only act through thrust within one step (the CBF has relative degree 2 in
             the torques), ``u_QP`` pushes every agent up (or every agent down) whenever anything approaches: a
             global thrust bias that shifts hover points out of the goal radius (docs/learning.md, "cpu-torque recipe").

@@ -123,12 +123,10 @@ class SweepConfig:
     under them (``egcbf robustness`` makes one sweep per fault level); ``"none"``: the perfect world.
 
     ``seed`` is the evaluation seed (episode ``e`` at size ``N`` resets from
-    ``egcbf.evaluate.episodes.episode_seed(seed, N, e)``), ``max_steps`` the episode length (``None``: the
-    environment's 256
-    steps of 25 ms). ``checkpoints`` holds the learned methods' checkpoints, ``out`` the cell files, ``baselines``
-    earlier ``egcbf eval`` outputs to import baseline cells from (``None``: never import). ``workers`` parallel
-    cells, ``threads`` torch threads per cell, ``backend`` ``"process"`` or ``"ray"``.
-    """
+    ``egcbf.evaluate.episodes.episode_seed(seed, N, e)``), ``max_steps`` the episode length (``None``: the environment's
+    256 steps of 25 ms). ``checkpoints`` holds the learned methods' checkpoints, ``out`` the cell files, ``baselines``
+    earlier ``egcbf eval`` outputs to import baseline cells from (``None``: never import). ``workers`` parallel cells,
+    ``threads`` torch threads per cell, ``backend`` ``"process"`` or ``"ray"``."""
 
     methods: tuple[str, ...] = METHODS
     num_agents: tuple[int, ...] = DEFAULT_SIZES

@@ -71,8 +71,7 @@ def average_checkpoints(
     or run directories (a run's ``best/``) of the same method, group, interface and network shapes, and of one
     training lineage (:func:`related`; ``allow_unrelated`` lifts that); anything else raises
     :class:`~egcbf.train.checkpoint.CheckpointError` before anything is written, as does an ``out`` that exists but is
-    not
-    a checkpoint directory, or that is or holds one of the inputs. Returns ``out``."""
+    not a checkpoint directory, or that is or holds one of the inputs. Returns ``out``."""
     from ..algo.learner import GraphCBFLearner
 
     if not 0.0 <= lam <= 1.0:

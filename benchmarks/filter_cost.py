@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from egcbf.control.filters import FilterConfig, load_filtered_controller
+from egcbf.control.resolve import resolve
 from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.io.report import replace_section
 from egcbf.train.checkpoint import load_controller
@@ -45,7 +45,7 @@ def measure(checkpoint: Path, filters: list[str], n: int, steps: int, stride: in
     policy, train_cfg = load_controller(checkpoint)
     controllers = {"policy": policy}
     for kind in filters:
-        controllers[kind] = load_filtered_controller(checkpoint, FilterConfig.for_kind(kind))[0]
+        controllers[kind] = resolve(f"policy:{kind}", checkpoint).controller
     cfg = EnvConfig(num_agents=n, area_size=_area(n), num_obstacles=0, num_envs=1, max_steps=steps,
                     **train_cfg.env_overrides)  # fmt: skip
     env = SwarmEnv(cfg)

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from egcbf.certify import LearnedBarrier, count_rates, roll_out
-from egcbf.control.filters import FilterConfig, load_filtered_controller
+from egcbf.control.resolve import resolve
 from egcbf.env import EnvConfig
 from egcbf.env.graph import KIND_GOAL
 from egcbf.evaluate.episodes import episode_seed
@@ -103,7 +103,7 @@ def run() -> dict:
     out = {"checkpoint": "checkpoints/egcbf+", "seed": SEED, "settings": []}
     for k in (0, 8):
         env = EnvConfig.for_robot("quadrotor", num_agents=512, area_size=4.0, num_obstacles=k)
-        ctrl = load_filtered_controller(CHECKPOINT, FilterConfig.for_kind("cbf"))[0]
+        ctrl = resolve("policy:cbf", CHECKPOINT).controller
         rec = _Recorder()
         traj = roll_out(ctrl, {**variants, "rec": rec}, env, [episode_seed(SEED, 512, 0)])
         traj.h["h"] = traj.h["shipped"]

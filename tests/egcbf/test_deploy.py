@@ -129,9 +129,10 @@ def test_bad_observations_are_named():
 
 @functools.cache
 def _filtered(method: str = "egcbf+"):
-    from egcbf.control.filters import FilterConfig, load_filtered_controller
+    from egcbf.control.resolve import resolve
 
-    swarm, cfg = load_filtered_controller(ROOT / method, FilterConfig.for_kind("dcbf"), dtype=F64)
+    built = resolve(f"{method}:dcbf", ROOT / method, dtype=F64)
+    swarm, cfg = built.controller, built.train_config
     return swarm, cfg, AgentFilteredController.from_checkpoint(ROOT / method, dtype=F64)
 
 

@@ -449,19 +449,21 @@ def test_training_seeds_and_scalability_cells(checkpoints, tmp_path):
     assert _metrics(scale["row"]) == _metrics(rows[0])
     s0, s1 = (records[Cell("egcbf+", 0, 2, s)]["key"]["checkpoint_sha256"] for s in (0, 1))
     assert s0 != s1
-    # the report: mean and min-max over the seeds, the scalability rows, a summary written from the cells
+    # the report: the mean over the seeds with its 95 % interval, the scalability rows, a summary from the cells
     report = tmp_path / "reproduction.md"
     rp.write_report(cfg, records, report)
     text = report.read_text()
     assert "EGCBF+ (2 seeds)" in text and "Scalability past Table I" in text and f"l = {l4:g}" in text
-    safe = [records[Cell("egcbf+", 0, 3, s)]["row"]["safe_rate"] for s in (0, 1)]
-    cell_text = Stat(safe).text()
-    assert cell_text in text
-    if safe[0] != safe[1]:
-        assert f"({pct(min(safe))}-{pct(max(safe))})" in cell_text
+    rows = [records[Cell("egcbf+", 0, 3, s)]["row"] for s in (0, 1)]
+    cell = Stat([r["safe_rate"] for r in rows], [0, 1], [r["per_episode"]["safe_rate"] for r in rows])
+    assert cell.interval is not None and cell.text() in text and " [" in cell.text()
+
     # the summary follows each method from N = scale_reference (Table I) to the largest fixed-density N
-    nominal_2 = Stat([records[Cell("nominal", 0, 2)]["row"]["safe_rate"]]).text()
-    nominal_4 = Stat([records[Cell("nominal", 0, 4, None, l4)]["row"]["safe_rate"]]).text()
+    def one(c):
+        r = records[c]["row"]
+        return Stat([r["safe_rate"]], None, [r["per_episode"]["safe_rate"]]).text()
+
+    nominal_2, nominal_4 = one(Cell("nominal", 0, 2)), one(Cell("nominal", 0, 4, None, l4))
     assert f"nominal (no CBF) {nominal_2} % at N = 2 to {nominal_4} % at N = 4 (l = {l4:g} m)" in text
 
 
@@ -470,6 +472,27 @@ def test_stat_text():
     assert Stat([0.9, 0.95, 1.0]).text() == "95.0 (90.0-100.0)"
     with pytest.raises(ValueError):
         Stat([])
+
+
+def test_stat_text_with_per_episode_values_is_the_two_level_bootstrap_interval():
+    """With every cell's per-episode values the text is the mean and its 95 % interval over training seeds and
+    episodes (:func:`egcbf.evaluate.bootstrap.mean_ci`, deterministic); without them the min-max over seeds."""
+    from egcbf.evaluate.bootstrap import mean_ci
+    from egcbf.reproduce.stats import SeedRow, stat
+
+    runs = [[1.0, 0.9, 0.8, 1.0], [0.7, 0.9, 1.0, 0.6], [1.0, 1.0, 0.95, 0.9]]
+    values = [sum(r) / len(r) for r in runs]
+    st = Stat(values, [0, 1, 2], runs)
+    iv = mean_ci(runs)
+    assert st.interval == iv and iv.low < st.mean < iv.high
+    assert st.text() == f"{pct(st.mean)} [{pct(iv.low)}, {pct(iv.high)}]" == Stat(values, [0, 1, 2], runs).text()
+    rows = [SeedRow(k, {"safe_rate": v, "per_episode": {"safe_rate": r}}, {}) for k, (v, r) in enumerate(zip(values,
+            runs))]  # fmt: skip
+    assert stat(rows, "safe_rate").text() == st.text()
+    rows[1] = SeedRow(1, {"safe_rate": values[1]}, {})  # a cell computed before per-episode values were kept
+    assert stat(rows, "safe_rate").interval is None and stat(rows, "safe_rate").text() == Stat(values).text()
+    with pytest.raises(ValueError, match="runs"):
+        Stat(values, None, runs[:2])
 
 
 def test_rates_near_100_and_small_costs_keep_their_digits():

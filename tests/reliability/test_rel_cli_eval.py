@@ -119,12 +119,12 @@ def test_debug_env_raises_the_underlying_error(cli, tmp_path, monkeypatch):
 
 
 def test_a_failure_at_a_later_size_keeps_the_finished_rows(cli, tmp_path, monkeypatch):
-    import egcbf.control.controllers as controllers
+    import egcbf.control.resolve as resolve  # where every controller is built
 
-    real = controllers.make_controller
+    real = resolve.make_controller
 
-    def failing(name, robot="quadrotor"):
-        ctrl = real(name)
+    def failing(name, robot="quadrotor", **kwargs):
+        ctrl = real(name, robot, **kwargs)
 
         def run(state, config):
             if state.num_agents == 5:
@@ -133,7 +133,7 @@ def test_a_failure_at_a_later_size_keeps_the_finished_rows(cli, tmp_path, monkey
 
         return run
 
-    monkeypatch.setattr(controllers, "make_controller", failing)
+    monkeypatch.setattr(resolve, "make_controller", failing)
     out = tmp_path / "ev"
     res = _eval(cli, out, "--num-agents", "4,5")
     assert isinstance(res.exception, RuntimeError)

@@ -1,17 +1,21 @@
 """What the report of ``egcbf reproduce`` says about one setting: the cells of a method over its training seeds, their
-mean and range, and the words for the sweep's settings.
+mean, range and 95 % interval, and the words for the sweep's settings.
 
 A *setting* is ``(method, obstacles, N, scale)``: one cell per training seed of the method (one cell for a
 hand-crafted controller). :func:`seed_rows` returns those cells with their training seed, :class:`Stat` a metric over
-them; rates print with :func:`egcbf.io.report.pct` (never ``100.0`` for a rate below 1), costs with
-:func:`egcbf.io.report.number` (a cost above 0 never prints as ``0.000``).
+them: the mean over seeds, the min and max over seeds, and, where every cell kept its per-episode values, the 95 %
+interval of the two-level bootstrap over training seeds and episodes (:func:`egcbf.evaluate.bootstrap.mean_ci`; over
+episodes alone for one cell). Rates print with :func:`egcbf.io.report.pct` (never ``100.0`` for a rate below 1),
+costs with :func:`egcbf.io.report.number` (a cost above 0 never prints as ``0.000``).
 """
 
 from __future__ import annotations
 
 import statistics
+from functools import cached_property
 from typing import NamedTuple
 
+from ..evaluate.bootstrap import Interval, mean_ci
 from ..io.report import pct
 from .paper import LABELS
 from .plan import Cell, SweepConfig
@@ -58,23 +62,42 @@ def seed_rows(records: dict[Cell, dict], method: str, obstacles: int, num_agents
 
 
 class Stat:
-    """A metric over training seeds: ``mean``, ``lo`` and ``hi`` (min and max) of ``values``, ``n`` seeds, and
-    ``seeds``, the training seed of each value (``None`` where unknown)."""
+    """A metric over training seeds: ``mean``, ``lo`` and ``hi`` (min and max) of ``values``, ``n`` seeds,
+    ``seeds``, the training seed of each value (``None`` where unknown), and ``runs``, each value's per-episode values
+    (``None`` where a cell did not keep them), from which :attr:`interval` is drawn."""
 
-    def __init__(self, values: list[float], seeds: list[int | None] | None = None):
+    def __init__(
+        self,
+        values: list[float],
+        seeds: list[int | None] | None = None,
+        runs: list[list[float]] | None = None,
+    ):
         if not values:
             raise ValueError("Stat needs at least one value")
         if seeds is not None and len(seeds) != len(values):
             raise ValueError(f"Stat got {len(values)} values but {len(seeds)} seeds")
+        if runs is not None and len(runs) != len(values):
+            raise ValueError(f"Stat got {len(values)} values but {len(runs)} runs of per-episode values")
         self.values = list(values)
         self.seeds = list(seeds) if seeds is not None else [None] * len(values)
+        self.runs = None if runs is None else [list(r) for r in runs]
         self.n = len(values)
         self.mean = statistics.fmean(values)
         self.lo, self.hi = min(values), max(values)
 
+    @cached_property
+    def interval(self) -> Interval | None:
+        """The 95 % two-level bootstrap interval over training seeds and episodes of the mean (10 000 resamples,
+        seed 0: deterministic), or ``None`` without per-episode values."""
+        return None if self.runs is None else mean_ci(self.runs)
+
     def text(self) -> str:
-        """A rate in %: ``92.7`` (one seed) or ``92.7 (90.6-95.3)`` (mean, min-max over the seeds), each value
+        """A rate in %: ``92.7 [91.0, 94.1]`` (the mean over seeds and its 95 % :attr:`interval`), or without
+        per-episode values ``92.7`` (one seed) or ``92.7 (90.6-95.3)`` (mean, min-max over the seeds); each value
         formatted by :func:`egcbf.io.report.pct`."""
+        iv = self.interval
+        if iv is not None:
+            return f"{pct(self.mean)} [{pct(iv.low)}, {pct(iv.high)}]"
         if self.n == 1:
             return pct(self.mean)
         return f"{pct(self.mean)} ({pct(self.lo)}-{pct(self.hi)})"
@@ -85,7 +108,9 @@ def stat(rows: list[SeedRow], metric: str) -> Stat | None:
     ``metric`` (a column an older cell does not have)."""
     if not rows or any(metric not in r.row for r in rows):
         return None
-    return Stat([float(r.row[metric]) for r in rows], [r.train_seed for r in rows])
+    episodes = [r.row.get("per_episode", {}).get(metric) for r in rows]
+    runs = None if any(not e for e in episodes) else episodes
+    return Stat([float(r.row[metric]) for r in rows], [r.train_seed for r in rows], runs)
 
 
 # ---------------------------------------------------------------------------------------------------- words

@@ -5,19 +5,26 @@ Table I, :mod:`~egcbf.reproduce.paper`). The bullets, each present only when its
 
 * **Progress**: cells computed, per group (Table I seed 0 and hand-crafted, further training seeds, scalability).
 * **Against the paper**: each learned method's safe rate at Table I's largest N against the paper's (above, below,
-  or around it when the seed range straddles it).
+  or around it when its 95 % interval holds it).
 * **The hand-crafted CBF-QPs**: their lowest safe and success rate over Table I's N (no obstacles), and the nominal
   controller's safe rate at the largest N.
 * **At fixed density**: each method's safe rate from Table I's ``scale_reference`` N to the largest fixed-density N.
 * **<E-method> minus <plain method>**: the difference of safe-rate points per N (where either is below 100 %), with
-  how the training seeds bear on it (seed ranges overlap or not; a single training seed said so).
+  its 95 % interval (two-level bootstrap over training seeds and episodes, :func:`egcbf.evaluate.bootstrap.
+  difference_ci`), or how the training seeds' ranges bear on it where a cell kept no per-episode values.
 * **<method>'s seeds**: each training seed's safe rate at Table I's largest N, labelled with its own seed.
 * **Behind run-time filters**: each filtered controller's safe and success rate at Table I's largest N (no
-  obstacles) beside those of the same controller alone.
+  obstacles) beside those of the same controller alone, and the difference with its 95 % interval.
+* **Learned minus nominal behind the same filter**: each learned policy behind a filter against the nominal
+  controller behind that filter, safe and success points with 95 % intervals, at Table I's largest N and at the
+  largest fixed-density N.
+
+Every interval is a percentile interval of 10 000 resamples with seed 0, so the text is the same at every run.
 """
 
 from __future__ import annotations
 
+from ..evaluate.bootstrap import Interval, difference_ci
 from ..io.report import pct
 from .paper import FILTERED, LABELS, LEARNED, METHODS, PAPER_TABLE_I, base_method
 from .plan import Cell, SweepConfig
@@ -48,8 +55,13 @@ def _against_paper(cfg: SweepConfig, records: dict[Cell, dict], big: int) -> lis
         ours, paper = _at(records, m, big), PAPER_TABLE_I[m].get(big)
         if ours is None or paper is None:
             continue
-        word = "above" if ours.lo * 100 > paper[0] else ("below" if ours.hi * 100 < paper[0] else "around")
-        spread = "" if ours.n == 1 else f" (every seed {word})" if word != "around" else " (the seeds straddle it)"
+        iv = ours.interval
+        if iv is not None:  # the 95 % interval over training seeds and episodes
+            word = "above" if iv.low * 100 > paper[0] else ("below" if iv.high * 100 < paper[0] else "around")
+            spread = " (its 95 % interval holds it)" if word == "around" else ""
+        else:
+            word = "above" if ours.lo * 100 > paper[0] else ("below" if ours.hi * 100 < paper[0] else "around")
+            spread = "" if ours.n == 1 else f" (every seed {word})" if word != "around" else " (the seeds straddle it)"
         verdicts.append(f"{LABELS[m]} {ours.text()} % against the paper's {paper[0]:g} %: {word}{spread}"
                         + so_far(ours, cfg, m))  # fmt: skip
     if not verdicts:
@@ -128,6 +140,11 @@ def _spread_note(cfg: SweepConfig, records: dict[Cell, dict], equi: str, plain: 
     return f" (seed spread here: {', '.join(spreads)} points)" if spreads else ""
 
 
+def _difference(a: Stat, b: Stat) -> Interval | None:
+    """``a - b`` with its 95 % two-level bootstrap interval, or ``None`` if a side kept no per-episode values."""
+    return None if a.runs is None or b.runs is None else difference_ci(a.runs, b.runs)
+
+
 def _differences(cfg: SweepConfig, records: dict[Cell, dict]) -> list[str]:
     """E-method minus plain method in safe-rate points, per N (Table I's, then the fixed-density ones) where either
     is below 100 %."""
@@ -140,11 +157,13 @@ def _differences(cfg: SweepConfig, records: dict[Cell, dict]) -> list[str]:
             if a is None or b is None or (a.lo == 1 and b.lo == 1):
                 continue
             seeds.add((a.n, b.n))
+            diff = _difference(a, b)
             diffs.append(
-                f"{setting_text(cfg, n, s)}: {100 * (a.mean - b.mean):+.1f}"
-                + _spread_note(cfg, records, equi, plain, a, b, n, s)
+                f"{setting_text(cfg, n, s)}: "
+                + (f"{100 * (a.mean - b.mean):+.1f}" + _spread_note(cfg, records, equi, plain, a, b, n, s)
+                   if diff is None else diff.text(scale=100))
                 + so_far(a, cfg, equi, (b, plain))
-            )
+            )  # fmt: skip
         if diffs:
             each = "; one training seed each" if seeds == {(1, 1)} else ""
             lines.append(
@@ -180,12 +199,41 @@ def _filters(cfg: SweepConfig, records: dict[Cell, dict], big: int) -> list[str]
         base = base_method(m)
         alone = (_at(records, base, big), _at(records, base, big, metric="success_rate"))
         name = LABELS[base].split(" (")[0]  # "nominal", not "nominal (no CBF)"
-        beside = "" if None in alone else f" ({name} alone: {alone[0].text()} / {alone[1].text()} %)"
+        beside = "" if None in alone else f" ({name} alone: {alone[0].text()} / {alone[1].text()} %"
+        gains = [] if None in alone else [_difference(safe, alone[0]), _difference(succ, alone[1])]
+        if gains and None not in gains:
+            beside += f"; filtered minus alone: {gains[0].text(scale=100)} / {gains[1].text(scale=100)} points"
+        beside += ")" if beside else ""
         parts.append(f"{LABELS[m]} {safe.text()} / {succ.text()} %{beside}{so_far(safe, cfg, m)}")
     if not parts:
         return []
     return [f"- **Behind run-time filters** (safe / success rate at N = {big}, no obstacles): " + "; ".join(parts)
             + "."]  # fmt: skip
+
+
+def _against_nominal(cfg: SweepConfig, records: dict[Cell, dict], big: int) -> list[str]:
+    """Each learned policy behind a filter minus the nominal controller behind the same filter, at Table I's
+    largest N and at the largest fixed-density N (no obstacles), in safe and success points."""
+    settings = [(big, False)] + ([(max(int(n) for n in cfg.scale_sizes), True)] if cfg.scale_sizes else [])
+    parts = []
+    for m in (m for m in FILTERED if m in cfg.methods and base_method(m) != "nominal"):
+        ref = "nominal:" + m.split(":", 1)[1]
+        if ref not in cfg.methods:
+            continue
+        for n, s in settings:
+            pairs = [(_at(records, m, n, s, k), _at(records, ref, n, s, k)) for k in ("safe_rate", "success_rate")]
+            if any(a is None or b is None for a, b in pairs):
+                continue
+            diffs = [_difference(a, b) for a, b in pairs]
+            text = " / ".join(
+                f"{100 * (a.mean - b.mean):+.1f}" if d is None else d.text(scale=100) for d, (a, b) in zip(diffs, pairs)
+            )
+            parts.append(f"{LABELS[m]} minus {LABELS[ref]} at {setting_text(cfg, n, s)}: {text}"
+                         + so_far(pairs[0][0], cfg, m))  # fmt: skip
+    if not parts:
+        return []
+    return ["- **Learned minus nominal behind the same filter** (safe / success points, no obstacles, 95 % "
+            "intervals): " + "; ".join(parts) + "."]  # fmt: skip
 
 
 def summary_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
@@ -200,4 +248,5 @@ def summary_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
     lines += _differences(cfg, records)
     lines += _seeds(cfg, records, big)
     lines += _filters(cfg, records, big)
+    lines += _against_nominal(cfg, records, big)
     return "\n".join(lines)

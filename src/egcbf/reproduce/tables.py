@@ -4,11 +4,11 @@
   N, then the scalability study's N with their ``l``); below a method's row the paper's value where Table I has one.
   A value made of only some of the method's training seeds ends in ``[2 of 3 seeds]``.
 * **Per N, beside Table I** (no obstacles): one table per Table I N, one row per method: our Safe/Reach/Succ % (mean
-  over training seeds, min-max in brackets), Cost (collision events per agent per episode, mean; min/max over
-  episodes and seeds), ``coll. steps`` (steps in collision per agent per episode, mean: the other reading of the
-  paper's cost), Rew, ``step ms`` (``†``: an imported cell, timed elsewhere), ``QP slack / failed`` (tables with a
-  CBF-QP or run-time filter row; a filter's row adds the share of agent-steps whose command it changed), then the
-  paper's five columns (``-`` for the rows not in the paper, such as the run-time filters').
+  over training seeds with its 95 % interval, :class:`~egcbf.reproduce.stats.Stat`), Cost (collision events per agent
+  per episode, mean; min/max over episodes and seeds), ``coll. steps`` (steps in collision per agent per episode, mean:
+  the other reading of the paper's cost), Rew, ``step ms`` (``†``: an imported cell, timed elsewhere), ``QP slack /
+  failed`` (tables with a CBF-QP or run-time filter row; a filter's row adds the share of agent-steps whose command it
+  changed), then the paper's five columns (``-`` for the rows not in the paper, such as the run-time filters').
 * **With obstacles** (not in Table I) and **scalability past Table I**: the same columns as ours above, one row per
   (N, method).
 
@@ -106,10 +106,14 @@ def _intro(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
     )
     if seeds:
         text += (
-            f"{seeds}: mean over the training seeds {list(cfg.train_seeds)} (min-max over the seeds); a row or value "
-            "made of only some of them says so (`2 of 3 seeds`). "
+            f"{seeds}: mean over the training seeds {list(cfg.train_seeds)}; a row or value made of only some of them "
+            "says so (`2 of 3 seeds`). "
         )
     text += (
+        "`[low, high]`: the 95 % interval of the mean, a two-level bootstrap over training seeds and then episodes "
+        "(10 000 resamples, `egcbf.evaluate.bootstrap.mean_ci`; over episodes alone for one training seed and the "
+        "hand-crafted controllers); `(low-high)`: the min-max over training seeds of a row whose cells kept no "
+        "per-episode values (computed before they were recorded), which have no interval. "
         "Rates in %, with more decimals wherever one decimal would print a rate below 100 % as 100.0 (or above 0 "
         "as 0.0). Cost = collision events per agent per episode (mean over episodes, min/max over episodes and "
         "seeds); `coll. steps` = steps in collision per agent per episode (mean over episodes). The paper does not "

@@ -52,12 +52,11 @@ class CellTask:
 
 
 def _evaluate_cell(task: CellTask) -> dict:
-    from ..control.names import join_method
     from ..control.resolve import resolve
     from ..evaluate.episodes import evaluate
     from ..faults import parse_faults
 
-    name = join_method(task.cell.method, task.cell.filter)  # a filter with `egcbf eval --filter KIND`'s defaults
+    name = task.cell.method  # METHOD[:FILTER], a filter with `egcbf eval --filter KIND`'s defaults
     learned, env_overrides = None, None
     with tempfile.TemporaryDirectory(prefix="egcbf-ckpt-") as tmp:
         if task.checkpoint_files is not None or task.checkpoint_dir is not None:  # as `egcbf eval --checkpoint`

@@ -1,0 +1,52 @@
+"""The reproduction's headline: one table that a README quotes (``<!-- reproduction-headline:begin/end -->``).
+
+Rows: the learned policies alone, behind the recommended ``dcbf`` filter, and beside them the strongest
+hand-crafted alternatives (the nominal controller behind the same filter, the decentralized and centralized
+CBF-QPs, the nominal controller alone). Columns: safe and success rate at Table I's largest N and at the largest
+fixed-density N of the scalability study, without obstacles, each with its 95 % interval over training seeds and
+episodes (:class:`~egcbf.reproduce.stats.Stat`). Every value is read from the cells; a missing one is ``pending``.
+"""
+
+from __future__ import annotations
+
+from ..io.report import md_table
+from ..robots.quadrotor.dynamics import DEFAULT_MAX_STEPS
+from .paper import LABELS
+from .plan import Cell, SweepConfig
+from .stats import partial, seed_rows, setting_text, stat
+
+__all__ = ["HEADLINE_METHODS", "headline_markdown"]
+
+#: the headline's rows, in order (those of the sweep's methods)
+HEADLINE_METHODS = ("egcbf+", "gcbf+", "egcbf+:dcbf", "gcbf+:dcbf", "nominal:dcbf", "dcbf", "ccbf", "nominal")
+_HAND_CRAFTED = ("nominal:dcbf", "dcbf", "ccbf", "nominal")
+
+
+def _value(cfg: SweepConfig, records: dict[Cell, dict], method: str, n: int, scale: bool, metric: str) -> str:
+    rows = seed_rows(records, method, 0, n, scale)
+    st = stat(rows, metric)
+    planned = len(cfg.seeds_for(method))
+    return "pending" if st is None else st.text() + partial(len(rows), planned)
+
+
+def headline_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
+    """The headline table and one line saying what it is (module doc)."""
+    settings = [(max(int(n) for n in cfg.num_agents), False)]
+    if cfg.scale_sizes:
+        settings.append((max(int(n) for n in cfg.scale_sizes), True))
+    head = ["controller", "kind"] + [
+        f"{what}, {setting_text(cfg, n, s)}" for n, s in settings for what in ("safe %", "success %")
+    ]
+    rows = []
+    for m in (m for m in HEADLINE_METHODS if m in cfg.methods):
+        cells = [_value(cfg, records, m, n, s, k) for n, s in settings for k in ("safe_rate", "success_rate")]
+        kind = "hand-crafted" if m in _HAND_CRAFTED else "learned" if ":" not in m else "learned + hand-crafted filter"
+        rows.append([LABELS[m], kind, *cells])
+    scale = f"; N = {settings[1][0]}: {cfg.scale_agent_episodes} agent-episodes" if len(settings) > 1 else ""
+    note = (
+        f"No obstacles; l = {cfg.area:g} m at N = {settings[0][0]} ({cfg.episodes} episodes){scale}, the same "
+        f"density; evaluation seed {cfg.seed}, {cfg.max_steps or DEFAULT_MAX_STEPS} steps. `[low, high]`: 95 % "
+        "interval, a two-level bootstrap over training seeds and episodes (episodes alone for one training seed and "
+        "the hand-crafted controllers); `[1 of 3 seeds]`: the other training seeds are pending."
+    )
+    return md_table(head, rows) + "\n\n" + note

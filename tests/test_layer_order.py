@@ -80,3 +80,21 @@ def test_docs_architecture_draws_the_same_order():
     drawing = text.split("```")[1]
     drawn = [m.group(1) for m in re.finditer(r"^ (\w+)/ ", drawing, re.MULTILINE)]
     assert drawn == [name for name in reversed(LAYERS) if name not in ("_version", "__main__")]
+
+
+def test_no_branch_on_a_robots_name_outside_robots():
+    """Outside ``egcbf.robots`` the code asks a robot what it can do (its declared capabilities), never which robot
+    it is: no comparison (``==``, ``!=``, ``in``) with a built-in robot's name."""
+    import ast
+
+    names = {"quadrotor", "unicycle", "single_integrator", "double_integrator", "linear_drone", "dubins_car"}
+    bad = []
+    for path in (SRC / "egcbf").rglob("*.py"):
+        if "robots" in path.relative_to(SRC / "egcbf").parts:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Compare):
+                for side in (node.left, *node.comparators):
+                    if isinstance(side, ast.Constant) and side.value in names:
+                        bad.append(f"{path.relative_to(SRC)}:{node.lineno}")
+    assert not bad, bad

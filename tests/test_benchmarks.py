@@ -68,3 +68,18 @@ def test_policy_variants_benchmark_quick_run():
                           text=True, timeout=300, cwd=ROOT)  # fmt: skip
     assert proc.returncode == 0, f"policy_variants.py exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
     assert "| eager PyTorch (shipped) |" in proc.stdout and "receivers in two blocks" in proc.stdout
+
+
+def test_marl_interface_benchmark_quick_run():
+    """benchmarks/marl_env_speed.py (agent-steps per second through SwarmEnv, SwarmTask, TorchRL, PettingZoo) in a
+    smoke run, docs untouched: every path has a cell, the baseline's ratio is 1."""
+    import pytest
+
+    pytest.importorskip("torchrl")
+    pytest.importorskip("pettingzoo")
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "marl_env_speed.py"), "--steps", "1", "--warmup",
+                           "1", "--no-write"], capture_output=True, text=True, timeout=600, cwd=ROOT)  # fmt: skip
+    assert proc.returncode == 0, f"marl_env_speed.py exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    rows = [line for line in proc.stdout.splitlines() if line.startswith("| 8 x 512 |") or line.startswith("| 1 x")]
+    assert len(rows) == 3 and all("(1.00x)" in r for r in rows)
+    assert rows[-1].count("agent") == 0 and rows[-1].count("x)") == 5  # the one-scene row has all five paths

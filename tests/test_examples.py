@@ -9,7 +9,9 @@ import pytest
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
-@pytest.mark.parametrize("script", ["custom_group.py", "wrap_pyg_layer.py", "new_robot.py", "onboard_robot.py"])
+@pytest.mark.parametrize(
+    "script", ["custom_group.py", "wrap_pyg_layer.py", "new_robot.py", "onboard_robot.py", "marl_envs.py"]
+)
 def test_example_runs(script):
     proc = subprocess.run(
         [sys.executable, str(EXAMPLES / script)], capture_output=True, text=True, timeout=300, cwd=EXAMPLES.parent

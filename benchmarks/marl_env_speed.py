@@ -1,0 +1,156 @@
+"""Agent-steps per second of the swarm through each interface, at B x N = 4096 agents, in one run.
+
+Paths, each stepping the nominal controller (its command computed from the current state in every path, the same
+small cost everywhere, so that the swarm moves as in an episode and the neighbour lists age as they would):
+
+* ``SwarmEnv.step``: the simulator alone (dynamics with sub-steps, collision / unsafe / reached masks);
+* ``SwarmEnv.step + build_graph``: what the repository's own learners read each step (LiDAR, neighbour search,
+  graph features);
+* ``SwarmTask.step``: the simulator plus the per-agent observations, rewards and costs as plain tensors (the
+  native batched path of a multi-agent learner: ``egcbf.env.task``);
+* ``TorchRL``: ``egcbf.env.torchrl.SwarmTorchRLEnv.step`` (the same work, in a TensorDict, with TorchRL's checks);
+* ``PettingZoo``: ``egcbf.env.pettingzoo`` (one scene; per-agent NumPy dictionaries), only where ``B = 1``.
+
+Settings: ``8 x 512`` at Table I's density (l = 4 m) without and with 8 obstacles, and ``1 x 4096`` at the same
+density (l = 8 m). Median over ``--steps`` steps after ``--warmup``, float32, one torch thread; the paths are timed
+in turn within one process, so their ratios share the machine's state.
+
+    python benchmarks/marl_env_speed.py            # writes its section of docs/benchmarks.md and docs/marl.md
+    python benchmarks/marl_env_speed.py --steps 3 --warmup 1 --no-write
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from egcbf.env import EnvConfig, SwarmEnv
+from egcbf.env.graph import build_graph
+from egcbf.env.task import SwarmTask
+from egcbf.io.report import cpu_name, quote_section, replace_section
+
+SETTINGS = ((8, 512, 4.0, 0), (8, 512, 4.0, 8), (1, 4096, 8.0, 0))
+
+
+def _median_step(step, steps: int, warmup: int) -> float:
+    for _ in range(warmup):
+        step()
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int, seed: int = 0) -> dict:
+    """Seconds per step of every path (module doc) for ``b`` scenes of ``n`` agents."""
+    horizon = 10**6  # no truncation inside the timed steps
+    cfg = EnvConfig(num_agents=n, num_envs=b, area_size=area, num_obstacles=obstacles, max_steps=horizon)
+    env = SwarmEnv(cfg, dtype=torch.float32)
+    start = env.reset(seed)
+    robot = env.robot
+    times = {}
+    box = {"state": start}
+
+    def env_step():
+        s = box["state"]
+        box["state"], _ = env.step(s, robot.nominal_control(s.x, s.goals))
+
+    times["SwarmEnv.step"] = _median_step(env_step, steps, warmup)
+    box["state"] = start
+
+    def env_graph_step():
+        s = box["state"]
+        box["state"], _ = env.step(s, robot.nominal_control(s.x, s.goals))
+        build_graph(box["state"], cfg)
+
+    times["SwarmEnv.step + build_graph"] = _median_step(env_graph_step, steps, warmup)
+    task = SwarmTask(cfg, dtype=torch.float32)
+    task.reset(seed)
+    times["SwarmTask.step"] = _median_step(lambda: task.step(robot.nominal_control(task.state.x, task.state.goals)),
+                                           steps, warmup)  # fmt: skip
+    try:
+        from egcbf.env.torchrl import SwarmTorchRLEnv
+    except ImportError:
+        SwarmTorchRLEnv = None
+    if SwarmTorchRLEnv is not None:
+        tenv = SwarmTorchRLEnv(cfg, dtype=torch.float32, seed=seed)
+        box["td"] = tenv.reset()
+
+        def torchrl_step():
+            td = box["td"]
+            obs = td["agents", "observation"]
+            td["agents", "action"] = robot.nominal_control(obs["state"], obs["goal"])
+            box["td"] = tenv.step(td)["next"]
+
+        times["TorchRL"] = _median_step(torchrl_step, steps, warmup)
+    if b == 1:
+        try:
+            from egcbf.env.pettingzoo import parallel_env
+        except ImportError:
+            parallel_env = None
+        if parallel_env is not None:
+            penv = parallel_env(num_agents=n, area_size=area, num_obstacles=obstacles, max_steps=horizon)
+            penv.reset(seed=seed)
+
+            def pettingzoo_step():
+                s = penv.task.state
+                u = robot.nominal_control(s.x, s.goals)[0].numpy()
+                penv.step({a: u[i] for i, a in enumerate(penv.possible_agents)})
+
+            times["PettingZoo"] = _median_step(pettingzoo_step, steps, warmup)
+    return {"B": b, "N": n, "l": area, "obstacles": obstacles, "seconds": times}
+
+
+def table(rows: list[dict]) -> str:
+    paths = list(dict.fromkeys(p for r in rows for p in r["seconds"]))
+    head = "| B x N | l (m) | obstacles | " + " | ".join(f"{p} (agent-steps/s)" for p in paths) + " |"
+    lines = [head, "|" + "---|" * (3 + len(paths))]
+    for r in rows:
+        agents = r["B"] * r["N"]
+        base = r["seconds"]["SwarmEnv.step"]
+        cells = []
+        for p in paths:
+            t = r["seconds"].get(p)
+            cells.append("-" if t is None else f"{agents / t:,.0f} ({base / t:.2f}x)")
+        lines.append(f"| {r['B']} x {r['N']} | {r['l']:g} | {r['obstacles']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"))
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    rows = []
+    for b, n, area, obstacles in SETTINGS:
+        row = measure(b, n, area, obstacles, args.steps, args.warmup)
+        print(f"{b} x {n}, l = {area:g}, {obstacles} obstacles: "
+              + ", ".join(f"{p} {1e3 * t:.1f} ms" for p, t in row["seconds"].items()), flush=True)  # fmt: skip
+        rows.append(row)
+    body = (
+        f"`python benchmarks/marl_env_speed.py`: {cpu_name()}, 1 thread, torch {torch.__version__}, float32, median of "
+        f"{args.steps} steps after {args.warmup}; each cell agent-steps per second and, in brackets, its ratio to "
+        "`SwarmEnv.step` alone measured in the same run. Paths (the script's docstring): the simulator alone; with "
+        "the graph the repository's learners build; `SwarmTask` (observations, rewards, costs as tensors); the "
+        "TorchRL environment; the PettingZoo environment (one scene only).\n\n" + table(rows)
+    )
+    print("\n" + body)
+    if not args.no_write:
+        replace_section(Path(args.out), "marl-env-speed", body, heading="## Multi-agent RL interfaces")
+        quoted = quote_section(Path(args.out).parent / "marl.md", "marl-env-speed", body)  # the page's copy
+        print(f"\nwrote {args.out}" + (" and marl.md beside it" if quoted else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -18,6 +18,7 @@ LAYERS = (
     "algo",
     "evaluate",
     "train",
+    "marl",
     "control",
     "deploy",
     "viz",

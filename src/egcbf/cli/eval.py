@@ -272,7 +272,7 @@ def run_eval(
     if max_travel is not None:
         env_overrides = {**(env_overrides or {}), "max_travel": float(max_travel)}
     configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides, robot)
-    if checkpoint is not None:
+    if checkpoint is not None and hasattr(built.train_config, "model"):  # a graph policy (not a MARL actor)
         check_policy_memory(configs, episodes, batch, built.train_config.model.hidden, dev)
     require(not (resume and overwrite), "--resume continues OUT's run and --overwrite would delete it: pass one")
     previous = _previous_run(out) if resume else None

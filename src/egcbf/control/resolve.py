@@ -2,8 +2,9 @@
 
 A controller's name is ``METHOD[:FILTER]`` (:mod:`egcbf.control.names`): ``METHOD`` a hand-crafted controller of
 the robot (``"nominal"``, ``"brisk"``, ``"dcbf"``, ``"ccbf"``: :func:`~egcbf.control.controllers.make_controller`)
-or, with a checkpoint, the checkpoint's method (``"egcbf+"``; ``"policy"`` stands for whichever method the checkpoint
-holds); ``FILTER`` a run-time safety filter (:mod:`egcbf.control.filters`) around the method's command::
+or, with a checkpoint, the checkpoint's method (``"egcbf+"``, or a MARL baseline's ``"ippo-lag"``:
+:mod:`egcbf.marl`; ``"policy"`` stands for whichever method the checkpoint holds); ``FILTER`` a run-time safety
+filter (:mod:`egcbf.control.filters`) around the method's command::
 
     built = resolve("egcbf+:dcbf", "checkpoints/egcbf+")      # EGCBF+'s policy behind the dcbf filter
     built = resolve("policy", "runs/my-run")                    # a run's best/ policy, whatever its method
@@ -127,6 +128,10 @@ def resolve(
         return _hand_crafted(name, method, kind, robot or DEFAULT_ROBOT, filter_config, options)
     if options:
         raise ControllerError(f"{name}: {sorted(options)} set a hand-crafted controller, not a checkpoint's policy")
+    from ..marl.checkpoint import is_marl_checkpoint
+
+    if is_marl_checkpoint(checkpoint):
+        return _marl(name, method, kind, Path(checkpoint), robot, device, dtype)
     from ..algo.learner import LearnedController
     from ..train.checkpoint import build_network, read_checkpoint
 
@@ -147,6 +152,25 @@ def resolve(
             raise ControllerError(f"filter {kind} on {contents.directory}: {err}") from None
     return ResolvedController(join_method(cfg.algo, kind), controller, cfg.robot, kind, contents.directory,
                               contents.weights_sha256, cfg)  # fmt: skip
+
+
+def _marl(name, method, kind, checkpoint: Path, robot, device, dtype) -> ResolvedController:
+    """The actor of a MARL checkpoint (:mod:`egcbf.marl`) as a controller; no run-time filter wraps it yet."""
+    import hashlib
+
+    from ..marl.checkpoint import WEIGHTS_FILE
+    from ..marl.controller import load_marl_controller
+
+    controller = load_marl_controller(checkpoint, device=device, dtype=dtype)
+    cfg = controller.config
+    if method not in (POLICY, cfg.algo):
+        raise ControllerError(f"{name}: {checkpoint} holds a {cfg.algo} policy, not {method}")
+    if robot not in (None, cfg.robot):
+        raise ControllerError(f"robot {robot} but the checkpoint's policy drives a {cfg.robot}")
+    if kind != "none":
+        raise ControllerError(f"{name}: the run-time filters wrap the graph policies; a {cfg.algo} actor runs alone")
+    digest = hashlib.sha256((checkpoint / WEIGHTS_FILE).read_bytes()).hexdigest()
+    return ResolvedController(cfg.algo, controller, cfg.robot, "none", checkpoint, digest, cfg)
 
 
 def _hand_crafted(name, method, kind, robot, filter_config, options) -> ResolvedController:

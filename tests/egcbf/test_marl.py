@@ -87,15 +87,24 @@ def test_checkpoint_round_trip(tmp_path):
     torch.testing.assert_close(loaded.command(obs), actor.command(obs), rtol=0, atol=0)
 
 
-def test_short_ippo_lagrangian_run_and_its_controller(tmp_path):
+TINY = MarlTrainConfig(num_agents=4, num_envs=2, area_size=1.0, num_obstacles=1, episode_steps=12, rollout_steps=8,
+                       iterations=3, epochs=1, minibatch_agents=32, lagrange_init=0.5, lagrange_lr=10.0,
+                       net=MarlNetConfig(hidden=16), task=TaskConfig(max_neighbours=3))  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A three-iteration IPPO-Lagrangian run (the `marl` extra)."""
     pytest.importorskip("torchrl")
+    from egcbf.marl.ppo_lagrangian import train
+
+    return train(TINY, tmp_path_factory.mktemp("marl") / "run", log=lambda _: None)
+
+
+def test_short_ippo_lagrangian_run_and_its_controller(tiny_run):
     from egcbf.marl.ppo_lagrangian import METRICS, train
 
-    config = MarlTrainConfig(num_agents=4, num_envs=2, area_size=1.0, num_obstacles=1, episode_steps=12,
-                             rollout_steps=8, iterations=3, epochs=1, minibatch_agents=32, lagrange_init=0.5,
-                             lagrange_lr=10.0, net=MarlNetConfig(hidden=16),
-                             task=TaskConfig(max_neighbours=3))  # fmt: skip
-    out = train(config, tmp_path / "run", log=lambda _: None)
+    out, config = tiny_run, TINY
     rows = list(csv.DictReader((out / "metrics.csv").open()))
     assert tuple(rows[0]) == METRICS and [int(r["iteration"]) for r in rows] == [0, 1, 2]
     lagrange = 0.5  # dual ascent on each iteration's mean cost
@@ -116,3 +125,37 @@ def test_short_ippo_lagrangian_run_and_its_controller(tmp_path):
         resolve("ippo-lag:dcbf", out)
     with pytest.raises(ControllerError, match="not egcbf"):
         resolve("egcbf+", out)
+
+
+def test_the_reproduce_sweep_runs_a_marl_checkpoint(tiny_run, tmp_path):
+    """``egcbf reproduce --methods ippo-lag``: the checkpoint is found under CHECKPOINTS/ippo-lag, its cells keyed by
+    its weights, and a checkpoint of another seed is refused."""
+    import shutil
+
+    import egcbf.reproduce as rp
+
+    shutil.copytree(tiny_run, tmp_path / "ckpt" / "ippo-lag")
+    cfg = rp.SweepConfig(methods=("ippo-lag",), obstacle_methods=("ippo-lag",), num_agents=(4,), area=1.0,
+                         obstacles=1, episodes=1, max_steps=8, scale_sizes=(), seed_methods=(),
+                         checkpoints=tmp_path / "ckpt", out=tmp_path / "cells", baselines=None,
+                         workers=1)  # fmt: skip
+    records = rp.sweep(cfg, progress=False, log=lambda _: None)
+    assert len(records) == 2 and all(r["meta"]["label"] == "IPPO-Lagrangian" for r in records.values())
+    digest = rp.store.find_method_checkpoint(cfg.checkpoints, "ippo-lag").sha256
+    assert {r["key"]["checkpoint_sha256"] for r in records.values()} == {digest}
+    with pytest.raises(ValueError, match="seed"):
+        rp.store._find_marl_checkpoint(tmp_path / "ckpt" / "ippo-lag", "ippo-lag", 1)
+
+
+def test_demo_compares_with_a_marl_checkpoint(tiny_run, tmp_path):
+    import shutil
+    import subprocess
+    import sys
+
+    shutil.copytree(tiny_run, tmp_path / "ckpt" / "ippo-lag")
+    args = ["demo", "--checkpoints", str(tmp_path / "ckpt"), "--method", "nominal", "--compare", "ippo-lag",
+            "--num-agents", "4", "--area", "1", "--obstacles", "1", "--episodes", "1", "--max-steps", "8", "--out",
+            str(tmp_path / "demo"), "--no-render", "--no-progress", "--threads", "1"]  # fmt: skip
+    proc = subprocess.run([sys.executable, "-m", "egcbf", *args], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "ippo-lag" in proc.stdout and (tmp_path / "demo" / "summary.md").exists()

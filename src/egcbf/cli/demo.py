@@ -191,6 +191,7 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
     from ..algo.config import LEARNED_METHODS
     from ..control.controllers import CONTROLLERS
     from ..control.names import FILTERS, split_method
+    from ..marl import MARL_METHODS
 
     if name in CONTROLLERS:
         return None
@@ -198,9 +199,18 @@ def _demo_source(name: str, checkpoints: Path) -> Path | None:
         method = split_method(name)[0]
     except ValueError:
         method = None
+    if method in MARL_METHODS and name == method:  # a MARL baseline: its checkpoint folder, no filter
+        from ..marl.checkpoint import is_marl_checkpoint
+
+        path = checkpoints / name
+        if not is_marl_checkpoint(path):
+            usage_error(f"--checkpoints: no {name} checkpoint at {path} (marl.json + model.safetensors); train one "
+                        f"with `python -m egcbf.marl.ppo_lagrangian --out runs/{name}` and copy it there")  # fmt: skip
+        return path
     if method not in LEARNED_METHODS:
         usage_error(
-            f"unknown method {name!r}: a learned method {sorted(LEARNED_METHODS)}, "
+            f"unknown method {name!r}: a learned method {sorted(LEARNED_METHODS)}, a MARL baseline "
+            f"{list(MARL_METHODS)}, "
             f"one behind a run-time filter as METHOD:FILTER with FILTER in {list(FILTERS[1:])} (e.g. egcbf+:dcbf), "
             f"or a controller {sorted(CONTROLLERS)}"
         )
@@ -295,7 +305,8 @@ def demo(
                 f"another robot: `egcbf eval --checkpoint {ckpt}`, or docs/gen_planar.py --gif for the unicycle)",
             )
             configs = check_env_flags([num_agents], area, obstacles, max_steps, train_cfg.env_overrides)
-            check_policy_memory(configs, episodes, None, train_cfg.model.hidden, dev)
+            if hasattr(train_cfg, "model"):  # a graph policy (a MARL actor needs no graph memory)
+                check_policy_memory(configs, episodes, None, train_cfg.model.hidden, dev)
     prepare_out(out, overwrite, ("demo.json", "summary.md", f"compare_N{num_agents}.gif"))
     for name in names:
         prepare_out(out_dir(out, name), overwrite, EVAL_RESULTS)

@@ -39,8 +39,12 @@ def _parse_methods(text: str, option: str) -> tuple[str, ...]:
 
 
 #: the reproduction's default methods (``egcbf.reproduce.METHODS``; tests/egcbf/test_reproduce.py checks they agree)
-_REPRO_METHODS = "gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal,egcbf+:dcbf,gcbf+:dcbf,egcbf+:cbf,egcbf+:prior,nominal:dcbf"
-_REPRO_OBSTACLE_METHODS = "gcbf,gcbf+,egcbf,egcbf+,nominal,egcbf+:dcbf,gcbf+:dcbf,egcbf+:cbf,egcbf+:prior,nominal:dcbf"
+_REPRO_METHODS = (
+    "gcbf,gcbf+,dcbf,ccbf,egcbf,egcbf+,nominal,egcbf+:dcbf,gcbf+:dcbf,egcbf+:cbf,egcbf+:prior,nominal:dcbf,ippo-lag"
+)
+_REPRO_OBSTACLE_METHODS = (
+    "gcbf,gcbf+,egcbf,egcbf+,nominal,egcbf+:dcbf,gcbf+:dcbf,egcbf+:cbf,egcbf+:prior,nominal:dcbf,ippo-lag"
+)
 
 
 def _parse_seeds(text: str) -> list[int]:
@@ -137,6 +141,7 @@ def reproduce(
         validate,
         write_report,
     )
+    from ..reproduce.paper import MARL
     from ..reproduce.store import pending_cells
     from ..train.checkpoint import read_config
 
@@ -196,7 +201,8 @@ def reproduce(
                 for c in pending_cells(cfg, ckpts)
                 if c.train_seed is not None
             ]
-            hidden = max((read_config(ck.path).model.hidden for ck in ckpts.values()), default=64)
+            graph = [ck for ck in ckpts.values() if ck.method not in MARL]  # a MARL actor needs no graph memory
+            hidden = max((read_config(ck.path).model.hidden for ck in graph), default=64)
             comm = check_env_flags([8], area, 0, None)[0].comm_radius
             check_sweep_memory(learned, cfg.workers, hidden, comm, parse_device(device))
     except (ValueError, FileNotFoundError, ImportError) as err:

@@ -8,3 +8,8 @@
 * :mod:`.ppo_lagrangian`: IPPO with a Lagrangian cost constraint, built from TorchRL's collector, GAE and clipped
   PPO loss (the optional ``marl`` extra).
 """
+
+__all__ = ["MARL_METHODS"]
+
+#: the MARL baselines' method names (a checkpoint's ``MarlTrainConfig.algo``)
+MARL_METHODS = ("ippo-lag",)

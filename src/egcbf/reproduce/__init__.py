@@ -26,7 +26,7 @@ N = 1024 ... 4096 at the density of N = 512. One job per module:
 """
 
 from .figures import scalability_figure
-from .paper import BASELINES, DEFAULT_SIZES, FILTERED, LABELS, LEARNED, METHODS, PAPER_TABLE_I, SCALE_SIZES
+from .paper import BASELINES, DEFAULT_SIZES, FILTERED, LABELS, LEARNED, MARL, METHODS, PAPER_TABLE_I, SCALE_SIZES
 from .plan import Cell, SweepConfig, cell_key
 from .provenance import provenance_markdown, regenerate_command
 from .report import write_report
@@ -52,6 +52,7 @@ __all__ = [
     "FILTERED",
     "LABELS",
     "LEARNED",
+    "MARL",
     "METHODS",
     "PAPER_TABLE_I",
     "SCALE_SIZES",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from ..algo.config import LEARNED_METHODS
 from ..control.names import filter_label, split_method
+from ..marl import MARL_METHODS
 
 __all__ = [
     "BASELINES",
@@ -11,6 +12,7 @@ __all__ = [
     "FILTERED",
     "LABELS",
     "LEARNED",
+    "MARL",
     "METHODS",
     "PAPER_TABLE_I",
     "SCALE_SIZES",
@@ -22,6 +24,8 @@ __all__ = [
 #: the learned methods (``egcbf.algo.config.LEARNED_METHODS``: each one's group and reference controller)
 LEARNED = tuple(LEARNED_METHODS)
 BASELINES = ("dcbf", "ccbf", "nominal")
+#: the safe multi-agent RL baselines (:mod:`egcbf.marl`, not in the paper): learned, one checkpoint each, no filter
+MARL = MARL_METHODS
 #: controllers behind a run-time safety filter (``egcbf eval --filter``, docs/safety_filters.md), ``METHOD:FILTER``
 #: (:mod:`egcbf.control.names`), not in the paper: the learned policy behind the dCBF filter (EGCBF+, GCBF+), behind
 #: its own learned CBF and behind the untrained prior CBF (the ablation that shows what the learned CBF adds), and
@@ -29,8 +33,8 @@ BASELINES = ("dcbf", "ccbf", "nominal")
 FILTERED = ("egcbf+:dcbf", "gcbf+:dcbf", "egcbf+:cbf", "egcbf+:prior", "nominal:dcbf")
 #: every controller the sweep evaluates (not only learned ones, unlike ``LEARNED_METHODS``), in the paper's row
 #: order, then the nominal controller alone (not in the paper: what the learned residual starts from), then the
-#: filtered controllers
-METHODS = ("gcbf", "gcbf+", "dcbf", "ccbf", "egcbf", "egcbf+", "nominal", *FILTERED)
+#: filtered controllers, then the MARL baselines
+METHODS = ("gcbf", "gcbf+", "dcbf", "ccbf", "egcbf", "egcbf+", "nominal", *FILTERED, *MARL)
 _BASE_LABELS = {
     "nominal": "nominal (no CBF)",
     "gcbf": "GCBF",
@@ -39,6 +43,7 @@ _BASE_LABELS = {
     "ccbf": "cCBF-QP",
     "egcbf": "EGCBF",
     "egcbf+": "EGCBF+",
+    "ippo-lag": "IPPO-Lagrangian",
 }
 
 

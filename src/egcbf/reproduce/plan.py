@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from ..control.names import path_name
-from .paper import BASELINES, DEFAULT_SIZES, FILTERED, LEARNED, METHODS, SCALE_SIZES, base_method, method_filter
+from .paper import BASELINES, DEFAULT_SIZES, FILTERED, LEARNED, MARL, METHODS, SCALE_SIZES, base_method, method_filter
 
 __all__ = ["BACKENDS", "Cell", "SweepConfig", "cell_key", "filter_settings"]
 
@@ -132,7 +132,7 @@ class SweepConfig:
     num_agents: tuple[int, ...] = DEFAULT_SIZES
     area: float = 4.0
     obstacles: int = 8
-    obstacle_methods: tuple[str, ...] = (*LEARNED, "nominal", *FILTERED)
+    obstacle_methods: tuple[str, ...] = (*LEARNED, "nominal", *FILTERED, *MARL)
     episodes: int = 50
     baseline_episodes: int | None = None
     train_seeds: tuple[int, ...] = (0, 1, 2)

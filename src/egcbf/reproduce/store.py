@@ -28,7 +28,7 @@ from pathlib import Path
 from ..io.atomic import write_json_atomic
 from ..robots import DEFAULT_ROBOT
 from ..train.checkpoint import sha256
-from .paper import BASELINES, LABELS, base_method
+from .paper import BASELINES, LABELS, MARL, base_method
 from .plan import Cell, SweepConfig, cell_key, filter_settings
 
 __all__ = [
@@ -61,7 +61,7 @@ class CheckpointInfo:
     def files(self) -> dict[str, bytes]:
         """``config.json``, ``model.safetensors`` and ``state.json`` as bytes (what a cell needs to load and check the
         weights, shipped to remote workers)."""
-        names = ("config.json", "model.safetensors", "state.json")
+        names = ("config.json", "model.safetensors", "state.json", "marl.json")
         return {name: (self.path / name).read_bytes() for name in names if (self.path / name).exists()}
 
 
@@ -94,6 +94,8 @@ def find_method_checkpoint(root: str | Path, method: str, train_seed: int = 0) -
     from ..train.checkpoint import check_identity, read_config, read_state, read_tensors
 
     base = checkpoint_dir(root, method, train_seed)
+    if method in MARL:
+        return _find_marl_checkpoint(base, method, train_seed)
     path = next((d for d in (base, base / "best") if (d / "model.safetensors").exists()), None)
     if path is None or not (path / "config.json").exists():
         raise FileNotFoundError(
@@ -111,6 +113,26 @@ def find_method_checkpoint(root: str | Path, method: str, train_seed: int = 0) -
     check_identity(path, train_cfg, state)
     step = state.get("step")
     return CheckpointInfo(method, path, sha256(path / "model.safetensors"), step, train_cfg.seed)
+
+
+def _find_marl_checkpoint(path: Path, method: str, train_seed: int) -> CheckpointInfo:
+    """A MARL baseline's checkpoint (:mod:`egcbf.marl.checkpoint`: ``marl.json`` + ``model.safetensors``)."""
+    from ..marl.checkpoint import WEIGHTS_FILE, is_marl_checkpoint, read_marl_config
+    from ..train.checkpoint import read_tensors
+
+    if not is_marl_checkpoint(path) or not (path / WEIGHTS_FILE).exists():
+        raise FileNotFoundError(
+            f"no checkpoint for {method} (training seed {train_seed}) in {path} (expected {path}/marl.json and "
+            f"{path}/{WEIGHTS_FILE}): train one with `python -m egcbf.marl.ppo_lagrangian --seed {train_seed} --out "
+            f"runs/{method}-s{train_seed}`, then copy it to {path}"
+        )
+    config, progress = read_marl_config(path)
+    if config.algo != method:
+        raise ValueError(f"{path}/marl.json is a {config.algo!r} checkpoint, expected {method!r}")
+    if config.seed != train_seed:
+        raise ValueError(f"{path}/marl.json was trained with seed {config.seed}, expected seed {train_seed}")
+    read_tensors(path / WEIGHTS_FILE)
+    return CheckpointInfo(method, path, sha256(path / WEIGHTS_FILE), progress.get("iteration"), config.seed)
 
 
 # ---------------------------------------------------------------------------------------------------- cell files

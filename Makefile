@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml requirements/torch.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -r requirements/torch.txt
-	$(PY) -m pip install --quiet -e ".[dev,export,marl]"
+	$(PY) -m pip install --quiet -e ".[dev,export,marl,ros]"
 	touch $(STAMP)
 
 # escnn needs numpy<2, so its adapter is tested in a separate environment.

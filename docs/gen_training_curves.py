@@ -31,6 +31,8 @@ def _runs_by_interface() -> dict[str, dict[str, list[Path]]]:
     dirs = sorted({p.parent for p in CKPTS.glob("**/metrics.csv")})
     out: dict[str, dict[str, list[Path]]] = {}
     for d in dirs:
+        if (d / "marl.json").is_file():  # a MARL baseline: its curve is docs/gen_marl.py's
+            continue
         cfg = json.loads((d / "config.json").read_text())
         if cfg.get("init_from"):  # a fine-tuned policy: its curves start from another run (docs/gen_finetune.py)
             continue

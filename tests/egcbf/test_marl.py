@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from egcbf.control.resolve import ControllerError, resolve
 from egcbf.env import EnvConfig
 from egcbf.env.task import SwarmTask, TaskConfig
-from egcbf.marl.checkpoint import MarlTrainConfig, load_actor, read_marl_config, save_marl
+from egcbf.marl.checkpoint import MarlTrainConfig, load_actor, make_command_interface, read_marl_config, save_marl
 from egcbf.marl.networks import MarlActor, MarlCritic, MarlNetConfig
 
 F64 = torch.float64
@@ -25,10 +25,15 @@ def _scene(seed, robot="quadrotor", n=10, k=4):
     return task, obs
 
 
+def _actor(task, net=None):
+    interface = make_command_interface(MarlTrainConfig(robot=task.config.robot), task.robot)
+    return MarlActor(task.robot, task.config.comm_radius, interface, net).to(F64)
+
+
 def _trained_like_actor(task, seed):
     """An actor with random (non-zero) weights, so that its residual is not zero."""
     torch.manual_seed(seed)
-    actor = MarlActor(task.robot, task.config.comm_radius, MarlNetConfig(hidden=16)).to(F64)
+    actor = _actor(task, MarlNetConfig(hidden=16))
     for p in actor.parameters():
         torch.nn.init.normal_(p, std=0.3)
     return actor
@@ -66,11 +71,28 @@ def test_actor_is_translation_invariant(seed, shift):
     torch.testing.assert_close(actor.command(moved), actor.command(obs), rtol=0, atol=1e-9)
 
 
-def test_a_new_actor_is_the_nominal_controller():
-    task, obs = _scene(3)
-    actor = MarlActor(task.robot, task.config.comm_radius).to(F64)
-    nominal = task.robot.clip_control(task.robot.nominal_control(obs["state"], obs["goal"]))
-    torch.testing.assert_close(actor.command(obs), nominal, rtol=0, atol=0)
+@pytest.mark.parametrize("robot", ["quadrotor", "double_integrator", "unicycle"])
+def test_a_new_actor_is_the_nominal_controller(robot):
+    """The quadrotor's actor commands world accelerations (the attitude loop tracks them), the others' their raw
+    control: either way a new actor's body control is the nominal controller's wherever the command box does not
+    bind (the quadrotor's box caps the nominal law's vertical acceleration at -4.9 m/s^2, as for the learned
+    methods)."""
+    task, obs = _scene(3, robot)
+    actor = _actor(task)
+    interface = actor.interface
+    assert interface.name == ("accel" if robot == "quadrotor" else "control")
+    x, goal = obs["state"], obs["goal"]
+    nominal = task.robot.clip_control(task.robot.nominal_control(x, goal))
+    if robot == "quadrotor":
+        from egcbf.robots.quadrotor.nominal import nominal_acceleration
+
+        free = nominal_acceleration(x, goal, interface.gains) / interface.accel_unit - interface.nominal(x, goal)
+        free = free.abs().amax(-1) < 1e-12
+        assert 0 < free.sum() < free.numel()  # some agents' commands bind, some do not
+    else:
+        free = torch.ones(x.shape[:2], dtype=torch.bool)
+    torch.testing.assert_close(actor.command(obs)[free], nominal[free], rtol=0, atol=1e-12)
+    torch.testing.assert_close(actor.command(obs), actor.to_control(x, interface.nominal(x, goal)), rtol=0, atol=0)
     critic = MarlCritic(task.robot, task.config.comm_radius).to(F64)
     assert critic(*(obs[k] for k in MarlActor.observation_keys)).shape == (2, 10, 1)
 

@@ -130,3 +130,30 @@ def test_observations_do_not_depend_on_the_env_wrapper():
         state, _ = env.step(state, u)
         task.step(u)
         assert torch.equal(task.state.x, state.x)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**16), skin=st.sampled_from([0.0, 0.05, 0.3]), k=st.integers(1, 6))
+def test_the_verlet_neighbour_list_answers_as_a_fresh_search(seed, skin, k):
+    """Over a random walk (steps up to 0.08 m, so some steps outrun half the skin and some do not), the kept list's
+    k nearest neighbours within the radius equal a brute-force reading at every step; it searches anew only when
+    some point has moved more than skin / 2 since its last search."""
+    from egcbf.env.observations import NeighbourList
+
+    gen = torch.Generator().manual_seed(seed)
+    b, n, radius = 2, 30, 0.5
+    p = torch.rand(b * n, 3, generator=gen, dtype=F64) * 1.5
+    batch = torch.arange(b).repeat_interleave(n)
+    kept = NeighbourList(radius, skin)
+    for _ in range(8):
+        p = p + (torch.rand(b * n, 3, generator=gen, dtype=F64) - 0.5) * 0.16 * torch.rand((), generator=gen)
+        index, mask = kept.nearest(p, batch, k)
+        for i in range(b * n):
+            d2 = (p - p[i]).square().sum(-1)
+            order = sorted(
+                (float(d2[j]), j) for j in range(b * n) if j != i and batch[j] == batch[i] and d2[j] < radius**2
+            )
+            want = [j for _, j in order[:k]]
+            assert index[i][mask[i]].tolist() == want
+            assert (index[i][~mask[i]] == b * n).all()
+    assert 1 <= kept.searches <= 8 and (skin > 0 or kept.searches == 8)

@@ -13,7 +13,26 @@ from egcbf.env import EnvConfig, SwarmEnv
 from egcbf.train.checkpoint import load_controller
 
 ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
-SHIPPED = sorted(p.parent for p in ROOT.glob("**/model.safetensors"))
+#: the graph-policy checkpoints (a MARL baseline's directory, with marl.json, is tested below)
+SHIPPED = sorted(p.parent for p in ROOT.glob("**/model.safetensors") if not (p.parent / "marl.json").exists())
+MARL = sorted(p.parent for p in ROOT.glob("**/marl.json"))
+
+
+@pytest.mark.parametrize("path", MARL, ids=[str(p.relative_to(ROOT)) for p in MARL])
+def test_shipped_marl_checkpoint_is_its_documented_run_and_acts(path):
+    """The shipped MARL baseline is the run checkpoints/README.md documents (the default configuration of its
+    trainer, its training seed, the budget it trained for) and drives a small swarm as a controller."""
+    from egcbf.control.resolve import resolve
+    from egcbf.marl.checkpoint import MarlTrainConfig, read_marl_config
+
+    config, progress = read_marl_config(path)
+    assert config.algo == path.name
+    assert config == MarlTrainConfig(seed=config.seed, max_minutes=config.max_minutes)
+    assert progress["wall_s"] <= 60 * config.max_minutes + 120 and (path / "metrics.csv").exists()
+    built = resolve("policy", path)
+    env_cfg = EnvConfig.for_robot(config.robot, num_agents=4, num_envs=1, area_size=1.5, num_obstacles=1)
+    u, _ = built.controller(SwarmEnv(env_cfg).reset(0), env_cfg)
+    assert u.shape == (1, 4, env_cfg.make_robot().control_dim) and torch.isfinite(u).all()
 
 
 def test_the_command_interface_methods_are_at_the_top_level():

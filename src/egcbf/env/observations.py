@@ -17,7 +17,7 @@ key                       shape                 contents
 
 ``K = max_neighbours`` is fixed by the caller; an agent with more neighbours in range keeps the ``K`` nearest (the
 deployed controller's rule). ``H = EnvConfig.lidar_max_hits``: the simulator's scan already keeps that many, the
-nearest. Equal distances (a set of measure zero) keep the neighbour search's order.
+nearest. Equal distances (a set of measure zero) come in no promised order.
 """
 
 from __future__ import annotations
@@ -70,41 +70,71 @@ class ObservationLayout:
 
 
 class NeighbourList:
-    """The pairs of agents closer than ``radius``, kept between steps as a Verlet list: one cell-list search of
+    """Each agent's neighbours closer than ``radius``, kept between steps as a Verlet list: one cell-list search of
     radius ``radius + skin`` serves every later query until some agent has moved more than ``skin / 2`` since that
     search (then no pair now closer than ``radius`` can have been missed: each end moved at most ``skin / 2``).
-    Each query only filters the stored candidates by their current distance, so its result is the set a fresh
-    search returns. ``skin = 0`` searches anew every time."""
+    The search's candidates are stored as a padded table, one row of candidate indices per agent, so that a query
+    only measures each agent's candidates and keeps the nearest (:meth:`nearest`); its result is what a fresh search
+    returns. ``skin = 0`` searches anew every time; ``searches`` counts the searches."""
 
     def __init__(self, radius: float, skin: float = 0.0):
         if not radius > 0 or not skin >= 0:
             raise ValueError(f"NeighbourList needs radius > 0 and skin >= 0, got {radius!r}, {skin!r}")
         self.radius, self.skin = float(radius), float(skin)
         self._anchor: Tensor | None = None
-        self._pairs: Tensor | None = None
+        self._table: Tensor | None = None
         self.searches = 0
 
-    def pairs(self, positions: Tensor, batch: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``src, dst, d2, near``: candidate ordered pairs ``src -> dst`` of ``positions`` ``(M, d)`` (same
-        ``batch`` id, ``j != i``, both directions), their squared distances, and ``near = d2 < radius^2``: the
-        pairs within ``radius`` are exactly those marked ``near`` (the others are candidates of the skin)."""
+    def _candidates(self, positions: Tensor, batch: Tensor) -> Tensor:
+        """The candidate table ``(M, C)`` of ``positions`` ``(M, d)``: row ``i`` lists the agents (same ``batch``
+        id, not ``i``) that were within ``radius + skin`` of ``i`` at the last search, padded with ``M`` (no
+        agent); searched anew when stale (class doc)."""
         anchor = self._anchor
         stale = anchor is None or anchor.shape != positions.shape or anchor.device != positions.device
         if not stale and self.skin > 0:
             moved = (positions.detach() - anchor).square().sum(-1).max()
             stale = bool(moved > (self.skin / 2) ** 2)
         if stale or self.skin == 0:
-            self._pairs = radius_neighbors(positions.detach(), self.radius + self.skin, batch, sort=False,
-                                           cells_per_radius=2)  # fmt: skip
-            self._anchor = positions.detach().clone()
+            m = positions.shape[0]
+            src, dst = radius_neighbors(positions.detach(), self.radius + self.skin, batch, sort=False,
+                                        cells_per_radius=2)  # fmt: skip
+            order = torch.argsort(dst, stable=True)
+            src, dst = src.index_select(0, order), dst.index_select(0, order)
+            counts = torch.bincount(dst, minlength=m)
+            first = torch.cumsum(counts, 0) - counts
+            rank = torch.arange(dst.shape[0], device=dst.device) - first.index_select(0, dst)
+            width = int(counts.max()) if m > 0 and dst.numel() > 0 else 0
+            table = torch.full((m, width), m, dtype=torch.long, device=positions.device)
+            table[dst, rank] = src
+            self._table, self._anchor = table, positions.detach().clone()
             self.searches += 1
-        src, dst = self._pairs
-        d2 = (positions.index_select(0, src) - positions.index_select(0, dst)).square().sum(-1)
-        return src, dst, d2, d2 < self.radius**2
+        return self._table
+
+    def nearest(self, positions: Tensor, batch: Tensor, k: int) -> tuple[Tensor, Tensor]:
+        """``index, mask`` ``(M, k)``: for each of ``positions`` ``(M, d)`` (agents of environments ``batch``
+        ``(M,)``) its ``k`` nearest other agents of its environment closer than ``radius`` (strictly), nearest
+        first (equal distances, a set of measure zero, in no promised order); ``mask`` marks the slots that hold
+        one, the others hold index ``M``."""
+        m, d = positions.shape
+        table = self._candidates(positions, batch)
+        width = table.shape[1]
+        padded = torch.cat((positions, torch.full((1, d), torch.inf, dtype=positions.dtype,
+                                                  device=positions.device)))  # fmt: skip
+        d2 = (padded.index_select(0, table.reshape(-1)).reshape(m, width, d) - positions[:, None, :]).square().sum(-1)
+        if width > k:
+            d2, slot = torch.topk(d2, k, dim=1, largest=False, sorted=True)
+        else:
+            d2, slot = torch.sort(d2, dim=1, stable=True)
+        index = table.gather(1, slot)
+        if width < k:
+            index = torch.cat((index, index.new_full((m, k - width), m)), 1)
+            d2 = torch.cat((d2, d2.new_full((m, k - width), torch.inf)), 1)
+        mask = d2 < self.radius**2
+        return torch.where(mask, index, index.new_full((), m)), mask
 
     def reset(self) -> None:
         """Forget the stored search (a new episode)."""
-        self._anchor = self._pairs = None
+        self._anchor = self._table = None
 
 
 def agent_observations(
@@ -128,22 +158,9 @@ def agent_observations(
         neighbours = NeighbourList(comm_radius)
     elif neighbours.radius != float(comm_radius):
         raise ValueError(f"the NeighbourList's radius {neighbours.radius:g} is not comm_radius {comm_radius:g}")
-    src, dst, dist, near = neighbours.pairs(flat, batch)
-    within = near.nonzero().squeeze(1)
-    src, dst, dist = src.index_select(0, within), dst.index_select(0, within), dist.index_select(0, within)
-    # one sort by (receiver, squared distance): the receiver's index is the integer part of the key
-    key = dst.to(torch.float64) * (2 * float(comm_radius) ** 2 + 1) + dist.to(torch.float64)
-    order = torch.argsort(key, stable=True)
-    src, dst = src.index_select(0, order), dst.index_select(0, order)
-    counts = torch.bincount(dst, minlength=b * n)
-    first = torch.cumsum(counts, 0) - counts
-    rank = torch.arange(dst.shape[0], device=x.device) - first.index_select(0, dst)
-    kept = (rank < k).nonzero().squeeze(1)
-    src, dst, rank = src.index_select(0, kept), dst.index_select(0, kept), rank.index_select(0, kept)
-    rows = torch.zeros(b * n, k, s, dtype=x.dtype, device=x.device)
-    mask = torch.zeros(b * n, k, dtype=torch.bool, device=x.device)
-    rows[dst, rank] = x.reshape(b * n, s).index_select(0, src)
-    mask[dst, rank] = True
+    index, mask = neighbours.nearest(flat, batch, k)
+    padded = torch.cat((x.reshape(b * n, s), torch.zeros(1, s, dtype=x.dtype, device=x.device)))
+    rows = padded.index_select(0, index.reshape(-1)).reshape(b * n, k, s)
     hits = torch.where(scan.valid[..., None], scan.points.to(x.dtype), torch.zeros((), dtype=x.dtype, device=x.device))
     return {
         "state": x,

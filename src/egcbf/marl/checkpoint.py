@@ -11,8 +11,10 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file, save_file
 
+from ..algo.interface import CommandInterface, make_interface
 from ..env.task import TaskConfig
 from ..io.atomic import write_text_atomic
+from ..robots import Robot
 from .networks import MarlActor, MarlCritic, MarlNetConfig
 
 __all__ = [
@@ -21,6 +23,7 @@ __all__ = [
     "MarlTrainConfig",
     "is_marl_checkpoint",
     "load_actor",
+    "make_command_interface",
     "read_marl_config",
     "save_marl",
 ]
@@ -33,6 +36,9 @@ WEIGHTS_FILE = "model.safetensors"
 class MarlTrainConfig:
     """IPPO-Lagrangian's settings (:mod:`egcbf.marl.ppo_lagrangian`).
 
+    Command: the actor acts on the command interface ``interface`` of the robot (:mod:`egcbf.algo.interface`;
+    ``None``: the robot's default, the quadrotor's world acceleration, the other robots' raw control).
+
     Environment: ``num_envs`` scenes of ``num_agents`` agents of ``robot`` in arenas of side ``area_size`` with
     ``num_obstacles`` obstacles (the ``cpu`` recipe's training density: 32 agents, ``l = 2``, 4 obstacles) and
     ``episode_steps`` per episode. Each iteration collects ``rollout_steps`` steps of every scene, estimates
@@ -44,6 +50,7 @@ class MarlTrainConfig:
 
     algo: str = "ippo-lag"
     robot: str = "quadrotor"
+    interface: str | None = None
     num_agents: int = 32
     area_size: float = 2.0
     num_obstacles: int = 4
@@ -92,6 +99,12 @@ class MarlTrainConfig:
                                    max_steps=self.episode_steps)  # fmt: skip
 
 
+def make_command_interface(config: MarlTrainConfig, robot: Robot) -> CommandInterface:
+    """The command interface the actor of ``config`` acts on for ``robot`` (``config.interface``, default the
+    robot's first)."""
+    return make_interface(config.interface or robot.interfaces[0], robot)
+
+
 def is_marl_checkpoint(path: str | Path) -> bool:
     """Whether ``path`` is a MARL checkpoint directory (it holds ``marl.json``)."""
     return (Path(path) / CONFIG_FILE).is_file()
@@ -126,7 +139,9 @@ def load_actor(path: str | Path, *, device="cpu", dtype=torch.float32) -> tuple[
         raise FileNotFoundError(f"{path} is not a MARL checkpoint (no {CONFIG_FILE})")
     config, _ = read_marl_config(path)
     env = config.env_config(num_agents=1, num_envs=1)
-    actor = MarlActor(env.make_robot(), env.comm_radius, config.net).to(device=device, dtype=dtype)
+    robot = env.make_robot()
+    actor = MarlActor(robot, env.comm_radius, make_command_interface(config, robot), config.net)
+    actor = actor.to(device=device, dtype=dtype)
     tensors = load_file(str(path / WEIGHTS_FILE))
     actor.load_state_dict({k[len("actor.") :]: v for k, v in tensors.items() if k.startswith("actor.")})
     return actor.eval(), config

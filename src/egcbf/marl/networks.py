@@ -9,9 +9,15 @@ world frame). Features, all translation-invariant (positions only as offsets, in
 
 Neighbour and hit rows are encoded by one MLP each and pooled (masked mean and max: the output does not depend on
 the rows' order or on masked rows); the pools and the own features go through a head MLP. All agents share the
-parameters (IPPO). The actor's mean command is the nominal controller's plus a bounded residual,
-``loc = clip(n(x, g)) + residual_scale * w * tanh(head)`` (``w`` the actuator box's half-widths), so that a new
-actor starts as the nominal controller; its standard deviations ``exp(log_std) * w`` are state-independent.
+parameters (IPPO).
+
+The actor acts on a *command interface* (:mod:`egcbf.algo.interface`), the one the learned CBF methods use: for the
+quadrotor a normalized world acceleration tracked by the attitude loop (``"accel"``), for the other robots their
+normalized raw control (``"control"``). Its mean command is the interface's nominal command plus a bounded residual,
+``loc = n(x, g) + residual_scale * w * tanh(head)`` (``w`` the half-widths of the interface's command box), so that
+a new actor starts as the nominal controller; its standard deviations ``exp(log_std) * w`` are state-independent.
+:meth:`MarlActor.to_control` turns a command into the robot's body control (clipped to the command's bounds, then
+the interface's ``apply``): what the environment steps with.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor, nn
 
+from ..algo.interface import CommandInterface
 from ..robots import Robot
 
 __all__ = ["MarlActor", "MarlCritic", "MarlNetConfig", "observation_features"]
@@ -96,36 +103,46 @@ _KEYS = ("state", "goal", "neighbours", "neighbour_mask", "hits", "hit_mask")
 
 class MarlActor(nn.Module):
     """``forward(state, goal, neighbours, neighbour_mask, hits, hit_mask) -> (loc, scale)``, each
-    ``(B, N, control_dim)`` (module doc). :meth:`command` is the deterministic command (``loc`` clipped to the
-    box)."""
+    ``(B, N, interface.dim)``: the normal distribution of the normalized command of ``interface`` (module doc).
+    :meth:`to_control` maps commands to body controls ``(B, N, control_dim)``; :meth:`command` is the deterministic
+    body control (the mean command, clipped, applied)."""
 
     observation_keys = _KEYS
 
-    def __init__(self, robot: Robot, comm_radius: float, config: MarlNetConfig | None = None):
+    def __init__(self, robot: Robot, comm_radius: float, interface: CommandInterface,
+                 config: MarlNetConfig | None = None):  # fmt: skip
         super().__init__()
         self.config = config or MarlNetConfig()
-        self.robot = robot
-        k = robot.control_dim
+        self.robot, self.interface = robot, interface
+        k = interface.dim
         self.trunk = _Trunk(robot, comm_radius, self.config.hidden, k)
         nn.init.zeros_(self.trunk.head[-1].weight)  # a new actor's mean is the nominal command
         nn.init.zeros_(self.trunk.head[-1].bias)
         self.log_std = nn.Parameter(torch.full((k,), float(self.config.initial_log_std)))
-        lo, hi = robot.control_bounds(torch.zeros(()))
+        lo, hi = interface.bounds(torch.zeros(()))
         self.register_buffer("box_half_width", (hi - lo) / 2)
 
     def forward(self, state, goal, neighbours, neighbour_mask, hits, hit_mask) -> tuple[Tensor, Tensor]:
         obs = dict(zip(_KEYS, (state, goal, neighbours, neighbour_mask, hits, hit_mask)))
         residual = torch.tanh(self.trunk(obs))
-        nominal = self.robot.clip_control(self.robot.nominal_control(state, goal)).to(residual.dtype)
+        nominal = self.interface.nominal(state, goal.to(state.dtype)).to(residual.dtype)
         w = self.box_half_width.to(residual.dtype)
         loc = nominal + self.config.residual_scale * w * residual
         scale = (self.log_std.exp() * w).expand_as(loc)
         return loc, scale
 
+    def to_control(self, state: Tensor, command: Tensor) -> Tensor:
+        """The body control ``(B, N, control_dim)`` of the normalized commands ``command`` ``(B, N, k)`` at the
+        states ``state``: clipped to the bounds at ``state``, applied by the interface, clipped to the actuator
+        box."""
+        c = self.interface.clip(state, command.to(state.dtype))
+        return self.robot.clip_control(self.interface.apply(state, c))
+
     def command(self, obs: dict[str, Tensor]) -> Tensor:
-        """The deterministic command ``(B, N, control_dim)`` of observations ``obs``: the mean, clipped."""
+        """The deterministic body control ``(B, N, control_dim)`` of observations ``obs``: :meth:`to_control` of
+        the mean command."""
         loc, _ = self(*(obs[k] for k in _KEYS))
-        return self.robot.clip_control(loc)
+        return self.to_control(obs["state"], loc).to(loc.dtype)
 
 
 class MarlCritic(nn.Module):

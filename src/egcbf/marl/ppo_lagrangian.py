@@ -1,9 +1,12 @@
 """IPPO with a Lagrangian cost constraint, trained through :class:`egcbf.env.torchrl.SwarmTorchRLEnv`.
 
 Built from TorchRL's components (the optional ``marl`` extra): a ``ProbabilisticActor`` over
-:class:`~egcbf.marl.networks.MarlActor` (independent normal actions; the simulator clips them to the box), a
-``ValueOperator`` over :class:`~egcbf.marl.networks.MarlCritic`, a ``Collector``, ``ClipPPOLoss`` with its
-GAE value estimator. All agents share the actor and the critic and each reads only its own observation (IPPO).
+:class:`~egcbf.marl.networks.MarlActor` (independent normal commands), a ``ValueOperator`` over
+:class:`~egcbf.marl.networks.MarlCritic`, a ``Collector``, ``ClipPPOLoss`` with its GAE value estimator. The
+actor's distribution is over normalized commands of the robot's command interface (the quadrotor's world
+acceleration, :mod:`egcbf.marl.networks`); the collector's policy turns each sampled command into the environment's
+body control (clipped to the bounds), and the loss scores the commands. All agents share the actor and the critic
+and each reads only its own observation (IPPO).
 
 The constraint: keep the expected collision cost per agent-step below ``cost_budget``. Each iteration optimizes the
 Lagrangian's reward ``r - lagrange * c`` and then moves the multiplier by dual ascent,
@@ -28,11 +31,11 @@ from pathlib import Path
 
 import torch
 
-from .checkpoint import MarlTrainConfig, save_marl
+from .checkpoint import MarlTrainConfig, make_command_interface, save_marl
 from .networks import MarlActor, MarlCritic
 
 try:
-    from tensordict.nn import TensorDictModule
+    from tensordict.nn import TensorDictModule, TensorDictSequential
     from torchrl.collectors import Collector
     from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
     from torchrl.objectives import ClipPPOLoss, ValueEstimators
@@ -50,16 +53,29 @@ OBS = tuple(("agents", "observation", k) for k in MarlActor.observation_keys)
 METRICS = ("iteration", "frames", "wall_s", "reward", "cost", "lagrange", "loss_objective", "loss_critic", "entropy")
 
 
-def build_modules(config: MarlTrainConfig, env: SwarmTorchRLEnv) -> tuple[MarlActor, MarlCritic, object, object]:
-    """The actor and critic networks and their TorchRL wrappers (``ProbabilisticActor``, ``ValueOperator``)."""
+COMMAND = ("agents", "command")
+
+
+def build_modules(
+    config: MarlTrainConfig, env: SwarmTorchRLEnv
+) -> tuple[MarlActor, MarlCritic, object, object, object]:
+    """The actor and critic networks and their TorchRL wrappers: the ``ProbabilisticActor`` over normalized
+    commands (``("agents", "command")``, what the PPO loss scores), the collector's policy (that actor, then the
+    command turned into the environment's ``("agents", "action")`` by :meth:`MarlActor.to_control`) and the
+    ``ValueOperator``."""
     robot, radius = env.task.robot, env.config.comm_radius
-    actor_net, critic_net = MarlActor(robot, radius, config.net), MarlCritic(robot, radius, config.net)
+    interface = make_command_interface(config, robot)
+    actor_net = MarlActor(robot, radius, interface, config.net)
+    critic_net = MarlCritic(robot, radius, config.net)
     module = TensorDictModule(actor_net, in_keys=list(OBS), out_keys=[("agents", "loc"), ("agents", "scale")])
-    policy = ProbabilisticActor(module, in_keys={"loc": ("agents", "loc"), "scale": ("agents", "scale")},
-                                out_keys=[("agents", "action")], distribution_class=IndependentNormal,
-                                return_log_prob=True, log_prob_key=("agents", "sample_log_prob"))  # fmt: skip
+    actor = ProbabilisticActor(module, in_keys={"loc": ("agents", "loc"), "scale": ("agents", "scale")},
+                               out_keys=[COMMAND], distribution_class=IndependentNormal,
+                               return_log_prob=True, log_prob_key=("agents", "sample_log_prob"))  # fmt: skip
+    to_action = TensorDictModule(actor_net.to_control, in_keys=[("agents", "observation", "state"), COMMAND],
+                                 out_keys=[("agents", "action")])  # fmt: skip
+    policy = TensorDictSequential(actor, to_action)
     value = ValueOperator(critic_net, in_keys=list(OBS), out_keys=[("agents", "state_value")])
-    return actor_net, critic_net, policy, value
+    return actor_net, critic_net, actor, policy, value
 
 
 def _check_out(out: Path, overwrite: bool) -> None:
@@ -76,13 +92,13 @@ def train(config: MarlTrainConfig, out: str | Path, *, overwrite: bool = False, 
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
     env = SwarmTorchRLEnv(config.env_config(), config.task, seed=config.seed)
-    actor_net, critic_net, policy, value = build_modules(config, env)
+    actor_net, critic_net, actor, policy, value = build_modules(config, env)
     frames = config.num_envs * config.rollout_steps
     collector = Collector(env, policy, frames_per_batch=frames, total_frames=frames * config.iterations,
                           auto_register_policy_transforms=False)  # fmt: skip
-    loss = ClipPPOLoss(policy, value, clip_epsilon=config.clip_epsilon, entropy_coeff=config.entropy_coef,
+    loss = ClipPPOLoss(actor, value, clip_epsilon=config.clip_epsilon, entropy_coeff=config.entropy_coef,
                        normalize_advantage=True, normalize_advantage_exclude_dims=())  # fmt: skip
-    loss.set_keys(reward=("agents", "reward"), action=("agents", "action"), value=("agents", "state_value"),
+    loss.set_keys(reward=("agents", "reward"), action=COMMAND, value=("agents", "state_value"),
                   sample_log_prob=("agents", "sample_log_prob"), advantage=("agents", "advantage"),
                   value_target=("agents", "value_target"), done=("agents", "done"),
                   terminated=("agents", "terminated"))  # fmt: skip

@@ -11,6 +11,11 @@ small cost everywhere, so that the swarm moves as in an episode and the neighbou
 * ``TorchRL``: ``egcbf.env.torchrl.SwarmTorchRLEnv.step`` (the same work, in a TensorDict, with TorchRL's checks);
 * ``PettingZoo``: ``egcbf.env.pettingzoo`` (one scene; per-agent NumPy dictionaries), only where ``B = 1``.
 
+A second table splits ``SwarmTask.step`` into its parts, timed inside the same steps (median per step): the
+simulator's step (dynamics and masks), the LiDAR scan and the neighbour rows of the observation (the Verlet list's
+searches amortized over the steps they serve), and the rest (nominal command, reward, cost). It says what bounds
+the ratio of any path that builds these observations to the bare simulator.
+
 Settings: ``8 x 512`` at Table I's density (l = 4 m) without and with 8 obstacles, and ``1 x 4096`` at the same
 density (l = 8 m). Median over ``--steps`` steps after ``--warmup``, float32, one torch thread; the paths are timed
 in turn within one process, so their ratios share the machine's state.
@@ -75,6 +80,7 @@ def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int
     task.reset(seed)
     times["SwarmTask.step"] = _median_step(lambda: task.step(robot.nominal_control(task.state.x, task.state.goals)),
                                            steps, warmup)  # fmt: skip
+    parts = _task_parts(cfg, seed, steps, warmup)
     try:
         from egcbf.env.torchrl import SwarmTorchRLEnv
     except ImportError:
@@ -105,7 +111,55 @@ def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int
                 penv.step({a: u[i] for i, a in enumerate(penv.possible_agents)})
 
             times["PettingZoo"] = _median_step(pettingzoo_step, steps, warmup)
-    return {"B": b, "N": n, "l": area, "obstacles": obstacles, "seconds": times}
+    return {"B": b, "N": n, "l": area, "obstacles": obstacles, "seconds": times, "parts": parts}
+
+
+def _task_parts(cfg: EnvConfig, seed: int, steps: int, warmup: int) -> dict[str, float]:
+    """Median seconds per step of ``SwarmTask.step``'s parts (module doc), each part timed where the step calls it."""
+    task = SwarmTask(cfg, dtype=torch.float32)
+    task.reset(seed)
+    robot = task.robot
+    spent = {"simulator step": [], "LiDAR scan": [], "neighbour rows": []}
+
+    def timed(name, fn):
+        def run(*args, **kwargs):
+            t0 = time.perf_counter()
+            out = fn(*args, **kwargs)
+            spent[name].append(time.perf_counter() - t0)
+            return out
+
+        return run
+
+    task.env.step = timed("simulator step", task.env.step)
+    task.env.lidar = timed("LiDAR scan", task.env.lidar)
+    task.neighbours.nearest = timed("neighbour rows", task.neighbours.nearest)
+    for _ in range(warmup):
+        task.step(robot.nominal_control(task.state.x, task.state.goals))
+    for v in spent.values():
+        v.clear()
+    total = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        task.step(robot.nominal_control(task.state.x, task.state.goals))
+        total.append(time.perf_counter() - t0)
+    # the mean of the neighbour rows: a search every few steps is their cost, which a median would hide
+    out = {"simulator step": statistics.median(spent["simulator step"]),
+           "LiDAR scan": statistics.median(spent["LiDAR scan"]),
+           "neighbour rows": statistics.fmean(spent["neighbour rows"])}  # fmt: skip
+    out["rest"] = max(statistics.median(total) - sum(out.values()), 0.0)
+    return out
+
+
+def parts_table(rows: list[dict]) -> str:
+    names = list(rows[0]["parts"])
+    head = "| B x N | l (m) | obstacles | " + " | ".join(f"{p} (ms)" for p in names) + " | observation / simulator |"
+    lines = [head, "|" + "---|" * (4 + len(names))]
+    for r in rows:
+        p = r["parts"]
+        ratio = (p["LiDAR scan"] + p["neighbour rows"]) / p["simulator step"]
+        cells = " | ".join(f"{1e3 * p[k]:.1f}" for k in names)
+        lines.append(f"| {r['B']} x {r['N']} | {r['l']:g} | {r['obstacles']} | {cells} | {ratio:.2f} |")
+    return "\n".join(lines)
 
 
 def table(rows: list[dict]) -> str:
@@ -142,7 +196,11 @@ def main(argv=None) -> int:
         f"{args.steps} steps after {args.warmup}; each cell agent-steps per second and, in brackets, its ratio to "
         "`SwarmEnv.step` alone measured in the same run. Paths (the script's docstring): the simulator alone; with "
         "the graph the repository's learners build; `SwarmTask` (observations, rewards, costs as tensors); the "
-        "TorchRL environment; the PettingZoo environment (one scene only).\n\n" + table(rows)
+        "TorchRL environment; the PettingZoo environment (one scene only).\n\n" + table(rows) + "\n\n"
+        "Where `SwarmTask.step`'s time goes (median per step, the neighbour rows' mean: their Verlet searches "
+        "amortized; `rest`: nominal command, reward, cost). The last column is the observation's cost over the "
+        "simulator step's: a path that builds these observations steps at most `1 / (1 + that)` times the bare "
+        "simulator's agent-steps per second.\n\n" + parts_table(rows)
     )
     print("\n" + body)
     if not args.no_write:

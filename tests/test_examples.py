@@ -53,3 +53,21 @@ def test_a_gcbfplus_cell_of_other_weights_is_not_current(monkeypatch):
     monkeypatch.setattr(gen, "shipped_sha256", lambda method, row: "0" * 64)
     assert gen.current("gcbf+", row) is None
     assert gen.current("nominal", row) is not None  # a hand-crafted controller's cell has no checkpoint
+
+
+def test_the_setpoint_substitution_block_is_generated_from_its_runs():
+    """docs/deploy.md's setpoint-substitution block is what docs/gen_setpoint.py writes from the committed runs of
+    docs/results/setpoint/ (skipped until they are committed; regenerate after new runs)."""
+    import importlib.util
+
+    from egcbf.io.report import replace_block
+
+    root = Path(__file__).resolve().parents[1]
+    tracked = subprocess.run(["git", "ls-files", "docs/results/setpoint"], cwd=root, capture_output=True, text=True)
+    if tracked.returncode != 0 or "metrics.json" not in tracked.stdout:
+        pytest.skip("the setpoint-substitution runs (docs/results/setpoint/) are not committed")
+    spec = importlib.util.spec_from_file_location("gen_setpoint", root / "docs" / "gen_setpoint.py")
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    text = (root / "docs" / "deploy.md").read_text()
+    assert replace_block(text, gen.BLOCK, gen.block()) == text

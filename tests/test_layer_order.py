@@ -21,6 +21,7 @@ LAYERS = (
     "marl",
     "control",
     "deploy",
+    "ros",
     "viz",
     "reproduce",
     "study",

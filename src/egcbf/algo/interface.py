@@ -106,6 +106,11 @@ class CommandInterface:
     def apply(self, x: Tensor, c: Tensor) -> Tensor:
         raise NotImplementedError
 
+    def acceleration(self, c: Tensor) -> Tensor | None:
+        """The world acceleration ``(..., 3)`` (m/s^2) the commands ``c`` ask for, or ``None`` (default) where the
+        command is not an acceleration (torques, a raw control): what a setpoint-flying low level tracks."""
+        return None
+
     def lie_derivatives(
         self, cbf: nn.Module, graph: SwarmGraph, x: Tensor, env: EnvConfig | None = None, c_lin: Tensor | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
@@ -204,6 +209,9 @@ class AccelInterface(CommandInterface):
 
     def apply(self, x: Tensor, c: Tensor) -> Tensor:
         return track_acceleration(x, self.accel_unit * c, self.params, self.gains)
+
+    def acceleration(self, c: Tensor) -> Tensor:
+        return self.accel_unit * c
 
     def _ideal_step(self, x: Tensor, c: Tensor, dt: float) -> Tensor:
         a = self.accel_unit * c

@@ -55,8 +55,9 @@ class LearnedController:
 
     Builds the graph of ``state`` (casting LiDAR), runs the policy and returns the applied body control: the
     command ``clip(c_nom + scale * pi)`` of the model's interface turned into torque and thrust (for ``"accel"``
-    by the attitude loop). ``info["u_ref"]`` is the nominal controller's control (for the reward). No QP, barrier
-    or other controller is involved.
+    by the attitude loop). ``info["u_ref"]`` is the nominal controller's control (for the reward); for ``"accel"``,
+    ``info["accel_command"]`` ``(B, N, 3)`` is the world acceleration command (m/s^2) that ``u`` tracks. No QP,
+    barrier or other controller is involved.
     """
 
     name = "learned"
@@ -73,9 +74,11 @@ class LearnedController:
         p = next(self.policy.parameters())
         s = state if state.x.dtype == p.dtype and state.x.device == p.device else state.to(p.device, dtype=p.dtype)
         graph = build_graph(s, env_config)
-        u, u_nom = act(self.policy, self.model_config, graph, s, env_config.make_robot())
+        u, u_nom, accel = act(self.policy, self.model_config, graph, s, env_config.make_robot())
         u = u.to(state.x.dtype).to(state.x.device)
         info = {"u_ref": u_nom.to(u), "num_slack": 0, "num_failed": 0, "ctrl_ms": 1e3 * (time.perf_counter() - t0)}
+        if accel is not None:  # what a setpoint-flying low level tracks instead of u (egcbf eval --low-level)
+            info["accel_command"] = accel.to(u)
         return u, info
 
 
@@ -136,12 +139,13 @@ def raw_policy_command(
 
 def act(
     policy: PolicyNet, model_config: ModelConfig, graph: SwarmGraph, state: SwarmState, robot: Robot
-) -> tuple[Tensor, Tensor]:
-    """The policy's control ``(B, N, control_dim)`` in physical units (quadrotor: body torque and thrust), and the
-    nominal controller's control."""
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The policy's control ``(B, N, control_dim)`` in physical units (quadrotor: body torque and thrust), the
+    nominal controller's control, and the world acceleration command ``(B, N, 3)`` (m/s^2) the control tracks, or
+    ``None`` for an interface without one (:meth:`~.interface.CommandInterface.acceleration`)."""
     itf = make_interface(model_config.interface, robot)
     c, _ = policy_command(policy, model_config, itf, graph, state.x, state.goals)
-    return itf.apply(state.x, c), robot.nominal_control(state.x, state.goals)
+    return itf.apply(state.x, c), robot.nominal_control(state.x, state.goals), itf.acceleration(c)
 
 
 class GraphCBFLearner:
@@ -194,7 +198,7 @@ class GraphCBFLearner:
             pts.append(scan.points)
             valid.append(scan.valid)
             uns.append(unsafe | env.approach_unsafe(state, scan))
-            u, _ = act(self.policy, self.config.model, graph, state, self.robot)
+            u, _, _ = act(self.policy, self.config.model, graph, state, self.robot)
             state, info = env.step(state, u)
             unsafe = info.unsafe
         unsafe_t = torch.stack(uns)  # (L, B, N)

@@ -95,11 +95,13 @@ def run_demo(
     threads_reason: str,
     allocator: str,
     render: bool = True,
+    record: bool = False,
 ) -> dict:
     """Run every controller of ``sources`` (``{name: checkpoint directory, or None for a hand-crafted
     controller}``, the first is the demo's method) into ``OUT/<name>/``; print and write the table
     (``OUT/summary.md``), the comparison GIF (``OUT/compare_N<n>.gif``) and a top-down still of the first
-    controller, and ``OUT/demo.json``. Inputs are checked by the caller. Returns the summary written to demo.json."""
+    controller, and ``OUT/demo.json``; with ``record`` also ``OUT/<name>/episode.mcap`` (the first episode as ROS 2
+    messages, :mod:`egcbf.ros.record`). Inputs are checked by the caller. Returns the summary written to demo.json."""
     from ..viz.render import render_comparison_gif, render_topdown
 
     t0 = time.time()
@@ -126,6 +128,7 @@ def run_demo(
             allocator=allocator,
             record=render,
             filter=filt,
+            record_to=out_dir(out, name) / "episode.mcap" if record else None,
         )
         rows[name] = _read_row(out_dir(out, name))
         if num_agents in recorded:
@@ -263,6 +266,10 @@ def demo(
     threads: Annotated[int | None, typer.Option(help=_THREADS_HELP.replace("run.json", "demo.json"))] = None,
     render: Annotated[bool, typer.Option("--render/--no-render", help="the comparison GIF and a still")] = True,
     progress: Annotated[bool, typer.Option("--progress/--no-progress")] = True,
+    record: Annotated[
+        bool,
+        typer.Option("--record", help="also OUT/<controller>/episode.mcap: each first episode as ROS 2 messages"),
+    ] = False,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="replace the results already in OUT (default: refuse to mix runs)")
     ] = False,
@@ -286,6 +293,13 @@ def demo(
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     require(num_agents >= 1, f"--num-agents must be >= 1, got {num_agents}")
     dev = parse_device(device)
+    if record:
+        from ..ros.messages import MissingExtraError, require_extra
+
+        try:
+            require_extra("--record")
+        except MissingExtraError as err:
+            usage_error(str(err), err)
     check_env_flags([num_agents], area, obstacles, max_steps)
     from ..control.resolve import POLICY
     from ..robots import DEFAULT_ROBOT
@@ -325,4 +339,5 @@ def demo(
             threads_reason=reason,
             allocator=allocator_setting(),
             render=render,
+            record=record,
         )

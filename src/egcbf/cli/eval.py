@@ -153,6 +153,8 @@ def run_eval(
     resume: bool = False,
     obstacle_sensing: str = "map",
     lidar_hits: str = "plane",
+    record_to: Path | None = None,
+    low_level: str = "attitude",
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -161,19 +163,32 @@ def run_eval(
     first episode of each swarm size ``{N: EpisodeRecord}`` if ``render`` or ``record``, else ``{}``. ``robot``: the
     robot of a hand-crafted controller's swarm (a checkpoint's robot is its own; a different ``robot`` is an error).
     ``resume``: continue the interrupted run in ``out`` (same settings, checked against its ``run.json``): the swarm
-    sizes it finished are kept, the others evaluated.
+    sizes it finished are kept, the others evaluated. ``record_to``: write the first episode of the first swarm size
+    evaluated to this ``.mcap`` file (:class:`egcbf.ros.record.EpisodeRecorder`; needs the ``ros`` extra).
+    ``low_level``: ``"attitude"`` (our attitude loop applies the controller's control) or ``"setpoint"`` (its
+    acceleration command flown through the firmware-like setpoint tracker; :mod:`egcbf.evaluate.episodes`).
     """
     from ..control.controllers import CONTROLLERS
     from ..control.filters import FILTERS, FilterConfig
     from ..control.names import join_method, split_method
     from ..control.resolve import POLICY
-    from ..evaluate.episodes import evaluate, fault_support_error
+    from ..evaluate.episodes import LOW_LEVELS, evaluate, fault_support_error
     from ..robots import DEFAULT_ROBOT, ROBOTS
 
     require(dtype in DTYPES, f"--dtype must be one of {sorted(DTYPES)}, got {dtype!r}")
+    if record_to is not None:
+        require(Path(record_to).suffix == ".mcap", f"--record writes an MCAP file: FILE must end with .mcap, got "
+                f"{record_to}")  # fmt: skip
+        from ..ros.messages import MissingExtraError, require_extra
+
+        try:
+            require_extra("--record")
+        except MissingExtraError as err:
+            usage_error(str(err), err)
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     require(batch is None or batch >= 1, f"--batch must be >= 1 (episodes simulated together), got {batch}")
     require(filter in FILTERS, f"--filter must be one of {list(FILTERS)}, got {filter!r}")
+    require(low_level in LOW_LEVELS, f"--low-level must be one of {list(LOW_LEVELS)}, got {low_level!r}")
     require(
         filter == "none" or checkpoint is not None or (controller == "nominal" and filter != "cbf"),
         f"--filter {filter} filters a learned policy's commands (its --checkpoint) or, as an ablation, the nominal "
@@ -272,6 +287,7 @@ def run_eval(
     if max_travel is not None:
         env_overrides = {**(env_overrides or {}), "max_travel": float(max_travel)}
     configs = check_env_flags(sizes, area, obstacles, max_steps, env_overrides, robot)
+    setpoint_meta = _setpoint_meta(low_level, robot, built, fault_config, configs[0].dt)
     if checkpoint is not None and hasattr(built.train_config, "model"):  # a graph policy (not a MARL actor)
         check_policy_memory(configs, episodes, batch, built.train_config.model.hidden, dev)
     require(not (resume and overwrite), "--resume continues OUT's run and --overwrite would delete it: pass one")
@@ -297,6 +313,7 @@ def run_eval(
         **({"faults_left_out": sorted(left_out)} if left_out else {}),
         **({"noncoop_agents": {str(n): k for n, k in noncoop_agents.items()}} if noncoop_agents else {}),
         **({"obstacle_sensing": obstacle_sensing, "lidar_hits": lidar_hits} if obstacle_sensing != "map" else {}),
+        **setpoint_meta,
         "episodes": episodes,
         "seed": seed,
         "max_steps": max_steps,
@@ -317,6 +334,12 @@ def run_eval(
         typer.echo(f"resuming {out}: {len(done_rows)} swarm size(s) kept, {len(sizes)} to evaluate", err=True)
     write_json_atomic(out / "run.json", meta)
     written: list[Path] = []
+    recorder = None
+    if record_to is not None:
+        from ..ros.record import EpisodeRecorder
+
+        recorder = EpisodeRecorder(record_to, cbf=getattr(built.controller, "cbf", None),
+                                   metadata={"command": meta["command"], "controller": controller})  # fmt: skip
     recorded: dict = {}
 
     def save_size(rows: list[dict], episode) -> None:  # a later failure never loses a finished size
@@ -355,9 +378,14 @@ def run_eval(
                 on_size=save_size,
                 robot=robot,
                 faults=fault_config,
+                on_step=recorder,
+                low_level=low_level,
             )
         )
+        recording = None if recorder is None else recorder.close()
     except BaseException:
+        if recorder is not None:
+            recorder.abort()
         if previous is None and not meta["finished"]:  # nothing finished: a failed run leaves nothing behind
             (out / "run.json").unlink(missing_ok=True)
         raise
@@ -371,7 +399,40 @@ def run_eval(
     for p in written:
         typer.echo(f"wrote {p}")
     typer.echo(f"wrote {out / 'metrics.json'}")
+    if recording is not None:
+        typer.echo(f"wrote {recording} (the first episode of N = {recorder.num_agents}: docs/ros.md)")
+    elif record_to is not None:
+        typer.echo(f"--record {record_to}: no swarm size was evaluated, nothing recorded", err=True)
     return recorded
+
+
+def _setpoint_meta(low_level: str, robot: str, built, fault_config, dt: float) -> dict:
+    """What run.json records of ``--low-level`` (nothing for ``attitude``, as every earlier run), after a usage error
+    for a robot, controller or faults the setpoint tracker cannot fly; ``dt``: the control period (s)."""
+    if low_level == "attitude":
+        return {}
+    from ..robots import ROBOTS
+
+    require(ROBOTS[robot].flies_setpoints, f"--low-level {low_level} flies the acceleration command through a "
+            f"firmware-like setpoint tracker (the quadrotor's: the Crazyflie's Mellinger controller); the {robot} "
+            "has none")  # fmt: skip
+    model = getattr(built.train_config, "model", None)
+    interface = getattr(model, "interface", "accel") if built.checkpoint is not None else None
+    require(interface in (None, "accel") or built.filter != "none",
+            f"--low-level {low_level} flies an acceleration command; {built.name}'s interface is {interface!r} "
+            "(no acceleration command): evaluate it with --low-level attitude")  # fmt: skip
+    require(built.checkpoint is not None or built.filter != "none",
+            f"--low-level {low_level} flies an acceleration command; the hand-crafted {built.name} returns body "
+            "controls only: evaluate a --checkpoint's policy (alone or behind --filter) or --controller nominal "
+            "--filter dcbf")  # fmt: skip
+    require(fault_config.is_null, f"--low-level {low_level} with --faults: the faults corrupt the body control, "
+            "which the setpoint tracker does not apply; evaluate without --faults")  # fmt: skip
+    from ..robots.quadrotor.setpoint import DEFAULT_INNER_RATE, DEFAULT_MELLINGER_GAINS, inner_steps
+
+    n = inner_steps(dt, DEFAULT_INNER_RATE)
+    tracker = {"controller": "mellinger", "inner_rate_hz": DEFAULT_INNER_RATE, "inner_steps": n,
+               "inner_dt_s": dt / n, "gains": DEFAULT_MELLINGER_GAINS.to_dict()}  # fmt: skip
+    return {"low_level": low_level, "setpoint_tracker": tracker}
 
 
 def _previous_run(out: Path) -> dict:
@@ -502,6 +563,24 @@ def eval_cmd(
             "override it), or a JSON file of egcbf.faults.FaultConfig fields"
         ),
     ] = "none",
+    low_level: Annotated[
+        str,
+        typer.Option(
+            "--low-level",
+            help="attitude | setpoint: what flies the controller's acceleration command: our attitude loop (default) "
+            "or the Crazyflie firmware's Mellinger controller tracking it as a full-state setpoint at 500 Hz "
+            "(docs/deploy.md)",
+        ),
+    ] = "attitude",
+    record: Annotated[
+        Path | None,
+        typer.Option(
+            "--record",
+            metavar="FILE.mcap",
+            help="write the first episode of the first swarm size as an MCAP file of ROS 2 messages (Foxglove, "
+            "ros2 bag; docs/ros.md); needs the ros extra",
+        ),
+    ] = None,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)
@@ -535,4 +614,6 @@ def eval_cmd(
             resume=resume,
             obstacle_sensing=obstacle_sensing,
             lidar_hits=lidar_hits,
+            record_to=record,
+            low_level=low_level,
         )

@@ -333,7 +333,9 @@ class FilteredController:
     ``info``: ``u_ref`` (the nominal controller's control, for the reward as for the policy alone), ``qp_ms``,
     ``num_slack`` (agents whose QP needed slack), ``num_failed`` (agents given the braking fallback),
     ``num_active`` (agents whose command the filter changed by more than ``active_tol``), ``num_agents``, and per
-    agent ``slack_mask`` / ``failed_mask`` ``(B, N)`` numpy bool (its QP needed slack / it braked).
+    agent ``slack_mask`` / ``failed_mask`` / ``active_mask`` ``(B, N)`` numpy bool (its QP needed slack / it
+    braked / its command was changed), and ``accel_command`` ``(B, N, 3)`` the filtered world acceleration (m/s^2,
+    braking included) that ``u`` tracks (what a setpoint-flying low level flies instead: ``egcbf eval --low-level``).
     """
 
     name = "filtered"
@@ -396,8 +398,10 @@ class FilteredController:
             ctrl_ms=1e3 * (time.perf_counter() - t0),
             num_active=int(active.sum()),
             num_agents=int(active.numel()),
+            active_mask=active.cpu().numpy(),
             a_safe=a,
             a_policy=a_pi,
+            accel_command=a.to(state.x.dtype).to(state.x.device),
         )
         return u.to(state.x.dtype).to(state.x.device), info
 

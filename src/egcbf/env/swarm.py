@@ -285,14 +285,26 @@ def _in_cone(offset: Tensor, direction: Tensor, reach: float) -> Tensor:
     return (dist <= reach) | (cos_angle > torch.sqrt(1 - ratio**2))
 
 
-def advance(robot: Robot, config: EnvConfig, x: Tensor, u: Tensor, goals: Tensor) -> tuple[Tensor, Tensor]:
+def advance(
+    robot: Robot, config: EnvConfig, x: Tensor, u: Tensor, goals: Tensor, setpoint: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """One control period of the dynamics, as :meth:`SwarmEnv.step` integrates it: ``u`` ``(B, N, k)`` clipped to
     the actuator box (``config.clip_control``) and held, the robot's integrator, agents at their goals parked
     (``robot.goal_freeze_radius``). Returns the next states ``(B, N, S)`` and the control applied. No checks (the
-    environment's step makes them); also what :mod:`egcbf.faults` predicts an agent's state with."""
-    if config.clip_control:
-        u = robot.clip_control(u)
-    x_next = robot.step(x, u, config.dt, config.substeps, config.integrator)
+    environment's step makes them); also what :mod:`egcbf.faults` predicts an agent's state with.
+
+    ``setpoint`` (a robot that :attr:`~egcbf.robots.base.Robot.flies_setpoints`, the quadrotor): a world
+    acceleration command ``(B, N, d)`` (m/s^2) flown as a full-state setpoint instead of ``u`` by the robot's
+    firmware-like tracker (:meth:`~egcbf.robots.base.Robot.fly_setpoint`; the quadrotor's:
+    :func:`egcbf.robots.quadrotor.setpoint.track_setpoint`); ``u`` is then ignored and the control returned is the
+    tracker's mean over the period.
+    """
+    if setpoint is not None:
+        x_next, u = robot.fly_setpoint(x, setpoint, config.dt, config.integrator, config.clip_control)
+    else:
+        if config.clip_control:
+            u = robot.clip_control(u)
+        x_next = robot.step(x, u, config.dt, config.substeps, config.integrator)
     if robot.goal_freeze_radius > 0:  # agents at their goals park (GCBF+'s Dubins car; Robot.parked)
         gap = torch.linalg.vector_norm(robot.positions(x) - goals.to(x_next.dtype), dim=-1)
         x_next = torch.where((gap < robot.goal_freeze_radius)[..., None], robot.parked(x), x_next)
@@ -379,8 +391,11 @@ class SwarmEnv:
         return state.to(device=self.device, dtype=self.dtype)
 
     # ----------------------------------------------------------------------------------------------- step
-    def step(self, state: SwarmState, u: Tensor) -> tuple[SwarmState, StepInfo]:
-        """Integrate every agent for one control period with ``u`` ``(B, N, 4)`` held constant.
+    def step(self, state: SwarmState, u: Tensor, setpoint: Tensor | None = None) -> tuple[SwarmState, StepInfo]:
+        """Integrate every agent for one control period with ``u`` ``(B, N, 4)`` held constant; or, with
+        ``setpoint`` (a robot that ``flies_setpoints``: the quadrotor), fly that world acceleration command
+        ``(B, N, d)`` through its firmware-like setpoint tracker instead (:func:`advance`; ``u`` is then checked but
+        not applied).
 
         A state that enters the simulator (``state.t == 0``: from :meth:`reset` or built by hand) is validated
         first (:meth:`SwarmState.validate`: finite states, rotation attitudes, finite goals and obstacle centres,
@@ -400,7 +415,7 @@ class SwarmEnv:
         if state.t == 0:
             state.validate()
         u_in = u.to(state.x.dtype)
-        x, u = advance(self.robot, c, state.x, u_in, state.goals)
+        x, u = advance(self.robot, c, state.x, u_in, state.goals, setpoint)
         if not bool(torch.isfinite(x).all() & torch.isfinite(u_in).all()):
             if not bool(torch.isfinite(u_in).all()):
                 bad = (~torch.isfinite(u_in)).any(-1).nonzero()[0].tolist()

@@ -10,6 +10,17 @@ A controller is any callable ``controller(state, config) -> (u, info)`` with ``u
 dict that may hold ``qp_ms`` (solve time of this step, ms), ``num_slack`` / ``num_failed`` (QP counts), ``u_ref``
 (the nominal control it started from; computed here if absent), and for a run-time filter ``num_active`` /
 ``num_agents`` (agents whose command it changed, of how many: the row's ``filter_active``).
+
+``low_level`` (:data:`LOW_LEVELS`) is what turns a controller's command into rotor thrusts: ``"attitude"`` (default)
+applies ``u``, which for the acceleration interface and the run-time filters is our attitude loop tracking their
+acceleration command; ``"setpoint"`` flies that command (``info["accel_command"]``, world frame, m/s^2) as a
+full-state setpoint through the firmware-like tracker (:func:`egcbf.env.swarm.advance`,
+:mod:`egcbf.robots.quadrotor.setpoint`) instead: the substitution a Crazyflie makes. A controller without an
+acceleration command (the torque interface, the hand-crafted QPs' body controls) cannot be flown so, and says so.
+
+``on_step(config, state, u, info)`` (:data:`StepCallback`) watches an episode batch without changing it: called
+before every step with the true state ``(B, N, ...)``, the control ``u`` the controller chose and its ``info``, and
+once after the last step with the final state and ``u = info = None`` (``egcbf eval --record``, :mod:`egcbf.ros`).
 """
 
 from __future__ import annotations
@@ -33,9 +44,11 @@ from ..robots import DEFAULT_ROBOT
 from .metrics import EpisodeStats, summarize
 
 __all__ = [
+    "LOW_LEVELS",
     "MAX_AGENTS_PER_BATCH",
     "PER_EPISODE_KEYS",
     "EpisodeRecord",
+    "StepCallback",
     "concat_states",
     "episode_batch",
     "episode_seed",
@@ -45,10 +58,16 @@ __all__ = [
 ]
 
 Controller = Callable[[SwarmState, EnvConfig], tuple[Tensor, dict]]
+#: ``on_step(config, state, u, info)`` (module doc): ``u`` and ``info`` are ``None`` at the final state
+StepCallback = Callable[[EnvConfig, SwarmState, Tensor | None, dict | None], None]
 
 
 #: episodes of one swarm size are simulated together, up to this many agents in all (``batch`` unset)
 MAX_AGENTS_PER_BATCH = 4096
+
+#: how a controller's command reaches the rotors (module doc): our attitude loop's ``u``, or the firmware-like
+#: setpoint tracker flying the acceleration command
+LOW_LEVELS = ("attitude", "setpoint")
 
 #: the per-episode values a row keeps (``row["per_episode"][key]``, one per episode, in episode order)
 PER_EPISODE_KEYS = ("safe_rate", "reach_rate", "success_rate", "cost", "reward")
@@ -117,6 +136,33 @@ def _require_fault_support(controller, faults: FaultConfig) -> None:
         raise ValueError(f"faults {faults.spec()!r}: {why}")
 
 
+def _check_low_level(low_level: str, config: EnvConfig, faults: FaultConfig | None) -> None:
+    """Raise ``ValueError`` for a ``low_level`` that is unknown or that cannot fly this robot or these faults."""
+    if low_level not in LOW_LEVELS:
+        raise ValueError(f"low_level must be one of {LOW_LEVELS}, got {low_level!r}")
+    if low_level == "attitude":
+        return
+    if not config.make_robot().flies_setpoints:
+        raise ValueError(f"low_level 'setpoint' flies a robot's firmware-like setpoint tracker (the quadrotor's: the "
+                         f"Crazyflie's Mellinger controller); the {config.robot} has none")  # fmt: skip
+    if faults is not None and not faults.is_null:
+        raise ValueError("low_level 'setpoint' with faults: the faults corrupt the body control u, which the "
+                         "setpoint tracker does not apply; evaluate it without faults")  # fmt: skip
+
+
+def _setpoint(controller, info: dict) -> Tensor:
+    """The acceleration command a setpoint-flying low level tracks (``info["accel_command"]``), or ``ValueError``."""
+    a = info.get("accel_command")
+    if a is None:
+        name = getattr(controller, "name", type(controller).__name__)
+        raise ValueError(
+            f"low_level 'setpoint' flies the controller's world acceleration command (info['accel_command']); "
+            f"{name!r} gives none (its command is not an acceleration, e.g. the torque interface, or it returns body "
+            "controls only): evaluate it with low_level 'attitude'"
+        )
+    return a
+
+
 def run_episodes(
     controller: Controller,
     config: EnvConfig,
@@ -128,6 +174,8 @@ def run_episodes(
     progress: tqdm | None = None,
     faults: FaultConfig | None = None,
     fault_rotation: Tensor | None = None,
+    on_step: StepCallback | None = None,
+    low_level: str = "attitude",
 ) -> tuple[EpisodeStats, dict, EpisodeRecord | None]:
     """Simulate ``len(seeds)`` episodes together; returns their stats, timing lists and (optionally) the record
     of the first episode.
@@ -135,10 +183,12 @@ def run_episodes(
     ``faults`` (:mod:`egcbf.faults`; ``None`` or all zero: the perfect world, bit for bit): the controller sees the
     agents' corrupted perception, its commands reach the rotors corrupted, wind pushes the agents; the metrics read
     the true states and count the cooperative agents only. ``fault_rotation`` rotates the faults' world-frame draws
-    (:class:`egcbf.faults.FaultProcess`; the equivariance tests)."""
+    (:class:`egcbf.faults.FaultProcess`; the equivariance tests). ``on_step``: see the module doc (outside the
+    timed step). ``low_level``: ``"attitude"`` or ``"setpoint"`` (module doc)."""
     seeds = list(seeds)
     if not seeds:
         raise ValueError("run_episodes: seeds is empty; give at least one episode seed")
+    _check_low_level(low_level, config, faults)
     single = dataclasses.replace(config, num_envs=1)
     env1 = SwarmEnv(single, device=device, dtype=dtype)
     state = concat_states([env1.reset(s) for s in seeds])
@@ -164,12 +214,16 @@ def run_episodes(
         t0 = time.perf_counter()
         seen = state if process is None else process.observe(state)
         u, info = controller(seen, env.config)
+        if on_step is not None:
+            t_watch = time.perf_counter()
+            on_step(env.config, state, u, info)
+            t0 += time.perf_counter() - t_watch  # the step time is the controller's and the simulator's
         u_ref = info.get("u_ref")
         if u_ref is None:  # the reward compares u with the nominal control at the same state
             u_ref = robot.nominal_control(seen.x, seen.goals)
         if process is not None:
             u = process.actuate(u, state)
-        state, step_info = env.step(state, u)
+        state, step_info = env.step(state, u, _setpoint(controller, info) if low_level == "setpoint" else None)
         if process is not None and process.pushes:
             state = process.push(state)
             step_info = env.info(state, u=step_info.u)
@@ -186,6 +240,8 @@ def run_episodes(
             rec.collided.append(step_info.collision[0].detach().cpu().clone())
         if progress is not None:
             progress.update(len(seeds))
+    if on_step is not None:
+        on_step(env.config, state, None, None)
     return stats, timing, rec
 
 
@@ -208,6 +264,8 @@ def evaluate(
     on_size: Callable[[list[dict], EpisodeRecord | None], None] | None = None,
     robot: str = DEFAULT_ROBOT,
     faults: FaultConfig | None = None,
+    on_step: StepCallback | None = None,
+    low_level: str = "attitude",
 ) -> tuple[list[dict], dict[int, EpisodeRecord]]:
     """Evaluate a controller at each swarm size; returns one metrics row per size (see ``docs/metrics.md``; its
     ``per_episode`` holds the lists of :data:`PER_EPISODE_KEYS` over the episodes, in episode order) and the recorded
@@ -217,7 +275,9 @@ def evaluate(
     record (or ``None``): the CLI writes its results there, so that a later failure loses no finished size.
     ``robot`` (:mod:`egcbf.robots`) sets the environment's defaults (:meth:`EnvConfig.for_robot`). ``faults``
     (:mod:`egcbf.faults`): evaluate under these faults (see :func:`run_episodes`); the rows then hold ``faults``, the
-    spec string.
+    spec string. ``on_step`` (module doc) watches the first batch of episodes of each size (its first episode is
+    environment 0 of the states it is given). ``low_level`` (module doc): ``"attitude"`` or ``"setpoint"``; the rows
+    of ``"setpoint"`` hold ``low_level``.
     """
     if not callable(make_controller):
         raise TypeError(
@@ -260,6 +320,8 @@ def evaluate(
                 record=record and k == 0,
                 progress=bar,
                 faults=faults,
+                on_step=on_step if k == 0 else None,
+                low_level=low_level,
             )
             per_episode.append(stats.per_episode())
             for key in ("step_ms", "qp_ms"):
@@ -277,6 +339,8 @@ def evaluate(
         row["step_ms_median"] = statistics.median(timing["step_ms"])
         if faults is not None and not faults.is_null:
             row["faults"] = faults.spec()
+        if low_level != "attitude":
+            row["low_level"] = low_level
         if timing["qp_ms"] and max(timing["qp_ms"]) > 0:  # controllers without a QP report 0
             row["qp_ms_median"] = statistics.median(timing["qp_ms"])
             row["qp_slack_steps"] = timing["num_slack"]

@@ -96,6 +96,9 @@ class Robot:
     #: whether the robot's decentralized CBF-QP can read its obstacle rows from each agent's own LiDAR hits instead
     #: of the obstacle map (``egcbf eval --obstacle-sensing lidar``)
     lidar_obstacle_rows: ClassVar[bool] = False
+    #: whether the robot can fly a world acceleration command as a full-state setpoint through a firmware-like
+    #: tracker (:meth:`fly_setpoint`; ``egcbf eval --low-level setpoint``)
+    flies_setpoints: ClassVar[bool] = False
     #: whether the graph's mirror in a horizontal plane is defined (``SwarmGraph.reflect_z``: a 3-D robot whose
     #: node features are a velocity, a body-to-world rotation and body rates)
     mirror_z: ClassVar[bool] = False
@@ -128,6 +131,16 @@ class Robot:
     def step(self, x: Tensor, u: Tensor, dt: float, substeps: int = 1, integrator: str = "rk4") -> Tensor:
         """The state after ``dt`` with ``u`` held (no clipping here: :meth:`clip_control` first)."""
         raise _not_implemented(self, "step")
+
+    def fly_setpoint(
+        self, x: Tensor, accel: Tensor, dt: float, integrator: str = "rk4", clip: bool = True
+    ) -> tuple[Tensor, Tensor]:
+        """One control period ``dt`` (s) of ``x`` ``(*batch, S)`` flying the world acceleration command ``accel``
+        ``(*batch, d)`` (m/s^2) as a full-state setpoint (position and velocity held at their values now) through
+        the robot's firmware-like tracker: the next states and the mean control over the period. Only for a robot
+        with :attr:`flies_setpoints`."""
+        raise ValueError(f"the {self.name} has no setpoint tracker (flies_setpoints is False): evaluate it with its "
+                         "own low level")  # fmt: skip
 
     def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
         """``lo, hi`` ``(control_dim,)``: the actuator box (dtype and device of ``like``)."""

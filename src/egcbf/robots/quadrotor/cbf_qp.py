@@ -213,6 +213,16 @@ class _CBFQPBase:
             cfg = replace(cfg, **overrides)
         self.config = cfg
 
+    def resolved(self, env_config) -> tuple[BarrierConfig, AccelBounds]:
+        """The barrier and the acceleration bounds the QPs run with in ``env_config``'s environment: the barrier
+        with the environment's agent radius and, where its ``cull_radius`` is ``None``, the communication radius;
+        the configured bounds or :func:`default_bounds` of the environment's quadrotor."""
+        cfg = self.config
+        barrier = replace(cfg.barrier, agent_radius=float(env_config.agent_radius))
+        if barrier.cull_radius is None:
+            barrier = replace(barrier, cull_radius=float(env_config.comm_radius))
+        return barrier, cfg.bounds or default_bounds(env_config.params, cfg.gains)
+
     def _prepare(self, state, env_config, a_ref: np.ndarray | None = None) -> _Prepared:
         """The QPs' data; ``a_ref`` ``(B, N, 3)`` replaces the nominal acceleration as the reference (which is then
         not computed)."""
@@ -222,10 +232,7 @@ class _CBFQPBase:
             state.validate()
         cfg = self.config
         params = env_config.params
-        barrier = replace(cfg.barrier, agent_radius=float(env_config.agent_radius))
-        if barrier.cull_radius is None:
-            barrier = replace(barrier, cull_radius=float(env_config.comm_radius))
-        bounds = cfg.bounds or default_bounds(params, cfg.gains)
+        barrier, bounds = self.resolved(env_config)
         if barrier.kind == "wang" and barrier.brake_accel > bounds.inscribed:
             raise ValueError(
                 f"brake_accel = {barrier.brake_accel:g} m/s^2 exceeds the deceleration the bounds allow in every "

@@ -22,6 +22,7 @@ from groupcanon.groups import SE2xR
 from ..base import Robot
 from . import dynamics as dyn
 from .nominal import desired_heading, nominal_control, reject_disturbance
+from .setpoint import track_setpoint
 
 __all__ = ["Quadrotor"]
 
@@ -40,6 +41,7 @@ class Quadrotor(Robot):
     actuator_groups: ClassVar[dict[str, tuple[int, ...]]] = {"torque": (0, 1, 2), "thrust": (3,)}
     run_time_filters: ClassVar[bool] = True
     lidar_obstacle_rows: ClassVar[bool] = True
+    flies_setpoints: ClassVar[bool] = True
     mirror_z: ClassVar[bool] = True
     training_recipe: ClassVar[str] = "paper"
 
@@ -72,6 +74,18 @@ class Quadrotor(Robot):
 
     def step(self, x: Tensor, u: Tensor, dt: float, substeps: int = 1, integrator: str = "rk4") -> Tensor:
         return dyn.step(x, u, dt, self.params, substeps, integrator)
+
+    def fly_setpoint(
+        self, x: Tensor, accel: Tensor, dt: float, integrator: str = "rk4", clip: bool = True
+    ) -> tuple[Tensor, Tensor]:
+        """The Crazyflie firmware's Mellinger controller at its inner rate (:func:`.setpoint.track_setpoint`, its
+        default gains) holding position and velocity at their values now, the acceleration ``accel``, and the yaw
+        the attitude loop holds (:func:`.nominal.desired_heading`), as the ROS bridge sends them
+        (:mod:`egcbf.ros.codecs`)."""
+        heading = desired_heading(x[..., dyn.ROT].reshape(*x.shape[:-1], 3, 3))
+        yaw = torch.atan2(heading[..., 1], heading[..., 0])
+        return track_setpoint(x, x[..., dyn.P], x[..., dyn.V], accel.to(x), yaw, dt, params=self.params,
+                              method=integrator, clip=clip)  # fmt: skip
 
     def control_bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
         c = dyn.consts(self.params, like)

@@ -55,6 +55,22 @@ def test_a_gcbfplus_cell_of_other_weights_is_not_current(monkeypatch):
     assert gen.current("nominal", row) is not None  # a hand-crafted controller's cell has no checkpoint
 
 
+def test_the_marl_baseline_block_is_generated_from_its_files():
+    """docs/marl.md's IPPO-Lagrangian block is what docs/gen_marl.py writes from checkpoints/ippo-lag/ and the
+    committed reproduction cells (regenerate after new cells or a new checkpoint)."""
+    import importlib.util
+
+    from egcbf.io.report import replace_block
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("gen_marl", root / "docs" / "gen_marl.py")
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    text = (root / "docs" / "marl.md").read_text()
+    assert replace_block(text, "marl-baseline", gen.block()) == text
+    assert (root / "docs" / "figures" / "marl_training.png").exists()
+
+
 def test_the_setpoint_substitution_block_is_generated_from_its_runs():
     """docs/deploy.md's setpoint-substitution block is what docs/gen_setpoint.py writes from the committed runs of
     docs/results/setpoint/ (skipped until they are committed; regenerate after new runs)."""

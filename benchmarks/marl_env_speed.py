@@ -11,14 +11,15 @@ small cost everywhere, so that the swarm moves as in an episode and the neighbou
 * ``TorchRL``: ``egcbf.env.torchrl.SwarmTorchRLEnv.step`` (the same work, in a TensorDict, with TorchRL's checks);
 * ``PettingZoo``: ``egcbf.env.pettingzoo`` (one scene; per-agent NumPy dictionaries), only where ``B = 1``.
 
-A second table splits ``SwarmTask.step`` into its parts, timed inside the same steps (median per step): the
+A second table splits ``SwarmTask.step`` into its parts, timed inside the same steps (mean per step): the
 simulator's step (dynamics and masks), the LiDAR scan and the neighbour rows of the observation (the Verlet list's
-searches amortized over the steps they serve), and the rest (nominal command, reward, cost). It says what bounds
-the ratio of any path that builds these observations to the bare simulator.
+searches amortized over the steps they serve), and the rest (nominal command, reward, cost, the gathers). It says
+what bounds the ratio of any path that builds these observations to the bare simulator.
 
 Settings: ``8 x 512`` at Table I's density (l = 4 m) without and with 8 obstacles, and ``1 x 4096`` at the same
-density (l = 8 m). Median over ``--steps`` steps after ``--warmup``, float32, one torch thread; the paths are timed
-in turn within one process, so their ratios share the machine's state.
+density (l = 8 m). Mean over ``--steps`` steps after ``--warmup`` (the rate a run sees: the neighbour list's
+searches, every few steps, included), float32, one torch thread; the paths are timed in turn within one process,
+so their ratios share the machine's state.
 
     python benchmarks/marl_env_speed.py            # writes its section of docs/benchmarks.md and docs/marl.md
     python benchmarks/marl_env_speed.py --steps 3 --warmup 1 --no-write
@@ -42,7 +43,7 @@ from egcbf.io.report import cpu_name, quote_section, replace_section
 SETTINGS = ((8, 512, 4.0, 0), (8, 512, 4.0, 8), (1, 4096, 8.0, 0))
 
 
-def _median_step(step, steps: int, warmup: int) -> float:
+def _mean_step(step, steps: int, warmup: int) -> float:
     for _ in range(warmup):
         step()
     times = []
@@ -50,7 +51,7 @@ def _median_step(step, steps: int, warmup: int) -> float:
         t0 = time.perf_counter()
         step()
         times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return statistics.fmean(times)  # the rate a run sees: the Verlet searches of a few steps included
 
 
 def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int, seed: int = 0) -> dict:
@@ -67,7 +68,7 @@ def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int
         s = box["state"]
         box["state"], _ = env.step(s, robot.nominal_control(s.x, s.goals))
 
-    times["SwarmEnv.step"] = _median_step(env_step, steps, warmup)
+    times["SwarmEnv.step"] = _mean_step(env_step, steps, warmup)
     box["state"] = start
 
     def env_graph_step():
@@ -75,10 +76,10 @@ def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int
         box["state"], _ = env.step(s, robot.nominal_control(s.x, s.goals))
         build_graph(box["state"], cfg)
 
-    times["SwarmEnv.step + build_graph"] = _median_step(env_graph_step, steps, warmup)
+    times["SwarmEnv.step + build_graph"] = _mean_step(env_graph_step, steps, warmup)
     task = SwarmTask(cfg, dtype=torch.float32)
     task.reset(seed)
-    times["SwarmTask.step"] = _median_step(lambda: task.step(robot.nominal_control(task.state.x, task.state.goals)),
+    times["SwarmTask.step"] = _mean_step(lambda: task.step(robot.nominal_control(task.state.x, task.state.goals)),
                                            steps, warmup)  # fmt: skip
     parts = _task_parts(cfg, seed, steps, warmup)
     try:
@@ -95,7 +96,7 @@ def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int
             td["agents", "action"] = robot.nominal_control(obs["state"], obs["goal"])
             box["td"] = tenv.step(td)["next"]
 
-        times["TorchRL"] = _median_step(torchrl_step, steps, warmup)
+        times["TorchRL"] = _mean_step(torchrl_step, steps, warmup)
     if b == 1:
         try:
             from egcbf.env.pettingzoo import parallel_env
@@ -110,7 +111,7 @@ def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int
                 u = robot.nominal_control(s.x, s.goals)[0].numpy()
                 penv.step({a: u[i] for i, a in enumerate(penv.possible_agents)})
 
-            times["PettingZoo"] = _median_step(pettingzoo_step, steps, warmup)
+            times["PettingZoo"] = _mean_step(pettingzoo_step, steps, warmup)
     return {"B": b, "N": n, "l": area, "obstacles": obstacles, "seconds": times, "parts": parts}
 
 
@@ -142,11 +143,8 @@ def _task_parts(cfg: EnvConfig, seed: int, steps: int, warmup: int) -> dict[str,
         t0 = time.perf_counter()
         task.step(robot.nominal_control(task.state.x, task.state.goals))
         total.append(time.perf_counter() - t0)
-    # the mean of the neighbour rows: a search every few steps is their cost, which a median would hide
-    out = {"simulator step": statistics.median(spent["simulator step"]),
-           "LiDAR scan": statistics.median(spent["LiDAR scan"]),
-           "neighbour rows": statistics.fmean(spent["neighbour rows"])}  # fmt: skip
-    out["rest"] = max(statistics.median(total) - sum(out.values()), 0.0)
+    out = {name: statistics.fmean(v) for name, v in spent.items()}
+    out["rest"] = statistics.fmean(total) - sum(out.values())
     return out
 
 
@@ -192,13 +190,13 @@ def main(argv=None) -> int:
               + ", ".join(f"{p} {1e3 * t:.1f} ms" for p, t in row["seconds"].items()), flush=True)  # fmt: skip
         rows.append(row)
     body = (
-        f"`python benchmarks/marl_env_speed.py`: {cpu_name()}, 1 thread, torch {torch.__version__}, float32, median of "
+        f"`python benchmarks/marl_env_speed.py`: {cpu_name()}, 1 thread, torch {torch.__version__}, float32, mean of "
         f"{args.steps} steps after {args.warmup}; each cell agent-steps per second and, in brackets, its ratio to "
         "`SwarmEnv.step` alone measured in the same run. Paths (the script's docstring): the simulator alone; with "
         "the graph the repository's learners build; `SwarmTask` (observations, rewards, costs as tensors); the "
         "TorchRL environment; the PettingZoo environment (one scene only).\n\n" + table(rows) + "\n\n"
-        "Where `SwarmTask.step`'s time goes (median per step, the neighbour rows' mean: their Verlet searches "
-        "amortized; `rest`: nominal command, reward, cost). The last column is the observation's cost over the "
+        "Where `SwarmTask.step`'s time goes (mean per step; the neighbour rows' Verlet searches amortized; `rest`: "
+        "nominal command, reward, cost, the gathers). The last column is the observation's cost over the "
         "simulator step's: a path that builds these observations steps at most `1 / (1 + that)` times the bare "
         "simulator's agent-steps per second.\n\n" + parts_table(rows)
     )

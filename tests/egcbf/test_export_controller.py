@@ -3,7 +3,8 @@ its standalone runtime (egcbf.deploy.runtime) compute what egcbf.deploy.agent.Ag
 
 float64, the filter part fed the PyTorch policy's command: rows, box, attitude loop and fallback within 1e-9 of the
 PyTorch filter's; the QP solved exactly (a KKT certificate on every scene, and against an enumeration of active
-sets on random QPs); the command within 1e-9 of the PyTorch filter's, QP active or not. float32, the
+sets on random QPs); the command within 1e-9 of the PyTorch filter's wherever that filter's own solve is exact
+(QP inactive), and within its interior-point accuracy (``IPM_TOL``) where its polishing step is refused. float32, the
 whole exported directory (ONNX policy + runtime) against the PyTorch controller: ``F32_TOL``. The runtime runs in a
 fresh interpreter that never imports torch, egcbf or groupcanon; bad directories and inputs are named."""
 
@@ -34,6 +35,9 @@ ROOT = Path(__file__).resolve().parents[2] / "checkpoints"
 F64 = torch.float64
 MAX_NEIGHBOURS, MAX_HITS = 8, 16
 EXACT = 1e-9
+#: the PyTorch filter's QP where a CBF row is active at zero slack: its interior-point iterate (the polishing step
+#: refuses the slack row's multiplier, ~w1 = 1e3), accurate to ~1e-6 m/s^2 (command units: / 5 m/s^2)
+IPM_TOL = 1e-5
 #: float32 ONNX policy against the PyTorch float32 policy, through the filter and the attitude loop
 F32_TOL = 1e-5
 
@@ -108,7 +112,8 @@ def _kkt_error(z: np.ndarray, M, b, H, g) -> float:
 @settings(max_examples=3, deadline=None)
 def test_the_filter_is_the_per_agent_and_swarm_filters(method, seed, n, area, obstacles):
     """float64, fed the PyTorch policy's command: the runtime's QP is solved exactly (KKT), and its command and
-    control are the per-agent and swarm filters' within 1e-9, QP active or not."""
+    control are the per-agent and swarm filters' within 1e-9 where the QP is inactive, within the PyTorch solver's
+    accuracy where it is active."""
     _, cfg, agent, rt = _filtered(method)
     env, state, u_all, acc = _scene(cfg, n, area, obstacles, seed)
     for i, x, goal, others, hits, a, obs in _agents(env, state, acc):
@@ -119,14 +124,15 @@ def test_the_filter_is_the_per_agent_and_swarm_filters(method, seed, n, area, ob
         assert info["failed"] == ref["failed"]
         xs = torch.cat((x[None], others)).numpy()
         assert _kkt_error(np.append(info["a_safe"], info["slack"]), *_qp(rt, xs, a.numpy(), command, obs_np)) <= EXACT
+        tol = EXACT if np.array_equal(info["command"], command) else IPM_TOL
         for want in (u_ref.numpy(), u_all[0, i].numpy()):
-            assert np.abs(u - want).max() <= EXACT, (i, info)
-        assert np.abs(info["command"] - ref["command"].numpy()).max() <= EXACT, (i, info)
+            assert np.abs(u - want).max() <= tol, (i, info)
+        assert np.abs(info["command"] - ref["command"].numpy()).max() <= tol, (i, info)
 
 
 def test_a_crowded_scene_exercises_the_qp():
     """12 agents in a 0.9 m cube among 3 obstacles: the filter changes several commands; the runtime's are the
-    PyTorch filter's within 1e-9."""
+    PyTorch filter's within that filter's solver accuracy."""
     _, cfg, agent, rt = _filtered("egcbf+")
     env, state, _, acc = _scene(cfg, 12, 0.9, 3, 5)
     changed = 0
@@ -135,7 +141,7 @@ def test_a_crowded_scene_exercises_the_qp():
         command, obs_np = ref["policy_command"].numpy(), tuple(t.numpy() for t in obs)
         _, info = rt.filter(x.numpy(), command, others.numpy(), accelerations=a.numpy(), obstacles=obs_np)
         changed += not np.array_equal(info["command"], command)
-        assert np.abs(info["command"] - ref["command"].numpy()).max() <= EXACT
+        assert np.abs(info["command"] - ref["command"].numpy()).max() <= IPM_TOL
     assert changed >= 4
 
 

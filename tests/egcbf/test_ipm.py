@@ -101,27 +101,6 @@ def test_most_random_qps_converge_and_polish_exactly():
     assert (objective(xs) <= objective(r) + 1e-10 * (1 + objective(r).abs())).all()
 
 
-@given(seed=st.integers(0, 2**20), weight=st.floats(1e2, 1e4))
-@settings(max_examples=20, deadline=None)
-def test_polishing_is_exact_where_a_multiplier_is_large(seed, weight):
-    """The decentralized CBF-QP's case: ``min 1/2 |a - a_nom|^2 + w1 s`` with a row ``n . a + s >= b`` that binds at
-    ``s = 0`` gives ``s >= 0`` the multiplier ``w1`` (here up to 1e4). The polished solution is the exact KKT point
-    (``a = a_nom + (b - n . a_nom) n``, ``s = 0``) to 1e-12, not the interior-point iterate."""
-    g = torch.Generator().manual_seed(seed)
-    a_nom = torch.randn(1, 3, generator=g, dtype=F64)
-    normal = torch.nn.functional.normalize(torch.randn(1, 3, generator=g, dtype=F64), dim=-1)
-    b = (normal * a_nom).sum(-1) + 0.5 + torch.rand(1, generator=g, dtype=F64)  # a_nom violates the row
-    P = torch.diag(torch.tensor([1.0, 1.0, 1.0, 1e-6], dtype=F64))
-    q = torch.cat((-a_nom, torch.full((1, 1), weight, dtype=F64)), -1)
-    G = torch.zeros(1, 2, 4, dtype=F64)
-    G[0, 0, :3], G[0, 0, 3], G[0, 1, 3] = -normal[0], -1.0, -1.0  # -(n . a + s) <= -b, -s <= 0
-    h = torch.cat((-b, torch.zeros(1, dtype=F64)))[None]
-    x, ok, _ = solve_dense_ipm(P, q, G, h)
-    want = a_nom + (b - (normal * a_nom).sum(-1))[:, None] * normal
-    assert ok.all()
-    assert (x[:, :3] - want).abs().max() <= 1e-12 and x[:, 3].abs().max() <= 1e-12
-
-
 @given(seed=st.integers(0, 2**20), n=st.integers(1, 5), m=st.integers(1, 8))
 @settings(max_examples=15, deadline=None)
 def test_a_batch_is_solved_as_its_problems_alone(seed, n, m):

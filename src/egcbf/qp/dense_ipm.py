@@ -115,8 +115,8 @@ def polish_dense(
     ``P`` ``(n, n)`` or ``(M, n, n)``, ``q``, ``G``, ``h``: guess the active rows (``z > s``), solve the
     equality-constrained QP's KKT system ``[P A'; A -1e-12 I] [x; lam] = [-q; h_A]`` (LU), and keep the result where
     it is primal feasible and its multipliers are non-negative (``tol`` relative to ``1 + |h|_inf``): it then meets
-    the KKT conditions. The regularization's shift of the active rows by ``1e-12 lam`` is removed by one step of
-    iterative refinement against the unregularized system (the same factors). The active rows are gathered first
+    the KKT conditions, up to the regularization's shift of the active rows by ``1e-12 lam`` (so a row whose
+    multiplier exceeds ``100 (1 + |h|_inf)`` fails the feasibility test). The active rows are gathered first
     (padded to the largest count in the batch by decoupled rows ``lam = 0``; the inactive rows' multipliers are 0).
     Returns ``(x, polished (M,))``."""
     mq, m, n = G.shape
@@ -132,13 +132,7 @@ def polish_dense(
     k[:, n:, :n] = ga
     k[:, n:, n:] = torch.diag_embed(torch.where(a_act, -1e-12, 1.0).to(x.dtype))
     rhs = torch.cat((-q, torch.where(a_act, h.gather(-1, order), 0.0)), -1)
-    lu, pivots, info = torch.linalg.lu_factor_ex(k)
-    sol = torch.linalg.lu_solve(lu, pivots, rhs[..., None])
-    # one step of iterative refinement against the unregularized system: removes the 1e-12 lam shift of the active
-    # rows (to 1e-24 lam^2), which a multiplier of 1e3 (a CBF row active at zero slack) would otherwise leave
-    exact = k.clone()
-    exact[:, n:, n:] = torch.diag_embed(torch.where(a_act, 0.0, 1.0).to(x.dtype))
-    sol = sol + torch.linalg.lu_solve(lu, pivots, rhs[..., None] - exact @ sol)
+    sol, info = torch.linalg.solve_ex(k, rhs[..., None])
     sol = sol[..., 0]
     xp, lam = sol[:, :n], sol[:, n:]
     hf = torch.where(h.abs() < INF / 2, h.abs(), torch.zeros_like(h))

@@ -177,6 +177,18 @@ def nominal_acceleration(
     return -k.kx * ex - k.kv * v
 
 
+def desired_attitude(force: Tensor, heading: Tensor) -> Tensor:
+    """The attitude ``R_d = [b1d b2d b3d]`` ``(*batch, 3, 3)`` that points the rotor axis along the desired force
+    ``force`` ``(*batch, 3)`` (world frame, non-zero) and keeps the body x axis as close as it can to the horizontal
+    ``heading`` ``(*batch, 3)``: ``b3d = F / |F|``, ``b2d = b3d x heading`` normalized, ``b1d = b2d x b3d`` (Lee et
+    al. 2010; the Crazyflie firmware's Mellinger controller builds the same frame)."""
+    b3d = force / torch.linalg.vector_norm(force, dim=-1, keepdim=True).clamp_min(1e-12)
+    b2d = torch.linalg.cross(b3d, heading.expand_as(b3d), dim=-1)
+    b2d = b2d / torch.linalg.vector_norm(b2d, dim=-1, keepdim=True).clamp_min(1e-12)
+    b1d = torch.linalg.cross(b2d, b3d, dim=-1)
+    return torch.stack((b1d, b2d, b3d), dim=-1)
+
+
 def track_acceleration(
     x: Tensor,
     accel: Tensor,
@@ -200,13 +212,7 @@ def track_acceleration(
     fh = fh * (lim / torch.linalg.vector_norm(fh, dim=-1, keepdim=True).clamp_min(lim))
     force = torch.cat((fh, fz), dim=-1)
 
-    # desired attitude
-    b3d = force / torch.linalg.vector_norm(force, dim=-1, keepdim=True)
-    b1c = desired_heading(R)
-    b2d = torch.linalg.cross(b3d, b1c, dim=-1)
-    b2d = b2d / torch.linalg.vector_norm(b2d, dim=-1, keepdim=True).clamp_min(1e-12)
-    b1d = torch.linalg.cross(b2d, b3d, dim=-1)
-    Rd = torch.stack((b1d, b2d, b3d), dim=-1)
+    Rd = desired_attitude(force, desired_heading(R))
 
     # attitude loop
     rt_rd = R.transpose(-1, -2) @ Rd

@@ -34,6 +34,7 @@ import torch
 from torch import Tensor
 
 from .dynamics import DEFAULT_DT, DEFAULT_METHOD, DEFAULT_PARAMS, QuadrotorParams, clip_control, step, unpack
+from .nominal import desired_attitude
 from .so3 import orthonormalize, vee
 
 __all__ = [
@@ -201,12 +202,8 @@ def setpoint_control(
     kp, kd, kR, kw, mlim, kdd = _gain_vectors(gains, x)
     force = params.mass * a_sp + kp * (p_sp - p) + kd * (v_sp - v)
     force = torch.cat((force[..., :2], force[..., 2:] + params.mass * params.gravity), dim=-1)
-    zd = force / torch.linalg.vector_norm(force, dim=-1, keepdim=True).clamp_min(1e-12)
     xc = torch.stack((torch.cos(yaw_sp), torch.sin(yaw_sp), torch.zeros_like(yaw_sp)), dim=-1)
-    yd = torch.linalg.cross(zd, xc.expand_as(zd), dim=-1)
-    yd = yd / torch.linalg.vector_norm(yd, dim=-1, keepdim=True).clamp_min(1e-12)
-    xd = torch.linalg.cross(yd, zd, dim=-1)
-    Rd = torch.stack((xd, yd, zd), dim=-1)
+    Rd = desired_attitude(force, xc)
     rt_rd = R.transpose(-1, -2) @ Rd
     e_r = vee(rt_rd.transpose(-1, -2) - rt_rd)  # no 1/2: the firmware's attitude error
     tau = -kR * e_r - kw * w

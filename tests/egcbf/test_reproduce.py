@@ -427,17 +427,22 @@ def test_reproduce_command(first, tmp_path):
 def test_training_seeds_and_scalability_cells(checkpoints, tmp_path):
     cfg = _cfg(checkpoints, tmp_path / "out", methods=("egcbf+", "nominal"), obstacles=0, train_seeds=(0, 1))
     cfg = SweepConfig(**{**cfg.__dict__, "seed_methods": ("egcbf+",), "scale_sizes": (4,), "scale_reference": 2,
-                         "scale_agent_episodes": 6})  # fmt: skip
+                         "scale_agent_episodes": 6, "long_steps": 7, "long_methods": ("egcbf+",)})  # fmt: skip
     l4 = cfg.scale_area(4)
     assert l4 == pytest.approx(1.5 * 2 ** (1 / 3), abs=1e-4)
     expected = {Cell("egcbf+", 0, n, s) for s in (0, 1) for n in (2, 3)} | {Cell("nominal", 0, n) for n in (2, 3)}
     expected |= {Cell("egcbf+", 0, 4, s, l4) for s in (0, 1)} | {Cell("nominal", 0, 4, None, l4)}
-    assert set(cfg.cells()) == expected
+    long_ = {Cell("egcbf+", 0, 4, s, l4, "none", 7) for s in (0, 1)}  # the second horizon: its methods only
+    assert set(cfg.cells()) == expected | long_ and set(cfg.long_cells()) == long_
     paths = {c.path(cfg.out).relative_to(cfg.out).as_posix() for c in cfg.cells()}
     assert {"egcbf+_obs0/N2.json", "egcbf+-s1_obs0/N2.json", "scale/egcbf+-s1_obs0/N4.json"} <= paths
-    assert len(paths) == len(expected)
+    assert "scale-7-steps/egcbf+-s1_obs0/N4.json" in paths
+    assert len(paths) == len(expected | long_)
     records = rp.sweep(cfg, progress=False, log=lambda s: None)
-    assert set(records) == expected
+    assert set(records) == expected | long_
+    long_rec = records[Cell("egcbf+", 0, 4, 1, l4, "none", 7)]
+    assert long_rec["key"]["max_steps"] == 7 and long_rec["meta"]["max_steps"] == 7
+    assert records[Cell("egcbf+", 0, 4, 1, l4)]["key"]["max_steps"] == 5  # the sweep's own horizon
     scale = records[Cell("egcbf+", 0, 4, 1, l4)]
     assert scale["key"]["episodes"] == 2 and scale["key"]["area"] == l4 and scale["meta"]["train_seed"] == 1
     assert scale["row"]["num_episodes"] == 2
@@ -447,6 +452,9 @@ def test_training_seeds_and_scalability_cells(checkpoints, tmp_path):
     rows, _ = evaluate(lambda c: ctrl, [4], area_size=l4, episodes=2, seed=3, max_steps=5, show_progress=False,
                        env_overrides=dict(tcfg.env_overrides))  # fmt: skip
     assert _metrics(scale["row"]) == _metrics(rows[0])
+    rows, _ = evaluate(lambda c: ctrl, [4], area_size=l4, episodes=2, seed=3, max_steps=7, show_progress=False,
+                       env_overrides=dict(tcfg.env_overrides))  # fmt: skip
+    assert _metrics(long_rec["row"]) == _metrics(rows[0])  # the long horizon's cell: the same episodes, 7 steps
     s0, s1 = (records[Cell("egcbf+", 0, 2, s)]["key"]["checkpoint_sha256"] for s in (0, 1))
     assert s0 != s1
     # the report: the mean over the seeds with its 95 % interval, the scalability rows, a summary from the cells
@@ -454,6 +462,11 @@ def test_training_seeds_and_scalability_cells(checkpoints, tmp_path):
     rp.write_report(cfg, records, report)
     text = report.read_text()
     assert "EGCBF+ (2 seeds)" in text and "Scalability past Table I" in text and f"l = {l4:g}" in text
+    horizon = text.split("<!-- horizon:begin -->")[1].split("<!-- horizon:end -->")[0]
+    long_rows = [records[Cell("egcbf+", 0, 4, s, l4, "none", 7)]["row"] for s in (0, 1)]
+    long_safe = Stat([r["safe_rate"] for r in long_rows], [0, 1], [r["per_episode"]["safe_rate"] for r in long_rows])
+    assert "Safe % (7 steps)" in horizon and long_safe.text() in horizon and "| pending" not in horizon
+    assert "nominal (no CBF)" not in horizon  # not among the long horizon's methods
     rows = [records[Cell("egcbf+", 0, 3, s)]["row"] for s in (0, 1)]
     cell = Stat([r["safe_rate"] for r in rows], [0, 1], [r["per_episode"]["safe_rate"] for r in rows])
     assert cell.interval is not None and cell.text() in text and " [" in cell.text()
@@ -828,6 +841,7 @@ def test_committed_results_are_found_with_the_filtered_methods_in_the_default_se
         methods=unswapped,
         obstacle_methods=tuple(m for m in cfg.obstacle_methods if m in unswapped),
         scale_methods=tuple(m for m in cfg.scale_methods if m in unswapped),
+        long_steps=None,  # (the second horizon came later)
     )
     found = rp.load_cells(cfg)
     assert set(before.cells()) <= set(found) <= set(cfg.cells())
@@ -864,6 +878,7 @@ def test_the_paper_target_archive_is_complete_and_found():
         scale_methods=("gcbf+", "egcbf+"),
         checkpoints=root / "checkpoints" / "paper-target",
         out=out,
+        long_steps=None,
     )
     found = rp.load_cells(cfg)
     assert set(found) == set(cfg.cells()) and len(cfg.cells()) == 90
@@ -885,6 +900,7 @@ def test_the_fine_tuned_archive_cells_are_of_their_checkpoints():
         scale_methods=methods,
         checkpoints=root / "checkpoints" / "fine-tuned",
         out=root / "docs" / "results" / "fine-tuned",
+        long_steps=None,
     )
     found = rp.load_cells(cfg)
     stored = sorted(cfg.out.glob("**/N*.json"))
@@ -1033,3 +1049,22 @@ def test_a_quoted_block_is_rewritten_only_where_the_page_has_its_markers(tmp_pat
     assert not quote_section(tmp_path / "absent.md", "x", "new") and not (tmp_path / "absent.md").exists()
     assert relative_link(tmp_path / "docs" / "r.md", page) == "docs/r.md"
     assert relative_link(tmp_path / "docs" / "fig.png", tmp_path / "docs" / "r.md") == "fig.png"
+
+
+def test_the_long_horizon_flags(tmp_path):
+    """``--long-steps`` takes a number of steps or ``none`` (then the sweep has no second horizon), refuses anything
+    else, and the report-only regeneration command names it where it differs from the default."""
+    base = ["reproduce", "--methods", "nominal", "--num-agents", "2", "--scale-sizes", "4", "--out",
+            str(tmp_path / "cells"), "--report", str(tmp_path / "r.md"), "--report-only", "--no-progress"]  # fmt: skip
+    res = CliRunner().invoke(app, [*base, "--long-steps", "soon"])
+    assert res.exit_code == 2 and "--long-steps must be a number of steps or 'none'" in res.output
+    res = CliRunner().invoke(app, [*base, "--long-methods", "egcbf+"])  # not among --methods
+    assert res.exit_code == 2 and "--long-methods names egcbf+" in res.output
+    cfg = SweepConfig(methods=("nominal",), long_steps=None, out=tmp_path / "cells")
+    assert cfg.long_cells() == [] and "--long-steps none" in rp.provenance.regenerate_command(cfg, "r.md")
+    cfg = SweepConfig(methods=("nominal",), out=tmp_path / "cells")
+    assert {c.steps for c in cfg.long_cells()} == {384} and "--long-steps" not in rp.provenance.regenerate_command(
+        cfg, "r.md"
+    )
+    with pytest.raises(ValueError, match="long_steps must be >= 1"):
+        SweepConfig(long_steps=0)

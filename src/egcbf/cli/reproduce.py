@@ -45,6 +45,17 @@ _REPRO_METHODS = (
 _REPRO_OBSTACLE_METHODS = (
     "gcbf,gcbf+,egcbf,egcbf+,nominal,egcbf+:dcbf,gcbf+:dcbf,egcbf+:cbf,egcbf+:prior,nominal:dcbf,ippo-lag"
 )
+_LONG_METHODS = "nominal,nominal:dcbf,gcbf+,egcbf+,gcbf+:dcbf,egcbf+:dcbf"
+
+
+def _parse_steps(text: str) -> int | None:
+    """``--long-steps``: a positive episode length, or ``none``."""
+    if text.strip().lower() in ("", "none"):
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"--long-steps must be a number of steps or 'none', got {text!r}") from None
 
 
 def _parse_seeds(text: str) -> list[int]:
@@ -95,6 +106,17 @@ def reproduce(
     scale_agent_episodes: Annotated[
         int, typer.Option("--scale-agent-episodes", help="agent-episodes per scalability cell (episodes = this / N)")
     ] = 25_600,
+    long_steps: Annotated[
+        str,
+        typer.Option(
+            "--long-steps",
+            help="the scalability study's second horizon: LONG-METHODS at the SCALE-SIZES again with episodes of "
+            "this many steps ('none': skip)",
+        ),
+    ] = "384",
+    long_methods: Annotated[
+        str, typer.Option("--long-methods", help="methods of the long horizon (comma list, among --scale-methods)")
+    ] = _LONG_METHODS,
     seed: Annotated[int, typer.Option(help="evaluation seed")] = 0,
     max_steps: Annotated[int | None, typer.Option(help="episode length (default: the env's 256 steps)")] = None,
     checkpoints: Annotated[
@@ -161,6 +183,8 @@ def reproduce(
             else tuple(parse_sizes(scale_sizes, "--scale-sizes")),
             scale_methods=_parse_methods(scale_methods, "--scale-methods"),
             scale_agent_episodes=scale_agent_episodes,
+            long_steps=_parse_steps(long_steps),
+            long_methods=_parse_methods(long_methods, "--long-methods"),
             seed=seed,
             max_steps=max_steps,
             checkpoints=checkpoints,
@@ -180,6 +204,7 @@ def reproduce(
         "--obstacle-methods": (obstacle_methods, _REPRO_OBSTACLE_METHODS, "obstacle_methods"),
         "--seed-methods": (seed_methods, "gcbf+,egcbf+", "seed_methods"),
         "--scale-methods": (scale_methods, _REPRO_METHODS, "scale_methods"),
+        "--long-methods": (long_methods, _LONG_METHODS, "long_methods"),
     }
     run_bases = {split_method(m)[0] for m in sweep_cfg["methods"]}  # a filtered method runs its base's seeds
     for flag, (text, default, field) in given.items():
@@ -195,6 +220,8 @@ def reproduce(
             check_env_flags(cfg.num_agents, area, obstacles, max_steps)
             for n in cfg.scale_sizes:
                 check_env_flags([n], cfg.scale_area(n), 0, max_steps)
+                if cfg.long_cells():
+                    check_env_flags([n], cfg.scale_area(n), 0, cfg.long_steps)
             ckpts = validate(cfg)
             learned = [
                 (c.num_agents, cfg.area_for(c), cfg.episodes_for(c))
@@ -237,7 +264,8 @@ def reproduce(
 #: SweepConfig's fields set by the reproduce command's flags of the same name (``--num-agents`` for ``num_agents``)
 _SWEEP_FIELDS = (
     "methods", "num_agents", "obstacle_methods", "baseline_episodes", "train_seeds", "seed_methods", "scale_sizes",
-    "scale_methods", "scale_agent_episodes", "max_steps", "episodes", "obstacles", "workers", "area",
+    "scale_methods", "scale_agent_episodes", "long_steps", "long_methods", "max_steps", "episodes", "obstacles",
+    "workers", "area",
 )  # fmt: skip
 
 

@@ -24,7 +24,9 @@ class Cell(NamedTuple):
     controllers); a method behind a run-time filter (``egcbf+:dcbf``) uses its base method's checkpoint. ``area``
     is ``None`` for Table I's cells (the sweep's ``l``) and the side ``l`` of the arena for the cells of the
     scalability study past Table I (``N`` at the density of ``scale_reference`` agents). ``faults``: the
-    :mod:`egcbf.faults` spec the cell runs under (``"none"``: the perfect world; ``egcbf robustness``)."""
+    :mod:`egcbf.faults` spec the cell runs under (``"none"``: the perfect world; ``egcbf robustness``). ``steps``:
+    the episode length of a cell of the scalability study's second, longer horizon (``None``: the sweep's
+    ``max_steps``)."""
 
     method: str
     obstacles: int
@@ -32,6 +34,7 @@ class Cell(NamedTuple):
     train_seed: int | None = None
     area: float | None = None
     faults: str = "none"
+    steps: int | None = None
 
     @property
     def run(self) -> str:
@@ -56,9 +59,12 @@ class Cell(NamedTuple):
 
     def path(self, out: str | Path) -> Path:
         """Its result file: ``OUT/<run>_obs<k>/N<n>.json``, or ``OUT/scale/<run>_obs<k>/N<n>.json`` (``METHOD:FILTER``
-        written ``METHOD_FILTER``: ``OUT/egcbf+_dcbf-s2_obs0/N512.json``); under faults ``OUT/faults/<spec>/...``
-        (the spec with every run of characters other than letters, digits, ``.`` and ``-`` written ``_``)."""
-        base = Path(out) / "scale" if self.scale else Path(out)
+        written ``METHOD_FILTER``: ``OUT/egcbf+_dcbf-s2_obs0/N512.json``), ``OUT/scale-<steps>-steps/...`` at the long
+        horizon; under faults ``OUT/faults/<spec>/...`` (the spec with every run of characters other than letters,
+        digits, ``.`` and ``-`` written ``_``)."""
+        base = Path(out)
+        if self.scale:
+            base = base / ("scale" if self.steps is None else f"scale-{self.steps}-steps")
         if self.faults != "none":
             base = Path(out) / "faults" / re.sub(r"[^A-Za-z0-9.-]+", "_", self.faults) / base.relative_to(out)
         return base / f"{path_name(self.run)}_obs{self.obstacles}" / f"N{self.num_agents}.json"
@@ -117,7 +123,10 @@ class SweepConfig:
     **Scalability past Table I.** The methods of ``scale_methods`` (among ``methods``) also run without obstacles
     at every ``scale_sizes`` N, in the arena of side ``l_N = area (N / scale_reference)^(1/3)`` (the density of
     ``scale_reference`` agents at ``l = area``), for ``ceil(scale_agent_episodes / N)`` episodes (as many
-    agent-episodes as ``scale_agent_episodes``: 50 episodes at N = 512 are 25 600).
+    agent-episodes as ``scale_agent_episodes``: 50 episodes at N = 512 are 25 600). Those also in ``long_methods``
+    run these cells again with episodes of ``long_steps`` steps (``None``: no second horizon), long enough for the
+    nominal controller alone to reach every goal at these N (``docs/results/horizon/``), where the default 256 steps
+    cap the success rate.
 
     **Faults.** ``faults`` (an :mod:`egcbf.faults` spec, stored canonical: ``FaultConfig.spec()``): every cell runs
     under them (``egcbf robustness`` makes one sweep per fault level); ``"none"``: the perfect world.
@@ -141,6 +150,8 @@ class SweepConfig:
     scale_methods: tuple[str, ...] = METHODS
     scale_reference: int = 512
     scale_agent_episodes: int = 25_600
+    long_steps: int | None = 384
+    long_methods: tuple[str, ...] = ("nominal", "nominal:dcbf", "gcbf+", "egcbf+", "gcbf+:dcbf", "egcbf+:dcbf")
     seed: int = 0
     max_steps: int | None = None
     checkpoints: Path = Path("checkpoints")
@@ -159,7 +170,7 @@ class SweepConfig:
         if not isinstance(self.faults, str):
             raise TypeError(f"SweepConfig.faults must be a fault spec string, got {self.faults!r}")
         object.__setattr__(self, "faults", parse_faults(self.faults).spec())  # canonical: one spelling, one cell
-        for name in ("methods", "obstacle_methods", "scale_methods"):
+        for name in ("methods", "obstacle_methods", "scale_methods", "long_methods"):
             bad = [m for m in getattr(self, name) if m not in METHODS]
             if bad:
                 raise ValueError(f"unknown method(s) {bad} in {name}; choose from {list(METHODS)}")
@@ -187,6 +198,8 @@ class SweepConfig:
             raise ValueError(f"area must be > 0, got {self.area}")
         if self.max_steps is not None and self.max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        if self.long_steps is not None and self.long_steps < 1:
+            raise ValueError(f"long_steps must be >= 1 or None, got {self.long_steps}")
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
 
@@ -227,9 +240,16 @@ class SweepConfig:
             for n in self.scale_sizes
         ]
 
+    def long_cells(self) -> list[Cell]:
+        """The scalability study's cells at the long horizon (``long_steps``; none if it is ``None``)."""
+        if self.long_steps is None:
+            return []
+        steps = int(self.long_steps)
+        return [c._replace(steps=steps) for c in self.scale_cells() if c.method in self.long_methods]
+
     def cells(self) -> list[Cell]:
-        """Every cell of the sweep: Table I's, then the scalability study's."""
-        return self.table_cells() + self.scale_cells()
+        """Every cell of the sweep: Table I's, then the scalability study's, then its long-horizon cells."""
+        return self.table_cells() + self.scale_cells() + self.long_cells()
 
     def checkpoint_runs(self) -> list[tuple[str, int]]:
         """``(method, training seed)`` of every learned checkpoint some cell needs (a filtered method's is its base
@@ -246,6 +266,11 @@ class SweepConfig:
         if cell.method in BASELINES and self.baseline_episodes is not None:
             return int(self.baseline_episodes)
         return int(self.episodes)
+
+    def steps_for(self, cell: Cell) -> int | None:
+        """The episode length of ``cell``: its own ``steps`` at the long horizon, else ``max_steps`` (``None``: the
+        environment's 256 steps)."""
+        return cell.steps if cell.steps is not None else self.max_steps
 
     def area_for(self, cell: Cell) -> float:
         """The side ``l`` of ``cell``'s arena."""
@@ -284,7 +309,7 @@ def cell_key(cfg: SweepConfig, cell: Cell, checkpoint_sha256: str | None) -> dic
         "area": cfg.area_for(cell),
         "episodes": cfg.episodes_for(cell),
         "seed": int(cfg.seed),
-        "max_steps": cfg.max_steps,
+        "max_steps": cfg.steps_for(cell),
         "checkpoint_sha256": checkpoint_sha256,
     }
     if cell.faults != "none":  # the keys of the perfect world's cells are those of the sweep before faults existed

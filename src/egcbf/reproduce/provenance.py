@@ -143,6 +143,8 @@ _FLAGS = (
     ("scale_sizes", "--scale-sizes"),
     ("scale_methods", "--scale-methods"),
     ("scale_agent_episodes", "--scale-agent-episodes"),
+    ("long_steps", "--long-steps"),
+    ("long_methods", "--long-methods"),
     ("seed", "--seed"),
     ("max_steps", "--max-steps"),
     ("checkpoints", "--checkpoints"),
@@ -153,6 +155,8 @@ _NO_FLAG = ("scale_reference",)
 
 
 def _flag_value(name: str, value) -> str:
+    if value is None and name == "long_steps":
+        return "none"
     if isinstance(value, tuple | list):
         return ",".join(str(v) for v in value) if value else ("none" if name == "scale_sizes" else "")
     if isinstance(value, float):
@@ -167,7 +171,7 @@ def regenerate_command(cfg: SweepConfig, report: str | Path) -> str:
     args = ["egcbf", "reproduce", "--out", str(cfg.out), "--report", str(report)]
     for name, flag in _FLAGS:
         value = _flag_value(name, getattr(cfg, name))
-        if value != _flag_value(name, getattr(default, name)) and getattr(cfg, name) is not None:
+        if value != _flag_value(name, getattr(default, name)) and (getattr(cfg, name) is not None or value == "none"):
             args += [flag, value]
     return shlex.join([*args, "--report-only"])
 

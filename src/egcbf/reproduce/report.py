@@ -1,6 +1,6 @@
 """The report of ``egcbf reproduce``: one markdown file assembled from the sections of
-:mod:`~egcbf.reproduce.summary`, :mod:`~egcbf.reproduce.tables`, :mod:`~egcbf.reproduce.figures` and
-:mod:`~egcbf.reproduce.provenance`.
+:mod:`~egcbf.reproduce.summary`, :mod:`~egcbf.reproduce.tables`, :mod:`~egcbf.reproduce.figures`,
+:mod:`~egcbf.reproduce.horizon` and :mod:`~egcbf.reproduce.provenance`.
 
 Every number in the report is read from the sweep's cell records (:mod:`egcbf.reproduce.store`); a method evaluated
 over several training seeds shows their mean with its 95 % interval over seeds and episodes (``92.7 [91.0, 94.1]``)
@@ -18,6 +18,7 @@ from ..io.atomic import write_text_atomic
 from ..io.report import quote_section, relative_link, replace_block, section_block
 from .figures import contour_section, convergence_section, scalability_section
 from .headline import headline_markdown
+from .horizon import horizon_markdown
 from .plan import Cell, SweepConfig
 from .provenance import provenance_markdown, regenerate_caveat
 from .provenance import regenerate_command as _default_command
@@ -32,6 +33,7 @@ _SECTIONS = (
     ("summary", "## Summary"),
     ("table", "## Table I: ours beside the paper's"),
     ("scalability", "## Scalability"),
+    ("horizon", "## Scalability at a longer horizon"),
     ("convergence", "## Convergence of training"),
     ("contour", "## CBF contour"),
     ("provenance", "## Provenance"),
@@ -81,12 +83,15 @@ def write_report(
         "summary": summary_markdown(cfg, records),
         "table": table_markdown(cfg, records),
         "scalability": scalability_section(cfg, records, report, figures),
+        "horizon": horizon_markdown(cfg, records),
         "convergence": convergence_section(cfg, report, figures),
         "contour": contour_section(cfg, report, figures),
         "provenance": provenance_markdown(cfg, records),
     }
     text = _with_intro(report.read_text() if report.exists() else "", _intro(cfg, command))
     for name, heading in _SECTIONS:
+        if name == "horizon" and not cfg.long_cells() and "<!-- horizon:begin -->" not in text:
+            continue  # (a sweep without a second horizon gets no section for it)
         text = replace_block(text, name, bodies[name], heading=heading)
     report.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(report, text)

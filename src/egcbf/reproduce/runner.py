@@ -253,7 +253,7 @@ def _run_sweeps(
                     area=cfg.area_for(c),
                     episodes=cfg.episodes_for(c),
                     seed=cfg.seed,
-                    max_steps=cfg.max_steps,
+                    max_steps=cfg.steps_for(c),
                     device=cfg.device,
                     threads=cfg.threads,
                     checkpoint_files=ckpts[c.base, c.train_seed].files() if (c.base, c.train_seed) in ckpts else None,

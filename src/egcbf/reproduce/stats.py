@@ -47,15 +47,15 @@ class SeedRow(NamedTuple):
         return bool(self.meta.get("imported_from"))
 
 
-def seed_rows(records: dict[Cell, dict], method: str, obstacles: int, num_agents: int, scale: bool) -> list[SeedRow]:
+def seed_rows(
+    records: dict[Cell, dict], method: str, obstacles: int, num_agents: int, scale: bool, steps: int | None = None
+) -> list[SeedRow]:
     """The cells of ``method`` at one setting, one per training seed present, in training-seed order; each value is
-    paired with its own training seed (a pending seed is absent, not shifted onto the next one)."""
+    paired with its own training seed (a pending seed is absent, not shifted onto the next one). ``steps``: the
+    scalability study's long horizon (``None``: the sweep's own episode length)."""
+    want = (method, obstacles, num_agents, scale, steps)
     cells = sorted(
-        (
-            c
-            for c in records
-            if (c.method, c.obstacles, c.num_agents, c.scale) == (method, obstacles, num_agents, scale)
-        ),
+        (c for c in records if (c.method, c.obstacles, c.num_agents, c.scale, c.steps) == want),
         key=lambda c: -1 if c.train_seed is None else c.train_seed,
     )
     return [SeedRow(c.train_seed, records[c]["row"], records[c].get("meta", {})) for c in cells]

@@ -157,7 +157,7 @@ def make_record(cfg: SweepConfig, cell: Cell, key: dict, ckpt: CheckpointInfo | 
         "area": cfg.area_for(cell),
         "episodes": cfg.episodes_for(cell),
         "seed": cfg.seed,
-        "max_steps": cfg.max_steps,
+        "max_steps": cfg.steps_for(cell),
         "checkpoint": None if ckpt is None else str(ckpt.path),
         "checkpoint_step": None if ckpt is None else ckpt.step,
         "train_seed": cell.train_seed,

@@ -43,6 +43,7 @@ def _progress(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
         "Table I, training seed 0 and hand-crafted": [c for c in cfg.table_cells() if not c.train_seed],
         "Table I, further training seeds": [c for c in cfg.table_cells() if c.train_seed],
         "scalability": cfg.scale_cells(),
+        "scalability at the long horizon": cfg.long_cells(),
     }
     done = ", ".join(f"{k}: {sum(c in records for c in v)} of {len(v)}" for k, v in groups.items() if v)
     total = len(cfg.cells())

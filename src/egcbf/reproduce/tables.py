@@ -72,7 +72,8 @@ def _glance(cfg: SweepConfig, records: dict[Cell, dict], metric: str) -> str:
     """One table: ``metric`` of every method at every N without obstacles (Table I's and the scalability study's),
     the paper's row below ours where Table I has the method."""
     sizes = [(int(n), False) for n in cfg.num_agents] + [(int(n), True) for n in cfg.scale_sizes]
-    sizes = [(n, s) for n, s in sizes if any(c.num_agents == n and c.scale == s for c in cfg.cells())]
+    main = cfg.table_cells() + cfg.scale_cells()  # (the long horizon has its own section)
+    sizes = [(n, s) for n, s in sizes if any(c.num_agents == n and c.scale == s for c in main)]
     head = ["method"] + [f"N = {n}" + (f" (l = {cfg.scale_area(n):g} m)" if s else "") for n, s in sizes]
     index = {"safe_rate": 0, "success_rate": 2}[metric]
     rows = []
@@ -81,7 +82,7 @@ def _glance(cfg: SweepConfig, records: dict[Cell, dict], metric: str) -> str:
         for n, s in sizes:
             rows_ = seed_rows(records, m, 0, n, s)
             st = stat(rows_, metric)
-            planned = sum(c.method == m and c.num_agents == n and c.scale == s and not c.obstacles for c in cfg.cells())
+            planned = sum(c.method == m and c.num_agents == n and c.scale == s and not c.obstacles for c in main)
             cells.append(st.text() + partial(len(rows_), planned) if st else ("pending" if planned else ""))
         rows.append([label(cfg, m), *cells])
         paper = [PAPER_TABLE_I.get(m, {}).get(n) if not s else None for n, s in sizes]
@@ -183,7 +184,8 @@ def _setting_table(cfg: SweepConfig, records: dict[Cell, dict], settings: list[t
 
 
 def _cells_at(cfg: SweepConfig, obstacles: int, num_agents: int, scale: bool) -> list[Cell]:
-    return [c for c in cfg.cells() if (c.obstacles, c.num_agents, c.scale) == (obstacles, num_agents, scale)]
+    main = cfg.table_cells() + cfg.scale_cells()  # (the long horizon has its own section)
+    return [c for c in main if (c.obstacles, c.num_agents, c.scale) == (obstacles, num_agents, scale)]
 
 
 def table_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:

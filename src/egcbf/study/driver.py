@@ -168,6 +168,7 @@ def sweep_config(arm: Arm, root: str | Path = ROOT, workers: int = 2):
         scale_sizes=arm.scale_sizes,
         scale_methods=arm.algos() if arm.scale_sizes else (),
         scale_agent_episodes=arm.scale_agent_episodes,
+        long_steps=None,
         seed=EVAL_SEED,
         checkpoints=Path(root) / "checkpoints" / arm.name,
         out=Path(root) / "cells" / arm.name,

@@ -9,7 +9,7 @@ ESCNN_PY := $(ESCNN_VENV)/bin/python
 ESCNN_STAMP := $(ESCNN_VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-escnn test test-core test-escnn demo reproduce lint format bench clean
+.PHONY: setup setup-escnn test test-core test-escnn demo reproduce report lint format bench clean
 
 setup: $(STAMP)
 
@@ -49,6 +49,13 @@ demo: $(STAMP)
 # the repository's own reproduction (hours on two cores; resumable: run it again to continue): docs/reproduction.md
 reproduce: $(STAMP)
 	$(VENV)/bin/egcbf reproduce --out docs/results/reproduction --report docs/reproduction.md --workers 2 --no-progress
+	$(MAKE) report
+
+# every page generated from the reproduction's cells, regenerated from the committed cells (nothing is computed)
+report: $(STAMP)
+	$(VENV)/bin/egcbf reproduce --out docs/results/reproduction --report docs/reproduction.md --report-only --no-progress
+	$(PY) docs/gen_marl.py
+	$(PY) benchmarks/sweep_cpu_hours.py
 
 lint: $(STAMP)
 	$(PY) -m ruff check src tests examples benchmarks docs/*.py

@@ -88,3 +88,21 @@ def test_marl_interface_benchmark_quick_run():
     assert speed[-1].count("agent") == 0 and speed[-1].count("x)") == 5  # the one-scene row has all five paths
     # where SwarmTask's step goes: four parts in ms and the observation / simulator ratio, all positive
     assert all(len(r.strip("|").split("|")) == 8 and float(r.strip("|").split("|")[-1]) > 0 for r in parts)
+
+
+def test_the_sweep_account_covers_every_cell_and_is_in_the_docs():
+    """benchmarks/sweep_cpu_hours.py counts every cell of the reproduction's plan once (computed or pending), and
+    docs/benchmarks.md holds what it writes from the committed cells (`make report` regenerates it)."""
+    import importlib.util
+
+    from egcbf.io.report import replace_block
+    from egcbf.reproduce.store import load_cells
+
+    spec = importlib.util.spec_from_file_location("sweep_cpu_hours", ROOT / "benchmarks" / "sweep_cpu_hours.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    cfg = mod.SweepConfig(out=ROOT / "docs" / "results" / "reproduction", checkpoints=ROOT / "checkpoints")
+    _, total = mod.account(cfg)
+    assert total["computed"] == len(load_cells(cfg)) and total["computed"] + total["pending"] == len(cfg.cells())
+    text = (ROOT / "docs" / "benchmarks.md").read_text()
+    assert replace_block(text, "sweep-cpu-hours", mod.markdown(cfg)) == text

@@ -1,0 +1,114 @@
+"""CPU-hours of the whole `make reproduce` sweep: what its computed cells took, and what its pending cells will take.
+
+Reads the committed cells of ``docs/results/reproduction/`` (each records its wall time, ``meta.wall_s``, with one
+torch thread per cell) and the sweep's plan (``egcbf.reproduce.SweepConfig()``, the defaults of `egcbf reproduce`),
+and tabulates per group of controllers: cells computed and their summed CPU-hours, cells pending and an estimate of
+theirs. The estimate scales, per controller, its computed cells' seconds per agent-step to the pending cell's
+agent-steps (episodes x N x steps): from the same controller at the same N where there is one (another training
+seed, or the other horizon), else from its cells at the largest computed N. Imported cells (timed by an earlier
+`egcbf eval` run, not by the sweep, which kept only the median step time) count that step time times their steps.
+
+The cells were computed over many sessions on two kinds of 2-core machines, one or two cells at a time, so the
+sums are an account of what the sweep cost, not a benchmark; a speed-up is measured as a per-cell ratio, side by
+side on one machine (docs/benchmarks.md says which).
+
+    .venv/bin/python benchmarks/sweep_cpu_hours.py            # writes the block sweep-cpu-hours of docs/benchmarks.md
+    .venv/bin/python benchmarks/sweep_cpu_hours.py --no-write
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections import defaultdict
+from pathlib import Path
+
+from egcbf.io.report import md_table, replace_section
+from egcbf.reproduce import SweepConfig
+from egcbf.reproduce.paper import LABELS
+from egcbf.reproduce.plan import Cell
+from egcbf.reproduce.store import load_cells
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_STEPS = 256
+
+
+def _agent_steps(cfg: SweepConfig, cell: Cell) -> int:
+    return cfg.episodes_for(cell) * cell.num_agents * (cfg.steps_for(cell) or DEFAULT_STEPS)
+
+
+def _wall(cfg: SweepConfig, cell: Cell, record: dict) -> float:
+    """A computed cell's seconds: its own wall time, or for an imported cell (timed by the `egcbf eval` run it comes
+    from, which kept only its step time) the median step time times its steps and episodes."""
+    wall = record.get("meta", {}).get("wall_s")
+    if wall is not None:
+        return float(wall)
+    return record["row"]["step_ms_median"] / 1e3 * (cfg.steps_for(cell) or DEFAULT_STEPS) * cfg.episodes_for(cell)
+
+
+def _group(cell: Cell) -> str:
+    where = "Table I" if not cell.scale else ("scalability, long horizon" if cell.steps else "scalability")
+    return f"{where}: {LABELS[cell.method]}"
+
+
+def _rate(cfg: SweepConfig, records: dict[Cell, dict], cell: Cell) -> float | None:
+    """Seconds per agent-step for ``cell``, from the computed cells of its method (module doc)."""
+    same = [c for c in records if c.method == cell.method and c.obstacles == cell.obstacles]
+    near = [c for c in same if c.num_agents == cell.num_agents and c.scale == cell.scale] or [
+        c for c in same if c.num_agents == max(x.num_agents for x in same)
+    ]
+    if not near:
+        return None
+    return sum(_wall(cfg, c, records[c]) for c in near) / sum(_agent_steps(cfg, c) for c in near)
+
+
+def account(cfg: SweepConfig) -> tuple[list[list[str]], dict[str, float]]:
+    """The table's rows (one per group) and the totals: computed and pending cells, CPU-hours of each."""
+    records = load_cells(cfg)
+    done, todo = defaultdict(list), defaultdict(list)
+    for cell in cfg.cells():
+        (done if cell in records else todo)[_group(cell)].append(cell)
+    rows, total = [], defaultdict(float)
+    for group in dict.fromkeys([_group(c) for c in cfg.cells()]):
+        spent = sum(_wall(cfg, c, records[c]) for c in done[group]) / 3600
+        rates = [(_rate(cfg, records, c), c) for c in todo[group]]
+        estimate = sum(r * _agent_steps(cfg, c) for r, c in rates if r is not None) / 3600
+        unknown = sum(r is None for r, _ in rates)
+        total["computed"] += len(done[group])
+        total["computed_h"] += spent
+        total["pending"] += len(todo[group])
+        total["pending_h"] += estimate
+        left = (f"{estimate:.2f}" if todo[group] else "-") + (f" (+{unknown} not estimated)" if unknown else "")
+        rows.append([group, str(len(done[group])), f"{spent:.2f}", str(len(todo[group])), left])
+    return rows, dict(total)
+
+
+def markdown(cfg: SweepConfig) -> str:
+    rows, total = account(cfg)
+    rows.append(["**all**", str(int(total["computed"])), f"**{total['computed_h']:.1f}**", str(int(total["pending"])),
+                 f"**{total['pending_h']:.1f}**"])  # fmt: skip
+    head = ["cells", "computed", "CPU-hours", "pending", "CPU-hours (estimate)"]
+    return (
+        "`python benchmarks/sweep_cpu_hours.py`, from the committed cells of `docs/results/reproduction/` and the "
+        "plan of `egcbf reproduce`'s defaults: each computed cell's own wall time (one torch thread; an imported "
+        "cell's median step time times its steps), summed; each "
+        "pending cell estimated from its controller's computed cells (seconds per agent-step; the script's "
+        "docstring). The cells ran over many sessions on 2-core Intel Xeon and AMD EPYC machines, one or two at a "
+        "time, so this is an account, not a benchmark.\n\n" + md_table(head, rows) + "\n"
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--no-write", action="store_true", help="print the table; do not touch docs/benchmarks.md")
+    args = parser.parse_args(argv)
+    cfg = SweepConfig(out=ROOT / "docs" / "results" / "reproduction", checkpoints=ROOT / "checkpoints")
+    text = markdown(cfg)
+    print(text)
+    if not args.no_write:
+        replace_section(
+            ROOT / "docs" / "benchmarks.md", "sweep-cpu-hours", text, heading="## The whole sweep's CPU-hours"
+        )
+
+
+if __name__ == "__main__":
+    main()

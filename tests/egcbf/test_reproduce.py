@@ -909,10 +909,11 @@ def test_the_fine_tuned_archive_cells_are_of_their_checkpoints():
 
 
 def test_reproduce_command_takes_the_filtered_names(filtered, tmp_path):
-    from egcbf.cli.reproduce import _REPRO_METHODS, _REPRO_OBSTACLE_METHODS
+    from egcbf.cli.reproduce import _LONG_METHODS, _REPRO_METHODS, _REPRO_OBSTACLE_METHODS
 
     assert tuple(_REPRO_METHODS.split(",")) == SweepConfig().methods == SweepConfig().scale_methods == rp.METHODS
     assert tuple(_REPRO_OBSTACLE_METHODS.split(",")) == SweepConfig().obstacle_methods
+    assert tuple(_LONG_METHODS.split(",")) == SweepConfig().long_methods
     res = CliRunner().invoke(app, ["reproduce", "--methods", "egcbf+:bogus,egcbf+:dcbf"])
     assert res.exit_code == 2 and "unknown method(s) ['egcbf+:bogus']" in res.output
     assert "egcbf+:dcbf, gcbf+:dcbf, egcbf+:cbf, egcbf+:prior, nominal:dcbf" in res.output

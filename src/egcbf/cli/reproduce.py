@@ -45,7 +45,7 @@ _REPRO_METHODS = (
 _REPRO_OBSTACLE_METHODS = (
     "gcbf,gcbf+,egcbf,egcbf+,nominal,egcbf+:dcbf,gcbf+:dcbf,egcbf+:cbf,egcbf+:prior,nominal:dcbf,ippo-lag"
 )
-_LONG_METHODS = "nominal,nominal:dcbf,gcbf+,egcbf+,gcbf+:dcbf,egcbf+:dcbf"
+_LONG_METHODS = "gcbf+,egcbf+,dcbf,ccbf,nominal,egcbf+:dcbf,gcbf+:dcbf,nominal:dcbf"
 
 
 def _parse_steps(text: str) -> int | None:

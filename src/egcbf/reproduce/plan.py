@@ -151,7 +151,16 @@ class SweepConfig:
     scale_reference: int = 512
     scale_agent_episodes: int = 25_600
     long_steps: int | None = 384
-    long_methods: tuple[str, ...] = ("nominal", "nominal:dcbf", "gcbf+", "egcbf+", "gcbf+:dcbf", "egcbf+:dcbf")
+    long_methods: tuple[str, ...] = (
+        "gcbf+",
+        "egcbf+",
+        "dcbf",
+        "ccbf",
+        "nominal",
+        "egcbf+:dcbf",
+        "gcbf+:dcbf",
+        "nominal:dcbf",
+    )
     seed: int = 0
     max_steps: int | None = None
     checkpoints: Path = Path("checkpoints")

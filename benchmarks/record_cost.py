@@ -34,11 +34,13 @@ CONTROLLERS = ("nominal", "egcbf+", "egcbf+:dcbf")
 
 
 def _build(name: str):
+    """The controller and the learned CBF whose values `egcbf eval --record` records with it (``None``: none)."""
     if name == "nominal":
-        return resolve(name).controller
+        return resolve(name).controller, None
     kind = name.partition(":")[2] or "none"
-    return resolve(name, ROOT / "checkpoints" / "egcbf+",
-                   filter_config=None if kind == "none" else FilterConfig.for_kind(kind)).controller  # fmt: skip
+    built = resolve(name, ROOT / "checkpoints" / "egcbf+", with_cbf=True,
+                    filter_config=None if kind == "none" else FilterConfig.for_kind(kind))  # fmt: skip
+    return built.controller, built.cbf
 
 
 def measure(name: str, n: int, steps: int, episodes: int = 1, seed: int = 0) -> dict:
@@ -50,8 +52,8 @@ def measure(name: str, n: int, steps: int, episodes: int = 1, seed: int = 0) -> 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "episode.mcap"
         for recorded in (False, True):
-            ctrl = _build(name)  # a fresh controller per run (the dcbf filter keeps the last velocities)
-            rec = EpisodeRecorder(path, cbf=getattr(ctrl, "cbf", None)) if recorded else None
+            ctrl, cbf = _build(name)  # a fresh controller per run (the dcbf filter keeps the last velocities)
+            rec = EpisodeRecorder(path, cbf=cbf) if recorded else None
             t0 = time.perf_counter()
             run_episodes(ctrl, cfg, seeds, on_step=rec)
             if rec is not None:
@@ -72,7 +74,7 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()  # the recorder's one-time set-up (imports, the typestore), paid once per process
     with tempfile.TemporaryDirectory() as tmp:
         rec = EpisodeRecorder(Path(tmp) / "warm.mcap")
-        run_episodes(_build("nominal"), EnvConfig(num_agents=2, max_steps=2), [0], on_step=rec)
+        run_episodes(_build("nominal")[0], EnvConfig(num_agents=2, max_steps=2), [0], on_step=rec)
         rec.close()
     setup = time.perf_counter() - t0
     print(f"set-up (a 2-step recorded episode, imports included): {setup:.2f} s")

@@ -91,6 +91,11 @@ def test_a_checkpoint_is_read_once_per_controller_built(monkeypatch):
     assert built.weights_sha256 == ckpt_module.sha256(SHIPPED / "model.safetensors")
     assert built.env_overrides == dict(built.train_config.env_overrides)
     assert isinstance(built.controller, FilteredController) and built.controller.cbf is not None
+    assert built.cbf is built.controller.cbf
+    reads.clear()
+    alone = resolve("policy:dcbf", SHIPPED, with_cbf=True)  # the CBF for a recording, from the same one read
+    assert reads == ["model.safetensors"] and alone.cbf is not None and alone.controller.cbf is None
+    assert resolve("policy", SHIPPED).cbf is None and resolve("nominal", with_cbf=True).cbf is None
 
 
 def test_the_learned_controller_is_the_checkpoints_policy():

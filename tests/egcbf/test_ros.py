@@ -392,8 +392,8 @@ def test_eval_record_writes_an_mcap_of_the_first_episode(tmp_path):
         assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
         assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
         assert reader.get_header().profile == "ros2"
-    want = {TOPICS[k][0]: steps + 1 for k in ("poses", "goals", "states", "obstacles", "lidar")}
-    assert counts == {**want, TOPICS["filter_active"][0]: steps}
+    want = {TOPICS[k][0]: steps + 1 for k in ("poses", "goals", "states", "obstacles", "lidar", "cbf")}
+    assert counts == {**want, TOPICS["filter_active"][0]: steps}  # h: the checkpoint's CBF, though dcbf filters
     rec = read_recording(path)
     dt = 0.025
     assert rec.stamps.tolist() == [codecs.seconds_to_ns(t * dt) for t in range(steps + 1)]
@@ -407,7 +407,7 @@ def test_eval_record_writes_an_mcap_of_the_first_episode(tmp_path):
     np.testing.assert_allclose(rec.attitudes.reshape(steps + 1, n, 9), rec.states[..., 3:12], atol=1e-6)
     np.testing.assert_array_equal(rec.goals[0], records[n].goals.double().numpy())
     np.testing.assert_allclose(rec.radii, records[n].radii.double().numpy(), rtol=1e-15)
-    assert rec.filter_active.shape == (steps, n) and rec.h is None
+    assert rec.filter_active.shape == (steps, n) and rec.h.shape == (steps + 1, n) and np.isfinite(rec.h).all()
     assert all(len(h) == len(a) for h, a in zip(rec.hits, rec.hit_agent, strict=True))
     with Reader(path) as bag:  # rosbag2's MCAP storage reads it as a bag
         assert bag.message_count == sum(counts.values())
@@ -467,3 +467,114 @@ def test_the_recorders_direct_cdr_is_what_rosbags_writes(n, stamp, width, kind):
     )
     ref = t[typename](layout=layout, data=np.ascontiguousarray(data.reshape(-1)))
     assert record._multiarray_cdr(typename, data, ("agent", "state")) == bytes(store.serialize_cdr(ref, typename))
+
+
+@given(st.lists(st.integers(0, 12), min_size=1, max_size=5), st.lists(stamps, min_size=5, max_size=5),
+       st.integers(1, 9))  # fmt: skip
+@settings(max_examples=30, deadline=None)
+def test_the_recorders_batched_cdr_is_the_per_step_cdr_and_what_rosbags_writes(counts, stamp_list, n):
+    """The recorder makes a batch of steps' messages at once (egcbf.ros.record._same_layout_cdrs, _cloud_cdrs): each
+    is the per-step message's bytes, and a cloud is what rosbags writes for codecs.hits_to_cloud's message."""
+    from egcbf.ros import record
+
+    store = typestore()
+    rng = np.random.default_rng(sum(counts) * 31 + n)
+    stamps_, steps = stamp_list[: len(counts)], len(counts)
+    hits, owner = rng.normal(size=(sum(counts), 3)), rng.integers(0, 2**32, sum(counts)).astype(np.uint32)
+    points = record._cloud_points(hits, owner)
+    clouds = record._cloud_cdrs(points, counts, stamps_)
+    ends = np.cumsum(counts)
+    for k in range(steps):
+        part = slice(ends[k] - counts[k], ends[k])
+        ref = codecs.hits_to_cloud(hits[part], stamp=stamps_[k], frame_id=record.WORLD, agent=owner[part])
+        assert clouds[k] == record._cloud_cdr(points[part], stamps_[k])
+        assert clouds[k] == bytes(store.serialize_cdr(ref, ref.__msgtype__))
+    pos, quats, x = rng.normal(size=(steps, n, 3)), rng.normal(size=(steps, n, 4)), rng.normal(size=(steps, n, 5))
+    rows = record._array_bytes(np.concatenate((pos, quats), -1), np.float64)
+    poses = record._same_layout_cdrs(record._pose_array_cdr(np.zeros((n, 3)), np.zeros((n, 4)), 0), rows, stamps_)
+    f64, u8 = "std_msgs/msg/Float64MultiArray", "std_msgs/msg/UInt8MultiArray"
+    states = record._same_layout_cdrs(record._multiarray_cdr(f64, np.zeros((n, 5)), ("agent", "state")),
+                                      record._array_bytes(x, np.float64))  # fmt: skip
+    active = rng.integers(0, 2, size=(steps, n)).astype(np.uint8)
+    flags = record._same_layout_cdrs(record._multiarray_cdr(u8, np.zeros(n, np.uint8), ("agent",)),
+                                     record._array_bytes(active, np.uint8))  # fmt: skip
+    for k in range(steps):
+        assert poses[k] == record._pose_array_cdr(pos[k], quats[k], stamps_[k])
+        assert states[k] == record._multiarray_cdr(f64, x[k], ("agent", "state"))
+        assert flags[k] == record._multiarray_cdr(u8, active[k], ("agent",))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_a_recording_holds_what_each_step_computes(tmp_path, monkeypatch, dtype):
+    """The recorder keeps the steps and makes their messages in batches (several steps as environments of one LiDAR
+    scan and one CBF forward): the file holds what a direct computation at each step gives. float64: the states
+    exactly, the LiDAR hits to 1e-12 m (the batched ray products round alike up to an ulp); float32: the hits to
+    1e-6 m; the learned CBF (a float32 network) to 1e-6 either way. A step whose goals and obstacles are other
+    objects (equal values) takes the per-step path and agrees too."""
+    from egcbf.control.filters import FilterConfig
+    from egcbf.control.resolve import resolve
+    from egcbf.env import EnvConfig, SwarmState
+    from egcbf.env.graph import build_graph
+    from egcbf.env.obstacles import Obstacles
+    from egcbf.evaluate.episodes import run_episodes
+    from egcbf.ros import record
+
+    n, steps = 6, 11
+    monkeypatch.setattr(record, "BATCH_AGENT_STEPS", 4 * n)  # flushes of 4 steps, and a partial one at the end
+    ctrl = resolve("egcbf+:cbf", CKPT, filter_config=FilterConfig.for_kind("cbf")).controller
+    cfg = EnvConfig.for_robot("quadrotor", num_agents=n, area_size=1.5, num_obstacles=3, max_steps=steps)
+    rec = record.EpisodeRecorder(tmp_path / "episode.mcap", cbf=ctrl.cbf)
+    seen = []
+
+    def watch(config, state, u, info):
+        if state.t % 3 == 2:  # the same scene as other objects
+            obs = state.obstacles
+            state = SwarmState(state.x, state.goals.clone(), Obstacles(obs.centers.clone(), obs.radii.clone()),
+                               state.t, state.robot)  # fmt: skip
+        seen.append((config, state, None if info is None else np.asarray(info["active_mask"])[0].copy()))
+        rec(config, state, u, info)
+
+    run_episodes(ctrl, cfg, [3, 4], on_step=watch, dtype=dtype)
+    got = record.read_recording(rec.close())
+    assert len(seen) == steps + 1 and got.h.shape == (steps + 1, n) and got.filter_active.shape == (steps, n)
+    assert got.stamps.tolist() == rec.stamps == [codecs.seconds_to_ns(k * cfg.dt) for k in range(steps + 1)]
+    hit_tol = 1e-12 if dtype == torch.float64 else 1e-6
+    p = next(ctrl.cbf.parameters())
+    total_hits = 0
+    for k, (config, state, active) in enumerate(seen):
+        one = SwarmState(state.x[:1], state.goals[:1], Obstacles(state.obstacles.centers[:1],
+                         state.obstacles.radii[:1]), state.t, state.robot)  # fmt: skip
+        np.testing.assert_array_equal(got.states[k], state.x[0].double().numpy())
+        np.testing.assert_array_equal(got.positions[k], state.positions[0].double().numpy())
+        np.testing.assert_allclose(got.attitudes[k], state.attitudes[0].double().numpy(), rtol=0, atol=1e-6)
+        scan = config.scan(one.positions, state.robot.heading(one.x), one.obstacles)
+        valid = scan.valid[0].numpy()
+        np.testing.assert_array_equal(got.hit_agent[k], np.nonzero(valid)[0])
+        np.testing.assert_allclose(got.hits[k], scan.points[0].double().numpy()[valid], rtol=0, atol=hit_tol)
+        total_hits += int(valid.sum())
+        with torch.no_grad():
+            h = ctrl.cbf(build_graph(one.to(p.device, dtype=p.dtype), config)).double().numpy()
+        np.testing.assert_allclose(got.h[k], h, rtol=0, atol=1e-6)
+        if active is not None:
+            np.testing.assert_array_equal(got.filter_active[k], active)
+    assert total_hits > 0  # the scene is dense enough for the LiDAR to see something
+
+
+def test_an_aborted_recording_leaves_no_file(tmp_path):
+    from egcbf.control.resolve import resolve
+    from egcbf.env import EnvConfig
+    from egcbf.evaluate.episodes import run_episodes
+    from egcbf.ros.record import EpisodeRecorder
+
+    path = tmp_path / "episode.mcap"
+    rec = EpisodeRecorder(path)
+
+    def fail(config, state, u, info):
+        rec(config, state, u, info)
+        if state.t == 3:
+            raise RuntimeError("the run fails")
+
+    with pytest.raises(RuntimeError, match="the run fails"):
+        run_episodes(resolve("nominal").controller, EnvConfig(num_agents=3, max_steps=6), [0], on_step=fail)
+    rec.abort()
+    assert rec.close() is None and not list(tmp_path.iterdir())

@@ -237,7 +237,7 @@ def run_eval(
         if controller is not None:
             usage_error("--controller and --checkpoint exclude each other (the checkpoint's policy is the controller)")
         built = build_controller(join_method(POLICY, filter), checkpoint, filter_config=filter_config, device=dev,
-                                 dtype=DTYPES[dtype])  # fmt: skip
+                                 dtype=DTYPES[dtype], with_cbf=record_to is not None)  # fmt: skip
         require(
             robot in (None, built.robot),
             f"--robot {robot} but the checkpoint's policy drives a {built.robot}; drop --robot",
@@ -338,8 +338,8 @@ def run_eval(
     if record_to is not None:
         from ..ros.record import EpisodeRecorder
 
-        recorder = EpisodeRecorder(record_to, cbf=getattr(built.controller, "cbf", None),
-                                   metadata={"command": meta["command"], "controller": controller})  # fmt: skip
+        cbf = built.cbf if built.cbf is not None else getattr(built.controller, "cbf", None)  # (nominal:cbf's own)
+        recorder = EpisodeRecorder(record_to, cbf=cbf, metadata={"command": meta["command"], "controller": controller})
     recorded: dict = {}
 
     def save_size(rows: list[dict], episode) -> None:  # a later failure never loses a finished size

@@ -52,6 +52,8 @@ class ResolvedController:
         checkpoint: the checkpoint directory read (of a run: its ``best/`` or newest checkpoint), or ``None``.
         weights_sha256: the SHA-256 of that checkpoint's ``model.safetensors``, or ``None``.
         train_config: the checkpoint's ``TrainConfig``, or ``None``.
+        cbf: the checkpoint's learned CBF (an :class:`egcbf.nn.models.CBFNet`) where the controller uses it (the
+            ``cbf`` filter) or it was asked for (``resolve(..., with_cbf=True)``), else ``None``.
     """
 
     name: str
@@ -61,6 +63,7 @@ class ResolvedController:
     checkpoint: Path | None = None
     weights_sha256: str | None = None
     train_config: Any = None
+    cbf: Any = None
 
     @property
     def env_overrides(self) -> dict | None:
@@ -97,6 +100,7 @@ def resolve(
     filter_config=None,
     device: str | torch.device = "cpu",
     dtype: torch.dtype = torch.float32,
+    with_cbf: bool = False,
     **options,
 ) -> ResolvedController:
     """Build the controller ``name`` (``METHOD[:FILTER]``, module doc).
@@ -109,6 +113,9 @@ def resolve(
         filter_config: the filter's settings (:class:`~egcbf.control.filters.FilterConfig`; default its
             ``for_kind(FILTER)``); its ``kind`` must be ``FILTER``.
         device, dtype: where a learned policy's networks live.
+        with_cbf: also build the checkpoint's learned CBF (``ResolvedController.cbf``, e.g. to record its values
+            along an episode) from the same read of the checkpoint; without a graph policy's checkpoint it stays
+            ``None``.
         **options: keyword arguments of a hand-crafted controller (:func:`~egcbf.control.controllers.make_controller`).
 
     Returns:
@@ -142,16 +149,16 @@ def resolve(
     if robot not in (None, cfg.robot):
         raise ControllerError(f"robot {robot} but the checkpoint's policy drives a {cfg.robot}")
     policy = build_network(contents, "policy", device, dtype)
+    cbf = build_network(contents, "cbf", device, dtype) if kind == "cbf" or with_cbf else None
     if filter_config is None:
         controller = LearnedController(policy, cfg.model)
     else:
-        cbf = build_network(contents, "cbf", device, dtype) if kind == "cbf" else None
         try:
-            controller = FilteredController(policy, cfg.model, filter_config, cbf)
+            controller = FilteredController(policy, cfg.model, filter_config, cbf if kind == "cbf" else None)
         except ValueError as err:
             raise ControllerError(f"filter {kind} on {contents.directory}: {err}") from None
     return ResolvedController(join_method(cfg.algo, kind), controller, cfg.robot, kind, contents.directory,
-                              contents.weights_sha256, cfg)  # fmt: skip
+                              contents.weights_sha256, cfg, cbf)  # fmt: skip
 
 
 def _marl(name, method, kind, checkpoint: Path, robot, device, dtype) -> ResolvedController:

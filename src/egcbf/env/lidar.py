@@ -95,8 +95,23 @@ def _yaw_rotate(cs: Tensor, d: Tensor) -> Tensor:
     return torch.cat((xy, d[..., 2:3].expand(*xy.shape[:-1], 1)), dim=-1)
 
 
-def _sort_by(major: Tensor, minor: Tensor) -> Tensor:
-    """Permutation sorting by ``(major, minor)`` (two stable sorts); ties keep their input order."""
+def _sort_by(major: Tensor, minor: Tensor, major_bound: int | None = None) -> Tensor:
+    """Permutation sorting by ``(major, minor)``; ties keep their input order.
+
+    ``major``: integers, in ``[0, major_bound)`` when ``major_bound`` is given. Two stable sorts (by ``minor``, then
+    by ``major``); on the CPU, for a float32 ``minor`` without NaN and ``major_bound <= 2**31``, one stable sort of
+    the packed ``int64`` key ``(major, minor's IEEE bits as an ordered integer)`` instead: the same permutation.
+    """
+    if (
+        major_bound is not None
+        and major_bound <= 2**31
+        and minor.dtype == torch.float32
+        and minor.device.type == "cpu"
+        and not bool(torch.isnan(minor).any())
+    ):
+        bits = (minor + 0.0).view(torch.int32).to(torch.int64)  # + 0.0: -0.0 becomes 0.0, which it equals
+        order = bits ^ ((bits >> 31) & 0x7FFFFFFF)  # negative floats' magnitude bits flipped: ordered as the floats
+        return torch.sort((major << 32) + order, stable=True).indices
     p = torch.sort(minor, stable=True).indices
     return p[torch.sort(major[p], stable=True).indices]
 
@@ -185,7 +200,7 @@ def lidar_scan(
             agent, ri, t = (bi * n + ni)[pi[keep]], ri[keep], t[keep]
         if bi.numel() > 0:
             # closest obstacle per (agent, ray): sort by t, then (stably) by (agent, ray), keep the first of each
-            perm = _sort_by(agent * n_dirs + ri, t)
+            perm = _sort_by(agent * n_dirs + ri, t, m * n_dirs)
             key = (agent * n_dirs + ri)[perm]
             first = torch.ones_like(key, dtype=torch.bool)
             first[1:] = key[1:] != key[:-1]
@@ -195,7 +210,7 @@ def lidar_scan(
                 t, arrived = ray_faults(agent, ri, t)
                 agent, ri, t = agent[arrived], ri[arrived], t[arrived]
             # the max_hits closest rays per agent: sort by (agent, t), rank within the agent's run
-            perm = _sort_by(agent, t)
+            perm = _sort_by(agent, t, m)
             agent, ri, t = agent[perm], ri[perm], t[perm]
             pos_in = torch.arange(agent.shape[0], device=device)
             start = torch.ones_like(agent, dtype=torch.bool)

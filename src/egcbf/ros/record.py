@@ -36,7 +36,9 @@ deserialized messages of any ``ros2msg``/``cdr`` MCAP file whose types the types
 
 from __future__ import annotations
 
+import functools
 import os
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,7 +51,15 @@ from ..env.obstacles import Obstacles
 from . import codecs
 from .messages import require_extra, typestore
 
-__all__ = ["TOPICS", "EpisodeRecorder", "Recording", "RecordingWriter", "iter_messages", "read_recording"]
+__all__ = [
+    "BATCH_AGENT_STEPS",
+    "TOPICS",
+    "EpisodeRecorder",
+    "Recording",
+    "RecordingWriter",
+    "iter_messages",
+    "read_recording",
+]
 
 #: ``key -> (topic, message type)`` of a recording (module doc)
 TOPICS = {
@@ -128,21 +138,30 @@ class _CDR:
     def __init__(self):
         self.parts: list[bytes] = [b"\x00\x01\x00\x00"]
         self.size = 0
+        #: the byte offsets in the message of the fields written with a ``mark``
+        self.marks: dict[str, int] = {}
 
-    def _put(self, data: bytes, align: int) -> None:
+    def _put(self, data: bytes, align: int, mark: str | None = None) -> None:
         pad = -self.size % align
         if pad:
             self.parts.append(bytes(pad))
+        if mark is not None:
+            self.marks[mark] = 4 + self.size + pad
         self.parts.append(data)
         self.size += pad + len(data)
 
-    def u32(self, value: int) -> _CDR:
-        self._put(int(value).to_bytes(4, "little", signed=False), 4)
+    def u8(self, value: int) -> _CDR:
+        self._put(int(value).to_bytes(1, "little", signed=False), 1)
+        return self
+
+    def u32(self, value: int, mark: str | None = None) -> _CDR:
+        self._put(int(value).to_bytes(4, "little", signed=False), 4, mark)
         return self
 
     def header(self, stamp: int, frame_id: str) -> _CDR:
+        """``std_msgs/msg/Header``: its stamp's ``sec`` and ``nanosec`` (marked ``"stamp"``), then ``frame_id``."""
         sec, nanosec = divmod(int(stamp), 1_000_000_000)
-        self._put(int(sec).to_bytes(4, "little", signed=True), 4)
+        self._put(int(sec).to_bytes(4, "little", signed=True), 4, "stamp")
         self.u32(nanosec)
         return self.string(frame_id)
 
@@ -150,6 +169,13 @@ class _CDR:
         data = text.encode() + b"\x00"
         self.u32(len(data))
         self._put(data, 1)
+        return self
+
+    def raw(self, data: bytes) -> _CDR:
+        """``data`` as a ``uint8`` sequence (its length first, marked ``"raw"``)."""
+        self.u32(len(data), "raw")
+        if data:
+            self._put(data, 1)
         return self
 
     def array(self, values: np.ndarray, dtype, count: int | None = None) -> _CDR:
@@ -180,6 +206,90 @@ def _multiarray_cdr(typename: str, data: np.ndarray, labels: tuple[str, ...]) ->
         out.string(label).u32(size).u32(int(np.prod(data.shape[k:])))  # ROS's stride: the sizes from here on
     dtype = np.float64 if typename.endswith("Float64MultiArray") else np.uint8
     return out.u32(0).array(data.reshape(-1), dtype, count=data.size).bytes()
+
+
+#: a recording's LiDAR cloud: ``x, y, z`` float64 and the owner ``agent`` uint32 per point (:func:`_cloud_cdr`)
+_CLOUD_FIELDS = (("x", 0, codecs._FLOAT64), ("y", 8, codecs._FLOAT64), ("z", 16, codecs._FLOAT64),
+                 ("agent", 24, codecs._UINT32))  # fmt: skip
+_CLOUD_POINT = np.dtype({"names": ["x", "y", "z", "agent"], "formats": ["<f8", "<f8", "<f8", "<u4"],
+                         "offsets": [0, 8, 16, 24], "itemsize": 28})  # fmt: skip
+
+
+def _cloud_points(hits: np.ndarray, agent: np.ndarray) -> np.ndarray:
+    """The points ``(H,)`` (:data:`_CLOUD_POINT`) of hits ``(H, 3)`` float64 and their owners ``(H,)``
+    (``ValueError`` if a hit holds NaN or inf, as :func:`egcbf.ros.codecs.hits_to_cloud`)."""
+    if not np.isfinite(hits).all():
+        raise ValueError("hits: a valid hit holds NaN or inf")
+    rec = np.zeros(len(hits), dtype=_CLOUD_POINT)
+    rec["x"], rec["y"], rec["z"], rec["agent"] = hits[:, 0], hits[:, 1], hits[:, 2], agent
+    return rec
+
+
+def _stamp_bytes(stamps) -> np.ndarray:
+    """``(T, 8)`` uint8: the header stamps' ``sec`` (int32) and ``nanosec`` (uint32), little-endian, of ``stamps``
+    ``(T,)`` (integer ns, ``0 <= stamp < 2**31`` s)."""
+    sec, nanosec = np.divmod(np.asarray(stamps, dtype=np.int64).reshape(-1), 1_000_000_000)
+    if sec.size and not (sec.min() >= 0 and sec.max() < 2**31):
+        raise ValueError("a stamp must lie in [0, 2**31) s")
+    out = np.empty((sec.size, 2), dtype="<u4")
+    out[:, 0], out[:, 1] = sec, nanosec
+    return out.view(np.uint8)
+
+
+def _same_layout_cdrs(one: bytes, payload: np.ndarray, stamps=None) -> list[bytes]:
+    """The CDR bytes of ``T`` messages laid out as ``one``, whose last field is an array of ``payload.shape[1]``
+    bytes: ``one`` with that array's bytes replaced by each row of ``payload`` ``(T, nbytes)`` uint8, and its
+    header's stamp (``one`` starts with a header) by each of ``stamps`` ``(T,)`` (ns) where given."""
+    buf = np.empty((payload.shape[0], len(one)), dtype=np.uint8)
+    buf[:] = np.frombuffer(one, dtype=np.uint8)
+    if payload.shape[1]:
+        buf[:, len(one) - payload.shape[1] :] = payload
+    if stamps is not None:
+        buf[:, 4:12] = _stamp_bytes(stamps)
+    return [row.tobytes() for row in buf]
+
+
+def _array_bytes(values: np.ndarray, dtype) -> np.ndarray:
+    """``(T, ...)`` values as ``(T, nbytes)`` uint8, little-endian ``dtype``."""
+    values = np.ascontiguousarray(values, dtype=np.dtype(dtype).newbyteorder("<"))
+    return values.reshape(values.shape[0], -1).view(np.uint8)
+
+
+@functools.cache
+def _cloud_head() -> tuple[bytes, dict[str, int]]:
+    """A cloud's CDR bytes up to its data (the data's length included; stamp, width and lengths 0) and the offsets of
+    the fields :func:`_cloud_cdrs` fills in."""
+    step = _CLOUD_POINT.itemsize
+    out = _CDR().header(0, WORLD).u32(1).u32(0, "width").u32(len(_CLOUD_FIELDS))
+    for name, offset, datatype in _CLOUD_FIELDS:
+        out.string(name).u32(offset).u8(datatype).u32(1)
+    out.u8(0).u32(step).u32(0, "row_step").raw(b"")  # is_bigendian, point_step, row_step, the data's length
+    return out.bytes(), out.marks
+
+
+def _cloud_cdrs(points: np.ndarray, counts, stamps) -> list[bytes]:
+    """``sensor_msgs/msg/PointCloud2`` messages, as CDR bytes, of consecutive runs of ``points``
+    (:func:`_cloud_points`): ``counts[k]`` points stamped ``stamps[k]``, for each ``k``. Each is the cloud
+    :func:`egcbf.ros.codecs.hits_to_cloud` makes of the same hits and owners (unorganized, dense, little-endian)."""
+    head, marks = _cloud_head()
+    stamp_bytes, step = _stamp_bytes(stamps), _CLOUD_POINT.itemsize
+    out, start = [], 0
+    for k, count in enumerate(counts):
+        msg = bytearray(head)
+        msg[marks["stamp"] : marks["stamp"] + 8] = stamp_bytes[k].tobytes()
+        struct.pack_into("<I", msg, marks["width"], count)
+        struct.pack_into("<I", msg, marks["row_step"], step * count)
+        struct.pack_into("<I", msg, marks["raw"], step * count)
+        msg += points[start : start + count].tobytes()
+        msg += b"\x01"  # is_dense
+        out.append(bytes(msg))
+        start += count
+    return out
+
+
+def _cloud_cdr(points: np.ndarray, stamp: int) -> bytes:
+    """One cloud of :func:`_cloud_cdrs`: all of ``points``, stamped ``stamp``."""
+    return _cloud_cdrs(points, [len(points)], [stamp])[0]
 
 
 def _markers(obstacles: Obstacles, stamp: int):
@@ -222,9 +332,37 @@ def _pad3(a: np.ndarray) -> np.ndarray:
     return a if a.shape[-1] == 3 else np.concatenate((a, np.zeros((*a.shape[:-1], 3 - a.shape[-1]))), -1)
 
 
+#: the recorded environment's steps are turned into messages this many agent-steps at a time (one LiDAR scan and
+#: one CBF forward over the steps together, :class:`EpisodeRecorder`): the memory held stays bounded at any size
+BATCH_AGENT_STEPS = 4096
+
+
+@dataclass
+class _Step:
+    """What :class:`EpisodeRecorder` keeps of a step until it writes it: environment 0's state ``(N, S)``, its stamp,
+    the filter's activity ``(N,)`` uint8 (or ``None``), and the goals and obstacles when they are not the first
+    step's (``None``: the first step's)."""
+
+    x: torch.Tensor
+    stamp: int
+    active: np.ndarray | None
+    scene: tuple[torch.Tensor, Obstacles] | None
+
+
+def _first_env(obstacles: Obstacles) -> Obstacles:
+    return Obstacles(obstacles.centers[:1], obstacles.radii[:1],
+                     None if obstacles.boxes is None else obstacles.boxes[:1])  # fmt: skip
+
+
 class EpisodeRecorder:
     """An ``on_step`` callback (:data:`egcbf.evaluate.episodes.StepCallback`) writing environment 0 of the first
     episode batch it watches to an MCAP file (module doc); later sizes and episodes are ignored.
+
+    Each call keeps environment 0's state (and the filter's activity); the messages of the kept steps are made
+    together, :data:`BATCH_AGENT_STEPS` agent-steps at a time and at the episode's end (one LiDAR scan and one CBF
+    forward over those steps as environments of one batch), and written in step order: the messages, in the order,
+    that making each step's own at its call would write, with the same values (the batched ray products and network
+    layers may round the LiDAR hits and ``h`` differently in the last bit). :meth:`close` writes what is still kept.
 
     Args:
         path: the ``.mcap`` file to write (replaced if it exists, at :meth:`close`).
@@ -242,7 +380,8 @@ class EpisodeRecorder:
         self._config: EnvConfig | None = None
         self.done = False
         self._static: dict = {}
-        #: the log times written (ns), one per step
+        self._pending: list[_Step] = []
+        #: the log times recorded (ns), one per step (written to the file by the episode's end)
         self.stamps: list[int] = []
 
     @property
@@ -259,63 +398,114 @@ class EpisodeRecorder:
         elif config.num_agents != self._config.num_agents:
             return
         try:
-            self._record(config, state, info)
+            self._keep(config, state, info)
+            if info is None or len(self._pending) * config.num_agents >= BATCH_AGENT_STEPS:
+                self._flush()
         except BaseException:
             self.abort()
             raise
         if info is None:
             self.done = True
 
-    def _record(self, config: EnvConfig, state: SwarmState, info: dict | None) -> None:
-        from ..env.graph import build_graph
-
-        w, robot = self._writer, state.robot
+    def _keep(self, config: EnvConfig, state: SwarmState, info: dict | None) -> None:
+        """Keep what the step's messages are made of (cheap: environment 0's state, copied)."""
         stamp = codecs.seconds_to_ns(state.t * config.dt)
-        self.stamps.append(stamp)
-        x = state.x[:1].detach()
-        x64 = x[0].double().cpu().numpy()
-        positions = _pad3(robot.positions(x[0]).double().cpu().numpy())
-        try:
-            quats = codecs.rotation_to_quaternion(robot.attitudes(x[0]).double().cpu().numpy())
-        except AttributeError:  # a planar robot: its heading as a yaw
-            head = robot.heading(x[0]).double().cpu().numpy()
-            yaw = np.arctan2(head[:, 1], head[:, 0])
-            quats = np.stack((0 * yaw, 0 * yaw, np.sin(yaw / 2), np.cos(yaw / 2)), -1)
-        goals = _pad3(state.goals[0].detach().double().cpu().numpy())
-        t = TOPICS
-        obstacles = Obstacles(state.obstacles.centers[:1], state.obstacles.radii[:1],
-                              None if state.obstacles.boxes is None else state.obstacles.boxes[:1])  # fmt: skip
         if not self._static:  # goals and obstacles stay for the episode: serialized once, stamped with the first step
-            store = typestore()
+            self._robot, self._goals, self._obstacles = state.robot, state.goals, state.obstacles
+            self._scene = (state.goals[:1].detach(), _first_env(state.obstacles.detach()))
+            goals = _pad3(state.goals[0].detach().double().cpu().numpy())
             self._static = {
                 "goals": _pose_array_cdr(goals, np.tile([0.0, 0.0, 0.0, 1.0], (len(goals), 1)), stamp),
-                "obstacles": bytes(store.serialize_cdr(_markers(obstacles, stamp), t["obstacles"][1])),
+                "obstacles": bytes(typestore().serialize_cdr(_markers(self._scene[1], stamp), TOPICS["obstacles"][1])),
             }
-        w.write(*t["poses"], _pose_array_cdr(positions, quats, stamp), stamp)
-        w.write(*t["goals"], self._static["goals"], stamp)
-        w.write(*t["states"], _multiarray_cdr(t["states"][1], x64, ("agent", "state")), stamp)
-        w.write(*t["obstacles"], self._static["obstacles"], stamp)
-        one = SwarmState(x, state.goals[:1], obstacles, state.t, robot)
-        scan = config.scan(one.positions, robot.heading(x), obstacles)
-        valid = scan.valid[0].cpu().numpy()
-        hits = _pad3(scan.points[0].detach().double().cpu().numpy())
-        owner = np.broadcast_to(np.arange(valid.shape[0])[:, None], valid.shape)
-        cloud = codecs.hits_to_cloud(hits.reshape(-1, 3), valid.reshape(-1), stamp=stamp, frame_id=WORLD,
-                                     agent=owner.reshape(-1))  # fmt: skip
-        w.write(*t["lidar"], cloud, stamp)
+        scene = None
+        if state.goals is not self._goals or state.obstacles is not self._obstacles:
+            scene = (state.goals[:1].detach().clone(), _first_env(state.obstacles.detach()))
+        active = None
+        if info is not None and "active_mask" in info:
+            active = np.asarray(info["active_mask"])[0].astype(np.uint8)  # a copy
+        self.stamps.append(stamp)
+        self._pending.append(_Step(state.x[0].detach().clone(), stamp, active, scene))
+
+    def _flush(self) -> None:
+        """Make and write the messages of the kept steps."""
+        from ..env.graph import build_graph
+
+        steps, self._pending = self._pending, []
+        if not steps:
+            return
+        w, config, robot, t = self._writer, self._config, self._robot, TOPICS
+        x = torch.stack([s.x for s in steps])  # (T, N, S): the steps as environments
+        n = x.shape[1]
+        if all(s.scene is None for s in steps):
+            goals0, obs0 = self._scene
+            goals = goals0.expand(len(steps), -1, -1)
+            obstacles = Obstacles(obs0.centers.expand(len(steps), -1, -1), obs0.radii.expand(len(steps), -1),
+                                  None if obs0.boxes is None else obs0.boxes.expand(len(steps), -1, -1))  # fmt: skip
+        else:
+            scenes = [self._scene if s.scene is None else s.scene for s in steps]
+            goals = torch.cat([g for g, _ in scenes])
+            obstacles = Obstacles.cat([o for _, o in scenes])
+        x64 = x.double().cpu().numpy()
+        positions = robot.positions(x)
+        pos64 = _pad3(positions.double().cpu().numpy())
+        heading = robot.heading(x)
+        try:
+            quats = codecs.rotation_to_quaternion(robot.attitudes(x).double().cpu().numpy().reshape(-1, 3, 3))
+            quats = quats.reshape(len(steps), n, 4)
+        except AttributeError:  # a planar robot: its heading as a yaw
+            head = heading.double().cpu().numpy()
+            yaw = np.arctan2(head[..., 1], head[..., 0])
+            quats = np.stack((0 * yaw, 0 * yaw, np.sin(yaw / 2), np.cos(yaw / 2)), -1)
+        scan = config.scan(positions, heading, obstacles)
+        valid = scan.valid.reshape(len(steps), -1).cpu().numpy()  # (T, N * H), agent-major, closest first
+        hits = _pad3(scan.points.detach().double().cpu().numpy()).reshape(len(steps), -1, 3)
+        owner = np.broadcast_to(np.repeat(np.arange(n, dtype=np.uint32), valid.shape[1] // max(n, 1)), valid.shape)
+        points = _cloud_points(hits[valid], owner[valid])
+        h = None
         if self.cbf is not None:
             p = next(self.cbf.parameters())
+            batch = SwarmState(x, goals, obstacles, 0, robot)
+            same = p.dtype == x.dtype and p.device == x.device  # then the graph's LiDAR is the scan above
             with torch.no_grad():
-                h = self.cbf(build_graph(one.to(p.device, dtype=p.dtype), config))
-            w.write(*t["cbf"], _multiarray_cdr(t["cbf"][1], h.double().cpu().numpy(), ("agent",)), stamp)
-        if info is not None and "active_mask" in info:
-            active = np.asarray(info["active_mask"])[0].astype(np.uint8)
-            w.write(*t["filter_active"], _multiarray_cdr(t["filter_active"][1], active, ("agent",)), stamp)
+                graph = build_graph(batch if same else batch.to(p.device, dtype=p.dtype), config,
+                                    lidar=scan if same else None)  # fmt: skip
+                h = self.cbf(graph).double().cpu().numpy().reshape(len(steps), n)
+        stamps = [s.stamp for s in steps]
+        poses = _same_layout_cdrs(_pose_array_cdr(np.zeros((n, 3)), np.zeros((n, 4)), 0),
+                                  _array_bytes(np.concatenate((pos64, quats), -1), np.float64), stamps)  # fmt: skip
+        states = _same_layout_cdrs(_multiarray_cdr(t["states"][1], np.zeros(x64.shape[1:]), ("agent", "state")),
+                                   _array_bytes(x64, np.float64))  # fmt: skip
+        clouds = _cloud_cdrs(points, valid.sum(1).tolist(), stamps)
+        cbf = [None] * len(steps)
+        if h is not None:
+            cbf = _same_layout_cdrs(_multiarray_cdr(t["cbf"][1], np.zeros(n), ("agent",)), _array_bytes(h, np.float64))
+        active = [k for k, s in enumerate(steps) if s.active is not None]
+        filtered = dict.fromkeys(range(len(steps)))
+        if active:
+            one = _multiarray_cdr(t["filter_active"][1], np.zeros(n, dtype=np.uint8), ("agent",))
+            msgs = _same_layout_cdrs(one, _array_bytes(np.stack([steps[k].active for k in active]), np.uint8))
+            filtered.update(zip(active, msgs, strict=True))
+        for k, stamp in enumerate(stamps):  # in step order, each step's messages in the order of TOPICS
+            w.write(*t["poses"], poses[k], stamp)
+            w.write(*t["goals"], self._static["goals"], stamp)
+            w.write(*t["states"], states[k], stamp)
+            w.write(*t["obstacles"], self._static["obstacles"], stamp)
+            w.write(*t["lidar"], clouds[k], stamp)
+            if cbf[k] is not None:
+                w.write(*t["cbf"], cbf[k], stamp)
+            if filtered[k] is not None:
+                w.write(*t["filter_active"], filtered[k], stamp)
 
     def close(self) -> Path | None:
-        """Finish and move the file into place; ``None`` if nothing was recorded."""
+        """Write the steps still kept, finish and move the file into place; ``None`` if nothing was recorded."""
         if self._writer is None:
             return None
+        try:
+            self._flush()
+        except BaseException:
+            self.abort()
+            raise
         cfg = self._config
         meta = {"dt": repr(cfg.dt), "num_agents": str(cfg.num_agents), "robot": cfg.robot,
                 "steps": str(len(self.stamps) - 1), **self.metadata}  # fmt: skip
@@ -327,6 +517,7 @@ class EpisodeRecorder:
         if self._writer is not None:
             self._writer.abort()
             self._writer = None
+        self._pending = []
         self.done = True
 
 

@@ -157,3 +157,116 @@ def test_the_verlet_neighbour_list_answers_as_a_fresh_search(seed, skin, k):
             assert index[i][mask[i]].tolist() == want
             assert (index[i][~mask[i]] == b * n).all()
     assert 1 <= kept.searches <= 8 and (skin > 0 or kept.searches == 8)
+
+
+def _nearest_by_brute_force(p, batch, radius, k):
+    """Per agent ``i``: ``(d2, j)`` of the other agents of its environment closer than ``radius``, sorted by
+    ``(d2, j)``, the first ``k``; ``d2 = (p_j - p_i)^2`` summed over the coordinates in the tensors' dtype."""
+    out = []
+    for i in range(p.shape[0]):
+        d2 = (p - p[i]).square().sum(-1)
+        near = [(float(d2[j]), j) for j in range(p.shape[0]) if j != i and batch[j] == batch[i] and d2[j] < radius**2]
+        out.append(sorted(near)[:k])
+    return out
+
+
+@st.composite
+def neighbour_scenes(draw):
+    """Points of several environments (ids in any order) in a box; on a lattice half the time (coincident
+    points and equal distances); radii and ``k`` from none to many neighbours per point."""
+    b, n, d = draw(st.integers(1, 4)), draw(st.integers(0, 30)), draw(st.sampled_from([2, 3]))
+    gen = torch.Generator().manual_seed(draw(st.integers(0, 2**31 - 1)))
+    dtype = draw(st.sampled_from([torch.float32, F64]))
+    p = (torch.rand(b * n, d, generator=gen, dtype=F64) * draw(st.floats(0.05, 3.0))).to(dtype)
+    lattice = draw(st.booleans())
+    if lattice:
+        p = torch.round(p * 4) / 4
+    batch = (
+        torch.randint(0, b, (b * n,), generator=gen) if draw(st.booleans()) else torch.arange(b).repeat_interleave(n)
+    )
+    walk = [(torch.rand(b * n, d, generator=gen, dtype=F64) - 0.5).to(dtype) * 0.1 for _ in range(2)]
+    return p, batch, draw(st.floats(0.05, 1.5)), draw(st.integers(1, 8)), lattice, walk
+
+
+@settings(max_examples=80, deadline=None)
+@given(scene=neighbour_scenes(), search=st.sampled_from(["k-d tree", "cell list"]), skin=st.sampled_from([0.0, 0.1]))
+def test_nearest_neighbours_equal_a_brute_force_reading(scene, search, skin):
+    """The neighbour list's ``k`` nearest within the radius equal a brute-force reading, over a short random walk,
+    with either candidate search: the same neighbours in the same order, masks a prefix of each row and index
+    ``M`` past it. Equal distances: ordered by index for float32 (the packed sort key), in any order otherwise
+    (then the rows' distances equal the reading's)."""
+    from unittest import mock
+
+    from egcbf.env import observations
+    from egcbf.geometry import neighbors
+
+    p, batch, radius, k, lattice, walk = scene
+    pairs = neighbors._kd_tree_pairs if search == "k-d tree" else neighbors._cell_list_pairs
+    kept = observations.NeighbourList(radius, skin * radius)
+    m = p.shape[0]
+    with mock.patch.object(neighbors, "_kd_tree_pairs", pairs):
+        for step in (None, *walk):
+            p = p if step is None else p + step
+            index, mask = kept.nearest(p, batch, k)
+            assert index.shape == mask.shape == (m, k) and index.dtype == torch.long and mask.dtype == torch.bool
+            for i, want in enumerate(_nearest_by_brute_force(p, batch, radius, k)):
+                got = index[i][mask[i]].tolist()
+                assert mask[i].tolist() == [True] * len(want) + [False] * (k - len(want))
+                assert (index[i][~mask[i]] == m).all()
+                if p.dtype == torch.float32 or not lattice:
+                    assert got == [j for _, j in want]
+                else:
+                    assert len(set(got)) == len(got) and all(batch[j] == batch[i] and j != i for j in got)
+                    assert [float((p[j] - p[i]).square().sum()) for j in got] == [d2 for d2, _ in want]
+
+
+def test_nearest_neighbours_edge_cases():
+    """No neighbours (alone, or everyone farther than the radius), more than ``k`` (the ``k`` nearest kept), points
+    that coincide, and two environments on top of each other (never neighbours across them)."""
+    from egcbf.env.observations import NeighbourList
+
+    for dtype in (torch.float32, F64):
+        alone = torch.zeros(1, 3, dtype=dtype)
+        index, mask = NeighbourList(1.0).nearest(alone, torch.zeros(1, dtype=torch.long), 4)
+        assert index.tolist() == [[1] * 4] and not mask.any()
+        far = torch.arange(5, dtype=dtype)[:, None].expand(5, 3) * 2.0
+        index, mask = NeighbourList(1.0).nearest(far, torch.zeros(5, dtype=torch.long), 3)
+        assert (index == 5).all() and not mask.any()
+        line = torch.zeros(10, 3, dtype=dtype)
+        line[:, 0] = torch.arange(10, dtype=dtype) * 0.1  # agent 0 hears 1..9, nearest first; k = 4 keeps 1..4
+        index, mask = NeighbourList(1.0).nearest(line, torch.zeros(10, dtype=torch.long), 4)
+        assert index[0].tolist() == [1, 2, 3, 4] and mask.all()
+        three = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.35, 0.0, 0.0]], dtype=dtype)
+        twins = torch.cat((three, three))  # environments 0 and 1 at the same three points
+        index, mask = NeighbourList(1.0).nearest(twins, torch.tensor([0, 0, 0, 1, 1, 1]), 3)
+        assert index.tolist() == [[1, 2, 6], [0, 2, 6], [1, 0, 6], [4, 5, 6], [3, 5, 6], [4, 3, 6]]
+        same = torch.zeros(3, 2, dtype=dtype)  # coincident points: distance 0 < radius
+        index, mask = NeighbourList(0.5).nearest(same, torch.zeros(3, dtype=torch.long), 2)
+        assert mask.all() and all(sorted(row) == sorted({0, 1, 2} - {i}) for i, row in enumerate(index.tolist()))
+
+
+@pytest.mark.parametrize("comm_radius", [None, 0.1])
+@pytest.mark.parametrize("robot", ["quadrotor", "unicycle"])
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_the_task_masks_are_the_simulator_s(robot, dtype, comm_radius):
+    """SwarmTask's step masks, tested on the neighbour search's pairs, equal SwarmEnv.step's own (a dense scene:
+    unsafe pairs and collisions every step); with a communication radius below the unsafe distance the masks
+    search for themselves."""
+    area = {"quadrotor": 1.0, "unicycle": 1.3}[robot]
+    radius = {} if comm_radius is None else {"comm_radius": comm_radius}
+    cfg = EnvConfig.for_robot(robot, num_agents=24, num_envs=3, area_size=area, num_obstacles=2, max_steps=30,
+                              **radius)  # fmt: skip
+    env, task = SwarmEnv(cfg, dtype=dtype), SwarmTask(cfg, dtype=dtype)
+    state = env.reset(5)
+    task.reset(5)
+    assert (task._unsafe_pairs() is None) == (comm_radius is not None)
+    seen = torch.zeros(2, dtype=torch.long)
+    for _ in range(30):
+        u = env.robot.nominal_control(state.x, state.goals)
+        state, info = env.step(state, u)
+        out = task.step(u)
+        assert torch.equal(out.state.x, state.x) and torch.equal(out.truncated, info.done)
+        for key in ("collision", "agent_collision", "obstacle_collision", "unsafe", "reached"):
+            assert torch.equal(out.info[key], getattr(info, key)), key
+        seen += torch.stack((info.unsafe.sum(), info.agent_collision.sum()))
+    assert (seen > 0).all()

@@ -191,11 +191,20 @@ def lidar_scan(
             oc = _yaw_rotate(cs * cs.new_tensor([1.0, -1.0]), positions[bi, ni] - centers[bi, ki])  # (P, d)
             proj = oc @ dirs.T  # (P, Rr)
             c0 = oc.square().sum(-1) - radii[bi, ki].square()  # (P,); <= 0: the agent is inside
-            disc = proj.square() - c0[:, None]
-            # outside: the ray hits iff the line meets the sphere ahead (disc >= 0, proj < 0); inside: at distance 0
-            pi, ri = (((disc >= 0) & (proj < 0)) | (c0 <= 0)[:, None]).nonzero(as_tuple=True)
-            t = -proj[pi, ri] - torch.sqrt(torch.clamp(disc[pi, ri], min=0.0))
-            t = torch.where(c0[pi] <= 0, torch.zeros_like(t), t)
+            # outside: the ray hits iff the line meets the sphere ahead (disc = proj^2 - c0 >= 0, that is proj^2 >=
+            # c0, and proj < 0); inside: every ray, at distance 0. A threshold a little above -sqrt(c0) keeps a
+            # superset of the hits; the exact test and disc are then formed on those alone.
+            inside = c0 <= 0
+            slack = 1 - 8 * torch.finfo(dtype).eps
+            below = torch.where(inside, torch.inf, -torch.sqrt(c0.clamp(min=0.0)) * slack)
+            flat = (proj < below[:, None]).view(-1).nonzero().squeeze(1)  # row-major, as a 2-D nonzero
+            near = proj.view(-1).index_select(0, flat)
+            disc = near.square() - c0.index_select(0, flat // n_dirs)
+            inner = inside.index_select(0, flat // n_dirs)
+            hit = (inner | ((disc >= 0) & (near < 0))).nonzero().squeeze(1)
+            flat, near, disc, inner = (v.index_select(0, hit) for v in (flat, near, disc, inner))
+            pi, ri = flat // n_dirs, flat % n_dirs
+            t = torch.where(inner, torch.zeros_like(near), -near - torch.sqrt(torch.clamp(disc, min=0.0)))
             keep = t <= max_range
             agent, ri, t = (bi * n + ni)[pi[keep]], ri[keep], t[keep]
         if bi.numel() > 0:
@@ -222,6 +231,9 @@ def lidar_scan(
 
     best, idx = best.view(b, n, h), idx.view(b, n, h)
     valid = torch.isfinite(best)
+    if not (positions.requires_grad or headings.requires_grad) and not bool(valid.any()):
+        # no ray hit (no obstacle in range): every slot holds the agent's position, as p + d * 0 below would
+        return LidarScan(points=positions[:, :, None, :].expand(b, n, h, dim).clone(), valid=valid, distance=best)
     cs = planar_frame(headings)  # (B, N, 2)
     d = _yaw_rotate(cs[:, :, None, :], dirs[idx])  # (B, N, H, d)
     step = torch.where(valid, best, torch.zeros_like(best))

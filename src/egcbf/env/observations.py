@@ -24,10 +24,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from ..geometry.neighbors import radius_neighbors
+from ..geometry.neighbors import radius_pairs
 from .config import EnvConfig
 from .lidar import LidarScan
 
@@ -70,71 +71,113 @@ class ObservationLayout:
 
 
 class NeighbourList:
-    """Each agent's neighbours closer than ``radius``, kept between steps as a Verlet list: one cell-list search of
-    radius ``radius + skin`` serves every later query until some agent has moved more than ``skin / 2`` since that
-    search (then no pair now closer than ``radius`` can have been missed: each end moved at most ``skin / 2``).
-    The search's candidates are stored as a padded table, one row of candidate indices per agent, so that a query
-    only measures each agent's candidates and keeps the nearest (:meth:`nearest`); its result is what a fresh search
-    returns. ``skin = 0`` searches anew every time; ``searches`` counts the searches."""
+    """Each agent's neighbours closer than ``radius``, kept between steps as a Verlet list: one search for the pairs
+    closer than ``radius + skin`` serves every later query until some agent has moved more than ``skin / 2`` since
+    that search (then no pair now closer than ``radius`` can have been missed: each end moved at most ``skin / 2``;
+    the search's radius is inflated by a relative ``1e-5`` so that rounding cannot miss one either). The candidates
+    are stored as unordered pairs; a query (:meth:`nearest`) measures each pair once, keeps those closer than
+    ``radius`` and ranks every agent's neighbours with one sort; its result is what a fresh search returns. The
+    search is :func:`~egcbf.geometry.neighbors.radius_pairs` (a k-d tree on the CPU, the cell list on other
+    devices). ``skin = 0`` searches anew every time;
+    ``searches`` counts the searches."""
 
     def __init__(self, radius: float, skin: float = 0.0):
         if not radius > 0 or not skin >= 0:
             raise ValueError(f"NeighbourList needs radius > 0 and skin >= 0, got {radius!r}, {skin!r}")
         self.radius, self.skin = float(radius), float(skin)
         self._anchor: Tensor | None = None
-        self._table: Tensor | None = None
+        self._pairs: tuple[Tensor, Tensor] | None = None
+        self._close: tuple[Tensor, Tensor, Tensor] | None = None
         self.searches = 0
 
-    def _candidates(self, positions: Tensor, batch: Tensor) -> Tensor:
-        """The candidate table ``(M, C)`` of ``positions`` ``(M, d)``: row ``i`` lists the agents (same ``batch``
-        id, not ``i``) that were within ``radius + skin`` of ``i`` at the last search, padded with ``M`` (no
-        agent); searched anew when stale (class doc)."""
+    def _candidates(self, positions: Tensor, batch: Tensor) -> tuple[Tensor, Tensor]:
+        """``u, v`` ``(E,)``: every unordered pair of ``positions`` ``(M, d)`` of one ``batch`` id that was closer
+        than ``radius + skin`` at the last search, once each; searched anew when stale (class doc)."""
         anchor = self._anchor
         stale = anchor is None or anchor.shape != positions.shape or anchor.device != positions.device
-        if not stale and self.skin > 0:
+        if not stale and self.skin > 0 and positions.shape[0] > 0:
             moved = (positions.detach() - anchor).square().sum(-1).max()
             stale = bool(moved > (self.skin / 2) ** 2)
         if stale or self.skin == 0:
-            m = positions.shape[0]
-            src, dst = radius_neighbors(positions.detach(), self.radius + self.skin, batch, sort=False,
-                                        cells_per_radius=2)  # fmt: skip
-            order = torch.argsort(dst, stable=True)
-            src, dst = src.index_select(0, order), dst.index_select(0, order)
-            counts = torch.bincount(dst, minlength=m)
-            first = torch.cumsum(counts, 0) - counts
-            rank = torch.arange(dst.shape[0], device=dst.device) - first.index_select(0, dst)
-            width = int(counts.max()) if m > 0 and dst.numel() > 0 else 0
-            table = torch.full((m, width), m, dtype=torch.long, device=positions.device)
-            table[dst, rank] = src
-            self._table, self._anchor = table, positions.detach().clone()
+            self._pairs = radius_pairs(positions.detach(), batch, (self.radius + self.skin) * (1 + 1e-5))
+            self._anchor = positions.detach().clone()
             self.searches += 1
-        return self._table
+        return self._pairs
 
     def nearest(self, positions: Tensor, batch: Tensor, k: int) -> tuple[Tensor, Tensor]:
         """``index, mask`` ``(M, k)``: for each of ``positions`` ``(M, d)`` (agents of environments ``batch``
         ``(M,)``) its ``k`` nearest other agents of its environment closer than ``radius`` (strictly), nearest
         first (equal distances, a set of measure zero, in no promised order); ``mask`` marks the slots that hold
         one, the others hold index ``M``."""
-        m, d = positions.shape
-        table = self._candidates(positions, batch)
-        width = table.shape[1]
-        padded = torch.cat((positions, torch.full((1, d), torch.inf, dtype=positions.dtype,
-                                                  device=positions.device)))  # fmt: skip
-        d2 = (padded.index_select(0, table.reshape(-1)).reshape(m, width, d) - positions[:, None, :]).square().sum(-1)
-        if width > k:
-            d2, slot = torch.topk(d2, k, dim=1, largest=False, sorted=True)
-        else:
-            d2, slot = torch.sort(d2, dim=1, stable=True)
-        index = table.gather(1, slot)
-        if width < k:
-            index = torch.cat((index, index.new_full((m, k - width), m)), 1)
-            d2 = torch.cat((d2, d2.new_full((m, k - width), torch.inf)), 1)
-        mask = d2 < self.radius**2
-        return torch.where(mask, index, index.new_full((), m)), mask
+        p = positions.detach()
+        u, v = self._candidates(p, batch)
+        d2 = _pair_distances2(p, u, v)
+        close = (d2 < self.radius**2).nonzero().squeeze(1)
+        u, v, d2 = u.index_select(0, close), v.index_select(0, close), d2.index_select(0, close)
+        self._close = (u, v, d2)
+        return _rank_neighbours(u, v, d2, positions.shape[0], int(k))
+
+    def pairs_within(self, distance: float) -> tuple[Tensor, Tensor]:
+        """``u, v``: the unordered pairs of the last :meth:`nearest`'s positions closer than ``distance <= radius``,
+        with perhaps a few farther by a relative ``1e-4`` (a superset for a caller that tests the distance again)."""
+        if self._close is None:
+            raise RuntimeError("NeighbourList.pairs_within before nearest")
+        if not distance <= self.radius:
+            raise ValueError(f"pairs_within needs distance <= radius = {self.radius:g}, got {distance!r}")
+        u, v, d2 = self._close
+        keep = (d2 < float(distance) ** 2 * (1 + 1e-4)).nonzero().squeeze(1)
+        return u.index_select(0, keep), v.index_select(0, keep)
 
     def reset(self) -> None:
         """Forget the stored search (a new episode)."""
-        self._anchor = self._table = None
+        self._anchor = self._pairs = self._close = None
+
+
+def _pair_distances2(positions: Tensor, u: Tensor, v: Tensor) -> Tensor:
+    """``(E,)``: ``|p_v - p_u|^2`` of the pairs ``u, v`` of ``positions`` ``(M, d)``, summed over the coordinates in
+    order (what ``(p_v - p_u).square().sum(-1)`` gives), one coordinate column at a time."""
+    d2 = None
+    for column in positions.t():
+        diff = column.index_select(0, v) - column.index_select(0, u)
+        d2 = diff.square() if d2 is None else d2.add_(diff.square())
+    return d2
+
+
+def _rank_neighbours(u: Tensor, v: Tensor, d2: Tensor, m: int, k: int) -> tuple[Tensor, Tensor]:
+    """``index, mask`` ``(m, k)``: each of ``m`` agents' ``k`` nearest partners among the unordered pairs ``u, v``
+    ``(E,)`` with squared distances ``d2`` ``(E,)``, nearest first; ``mask`` marks the slots that hold one, the
+    others hold index ``m``.
+
+    Both directions of every pair are sorted by (agent, distance): for float32 distances and ``m <= 2**16`` as one
+    ``int64`` key ``(agent, the distance's IEEE bits, partner)`` (non-negative floats order as their bits; ties then
+    by partner), otherwise by two stable sorts (ties in input order). Each agent's run of the sorted pairs starts
+    after those of the agents before it, so its first ``k`` are gathered from there, as many as it has."""
+    counts = torch.bincount(u, minlength=m) + torch.bincount(v, minlength=m)
+    slot = torch.arange(k, device=u.device)
+    mask = slot < counts[:, None]
+    if u.shape[0] == 0:
+        return torch.full((m, k), m, dtype=torch.long, device=u.device), mask
+    at = ((torch.cumsum(counts, 0) - counts)[:, None] + slot).clamp_(max=2 * u.shape[0] - 1).view(-1)
+    bits = max((m - 1).bit_length(), 1)
+    if d2.dtype == torch.float32 and 2 * bits + 31 <= 63:
+        dist = d2.view(torch.int32).to(torch.int64) << bits
+        shift = 31 + bits
+        key = _sort_values(torch.cat(((u << shift) | dist | v, (v << shift) | dist | u)))
+        partner = key.index_select(0, at) & ((1 << bits) - 1)
+    else:
+        agent, partner = torch.cat((u, v)), torch.cat((v, u))
+        order = torch.sort(torch.cat((d2, d2)), stable=True).indices
+        order = order.index_select(0, torch.sort(agent.index_select(0, order), stable=True).indices)
+        partner = partner.index_select(0, order.index_select(0, at))
+    return torch.where(mask, partner.view(m, k), m), mask
+
+
+def _sort_values(key: Tensor) -> Tensor:
+    """``key`` ``(E,)`` int64 sorted ascending: NumPy's sort on the CPU (the faster integer sort there), torch's
+    elsewhere."""
+    if key.device.type == "cpu":
+        return torch.from_numpy(np.sort(key.numpy()))
+    return torch.sort(key).values
 
 
 def agent_observations(

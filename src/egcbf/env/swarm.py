@@ -197,9 +197,14 @@ def safety_masks(
     agent_radius: float,
     unsafe_agent: float = 2.5,
     unsafe_obstacle: float = 1.5,
+    agent_pairs: tuple[Tensor, Tensor] | None = None,
 ) -> dict[str, Tensor]:
     """Collision / unsafe / reached masks ``(B, N)`` (module doc conventions); sparse agent–agent search.
     ``unsafe_agent``, ``unsafe_obstacle``: the unsafe distances in agent radii (``EnvConfig.unsafe_*_distance``).
+    ``agent_pairs``: two ``(E,)`` index tensors of flattened agents (agent ``i`` of environment ``e`` is ``e * N +
+    i``), pairs of one environment among which is every pair closer than the unsafe distance (once or both ways;
+    say those a neighbour search of a larger radius found): only they are tested, with the search's own test,
+    instead of a search (the same masks).
 
     Returns a dict with keys ``collision``, ``unsafe``, ``reached``, ``agent_collision``, ``obstacle_collision``,
     ``agent_unsafe``, ``obstacle_unsafe``.
@@ -207,8 +212,11 @@ def safety_masks(
     b, n, d = positions.shape
     r = float(agent_radius)
     p = positions.detach().reshape(b * n, d)
-    batch = torch.arange(b, device=p.device).repeat_interleave(n)
-    src, dst = radius_neighbors(p, unsafe_agent * r, batch, sort=False)  # every pair closer than the unsafe distance
+    if agent_pairs is None:  # every pair closer than the unsafe distance, both ways
+        batch = torch.arange(b, device=p.device).repeat_interleave(n)
+        src, dst = radius_neighbors(p, unsafe_agent * r, batch, sort=False)
+    else:
+        src, dst = _pairs_closer(p, agent_pairs, unsafe_agent * r)
     close = (p.index_select(0, src) - p.index_select(0, dst)).norm(dim=-1) < 2 * r
     agent_unsafe = torch.zeros(b * n, dtype=torch.bool, device=p.device)
     agent_unsafe[dst] = True
@@ -234,6 +242,15 @@ def safety_masks(
         "agent_unsafe": agent_unsafe,
         "obstacle_unsafe": obs_unsafe,
     }
+
+
+def _pairs_closer(p: Tensor, pairs: tuple[Tensor, Tensor], radius: float) -> tuple[Tensor, Tensor]:
+    """``src, dst``: both ways, the pairs among ``pairs`` (``(a, b)`` indices into ``p`` ``(M, d)``) closer than
+    ``radius``, tested as :func:`~egcbf.geometry.neighbors.radius_neighbors` tests its candidates."""
+    a, b = pairs
+    keep = ((p.index_select(0, b) - p.index_select(0, a)).square().sum(-1) < float(radius) ** 2).nonzero().squeeze(1)
+    a, b = a.index_select(0, keep), b.index_select(0, keep)
+    return torch.cat((a, b)), torch.cat((b, a))
 
 
 def approach_unsafe(
@@ -392,7 +409,13 @@ class SwarmEnv:
 
     # ----------------------------------------------------------------------------------------------- step
     def step(self, state: SwarmState, u: Tensor, setpoint: Tensor | None = None) -> tuple[SwarmState, StepInfo]:
-        """Integrate every agent for one control period with ``u`` ``(B, N, 4)`` held constant; or, with
+        """:meth:`transition`, then the masks of the state it reaches (:meth:`info`, with the control applied)."""
+        new, u = self.transition(state, u, setpoint)
+        return new, self.info(new, u=u)
+
+    def transition(self, state: SwarmState, u: Tensor, setpoint: Tensor | None = None) -> tuple[SwarmState, Tensor]:
+        """The next state and the control applied ``(B, N, control_dim)``, without the masks (:meth:`step` adds
+        them): integrate every agent for one control period with ``u`` ``(B, N, 4)`` held constant; or, with
         ``setpoint`` (a robot that ``flies_setpoints``: the quadrotor), fly that world acceleration command
         ``(B, N, d)`` through its firmware-like setpoint tracker instead (:func:`advance`; ``u`` is then checked but
         not applied).
@@ -428,15 +451,17 @@ class SwarmEnv:
                 f"non-finite state after step {state.t + 1}: {bad.shape[0]} agent(s), first (env, agent) = "
                 f"{tuple(bad[0].tolist())}; the control there was {u[tuple(bad[0].tolist())].tolist()}"
             )
-        new = SwarmState(x, state.goals, state.obstacles, state.t + 1, state.robot)
-        return new, self.info(new, u=u)
+        return SwarmState(x, state.goals, state.obstacles, state.t + 1, state.robot), u
 
     # ---------------------------------------------------------------------------------------------- masks
-    def info(self, state: SwarmState, u: Tensor | None = None) -> StepInfo:
-        """The masks of ``state`` (also usable on a reset state)."""
+    def info(
+        self, state: SwarmState, u: Tensor | None = None, agent_pairs: tuple[Tensor, Tensor] | None = None
+    ) -> StepInfo:
+        """The masks of ``state`` (also usable on a reset state); ``agent_pairs``: candidate agent pairs that hold
+        every pair closer than the unsafe distance, tested instead of a search (:func:`safety_masks`)."""
         c = self.config
         m = safety_masks(state.positions, state.goals, state.obstacles, c.agent_radius, c.unsafe_agent_distance,
-                         c.unsafe_obstacle_distance)  # fmt: skip
+                         c.unsafe_obstacle_distance, agent_pairs)  # fmt: skip
         done = torch.full((state.num_envs,), state.t >= self.config.max_steps, dtype=torch.bool, device=state.x.device)
         return StepInfo(
             collision=m["collision"],

@@ -124,12 +124,23 @@ class SwarmTask:
         nominal = None
         if self.task.deviation_weight > 0:  # clipped: the command the simulator would apply
             nominal = self.robot.clip_control(self.robot.nominal_control(before.x, before.goals))
-        after, info = self.env.step(before, u)
+        after, applied = self.env.transition(before, u)
         self.state = after
+        observation = self.observe(after)
+        info = self.env.info(after, u=applied, agent_pairs=self._unsafe_pairs())
         reward, cost = self.reward_and_cost(before, after, info, nominal)
-        truncated = info.done
         masks = {key: getattr(info, key) for key in INFO_KEYS}
-        return TaskStep(self.observe(after), reward, cost, truncated, masks, after)
+        return TaskStep(observation, reward, cost, info.done, masks, after)
+
+    def _unsafe_pairs(self) -> tuple[Tensor, Tensor] | None:
+        """The agent pairs of the last observation that may be closer than the unsafe distance (the neighbour
+        search's: :meth:`NeighbourList.pairs_within`), for the step's masks; ``None`` (the masks search) when that
+        distance is not well inside the communication radius."""
+        c = self.config
+        unsafe = c.unsafe_agent_distance * c.agent_radius
+        if not unsafe**2 * (1 + 1e-3) < self.neighbours.radius**2:
+            return None
+        return self.neighbours.pairs_within(unsafe)
 
     def reward_and_cost(
         self, before: SwarmState, after: SwarmState, info: StepInfo, nominal: Tensor | None

@@ -15,6 +15,10 @@ points plus the number of candidate pairs, never with ``N^2``:
 At a fixed density (points per ``radius^D``) the number of candidates per point is bounded, so the cost is linear
 in the number of points. It is device agnostic (CPU, CUDA) and makes a handful of host synchronizations per call
 (the grid size and the chunk boundaries). No autograd flows through it: it returns indices.
+
+``radius_pairs(pos, batch, reach)`` returns each unordered pair once, for a caller that keeps the pairs between
+calls (the Verlet list of :class:`egcbf.env.observations.NeighbourList`): on the CPU from a k-d tree
+(``scipy.spatial.cKDTree``, the batch entries shifted apart along x), elsewhere from the cell list above.
 """
 
 from __future__ import annotations
@@ -22,10 +26,12 @@ from __future__ import annotations
 import itertools
 import math
 
+import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
-__all__ = ["brute_force_neighbors", "radius_neighbors", "radius_search"]
+__all__ = ["brute_force_neighbors", "radius_neighbors", "radius_pairs", "radius_search"]
 
 _MAX_KEY = 2**62
 _TABLE_FACTOR = 16  # use a dense cell table while it has at most this many cells per point
@@ -211,3 +217,37 @@ def brute_force_neighbors(pos: Tensor, radius: float, batch: Tensor | None = Non
         adj.fill_diagonal_(False)
     dst, src = adj.nonzero(as_tuple=True)  # row-major: sorted by (dst, src)
     return torch.stack((src, dst))
+
+
+def radius_pairs(positions: Tensor, batch: Tensor, reach: float) -> tuple[Tensor, Tensor]:
+    """``u, v`` ``(E,)`` long: every unordered pair of ``positions`` ``(M, d)`` with one ``batch`` id (``(M,)``,
+    ids ``>= 0``) closer than ``reach``, once each, in no promised order (pairs at ``reach`` up to rounding may be
+    among them): :func:`_kd_tree_pairs` on the CPU, :func:`_cell_list_pairs` elsewhere."""
+    if positions.shape[0] < 2:
+        none = torch.zeros(0, dtype=torch.long, device=positions.device)
+        return none, none
+    if positions.device.type == "cpu":
+        return _kd_tree_pairs(positions, batch, reach)
+    return _cell_list_pairs(positions, batch, reach)
+
+
+def _kd_tree_pairs(positions: Tensor, batch: Tensor, reach: float) -> tuple[Tensor, Tensor]:
+    """:func:`radius_pairs` by a k-d tree (``scipy.spatial.cKDTree``, float64) of the CPU ``positions``, each
+    environment shifted along x by more than ``reach`` past the one before. ``ValueError`` for NaN or inf."""
+    if not bool(torch.isfinite(positions).all()):
+        raise ValueError("neighbour search: positions contain NaN or inf")
+    pts = positions.to(torch.float64).numpy().copy()
+    if bool((batch != batch[0]).any()):
+        span = float(pts[:, 0].max() - pts[:, 0].min()) + 2 * reach + 1.0
+        pts[:, 0] += batch.numpy() * span
+    pairs = cKDTree(pts).query_pairs(reach, output_type="ndarray")
+    uv = torch.from_numpy(pairs.astype(np.int64, copy=False).T.copy())
+    return uv[0], uv[1]
+
+
+def _cell_list_pairs(positions: Tensor, batch: Tensor, reach: float) -> tuple[Tensor, Tensor]:
+    """:func:`radius_pairs` by the cell list (:func:`radius_neighbors`, any
+    device): its ordered pairs, each unordered pair once."""
+    src, dst = radius_neighbors(positions, reach, batch, sort=False)
+    keep = (src < dst).nonzero().squeeze(1)
+    return src.index_select(0, keep), dst.index_select(0, keep)

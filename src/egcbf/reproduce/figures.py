@@ -165,6 +165,15 @@ def convergence_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
     )
 
 
+#: a float64 gap below this is round-off, whose last digits differ between CPUs: printed as the bound alone
+ROUND_OFF = 1e-12
+
+
+def _gap(value: float) -> str:
+    """``4.38e-02``, or ``< 1e-12 (round-off)`` for a gap below :data:`ROUND_OFF` (the same text on every machine)."""
+    return f"< {ROUND_OFF:.0e} (round-off)" if value < ROUND_OFF else f"{value:.2e}"
+
+
 def contour_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
     """The learned CBF of EGCBF+ and GCBF+ (training seed 0) over a plane, in a scene and in its transformed copy."""
     from ..viz.contour import cbf_contour_figure
@@ -182,7 +191,7 @@ def contour_section(cfg: SweepConfig, report: Path, figures: Path) -> str:
         diffs = cbf_contour_figure(ckpts, png)
     except Exception as err:  # a figure must not lose a finished sweep's report
         return f"CBF contour figure failed: `{type(err).__name__}: {err}`."
-    gaps = ", ".join(f"{k}: {v:.2e}" for k, v in (diffs or {}).items())
+    gaps = ", ".join(f"{k}: {_gap(v)}" for k, v in (diffs or {}).items())
     return (
         f"![CBF contour]({relative_link(png, report)})\n\n"
         "The learned CBF of one agent (training seed 0) over the horizontal "

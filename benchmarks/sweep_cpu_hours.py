@@ -27,13 +27,13 @@ from egcbf.reproduce import SweepConfig
 from egcbf.reproduce.paper import LABELS
 from egcbf.reproduce.plan import Cell
 from egcbf.reproduce.store import load_cells
+from egcbf.robots.quadrotor.dynamics import DEFAULT_MAX_STEPS
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_STEPS = 256
 
 
 def _agent_steps(cfg: SweepConfig, cell: Cell) -> int:
-    return cfg.episodes_for(cell) * cell.num_agents * (cfg.steps_for(cell) or DEFAULT_STEPS)
+    return cfg.episodes_for(cell) * cell.num_agents * (cfg.steps_for(cell) or DEFAULT_MAX_STEPS)
 
 
 def _wall(cfg: SweepConfig, cell: Cell, record: dict) -> float:
@@ -42,7 +42,7 @@ def _wall(cfg: SweepConfig, cell: Cell, record: dict) -> float:
     wall = record.get("meta", {}).get("wall_s")
     if wall is not None:
         return float(wall)
-    return record["row"]["step_ms_median"] / 1e3 * (cfg.steps_for(cell) or DEFAULT_STEPS) * cfg.episodes_for(cell)
+    return record["row"]["step_ms_median"] / 1e3 * (cfg.steps_for(cell) or DEFAULT_MAX_STEPS) * cfg.episodes_for(cell)
 
 
 def _group(cell: Cell) -> str:

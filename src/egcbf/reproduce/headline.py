@@ -14,22 +14,13 @@ from ..io.report import md_table
 from ..robots.quadrotor.dynamics import DEFAULT_MAX_STEPS
 from .paper import LABELS
 from .plan import Cell, SweepConfig
-from .stats import partial, seed_rows, setting_text, stat
+from .stats import setting_text, setting_value
 
 __all__ = ["HEADLINE_METHODS", "headline_markdown"]
 
 #: the headline's rows, in order (those of the sweep's methods)
 HEADLINE_METHODS = ("egcbf+", "gcbf+", "egcbf+:dcbf", "gcbf+:dcbf", "nominal:dcbf", "dcbf", "ccbf", "nominal")
 _HAND_CRAFTED = ("nominal:dcbf", "dcbf", "ccbf", "nominal")
-
-
-def _value(
-    cfg: SweepConfig, records: dict[Cell, dict], method: str, n: int, scale: bool, metric: str, steps: int | None = None
-) -> str:
-    rows = seed_rows(records, method, 0, n, scale, steps)
-    st = stat(rows, metric)
-    planned = len(cfg.seeds_for(method))
-    return "pending" if st is None else st.text() + partial(len(rows), planned)
 
 
 def headline_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
@@ -45,10 +36,10 @@ def headline_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
         head.append(f"success %, {setting_text(cfg, settings[1][0], True)}, {long_} steps")
     rows = []
     for m in (m for m in HEADLINE_METHODS if m in cfg.methods):
-        cells = [_value(cfg, records, m, n, s, k) for n, s in settings for k in ("safe_rate", "success_rate")]
+        cells = [setting_value(cfg, records, m, n, s, k) for n, s in settings for k in ("safe_rate", "success_rate")]
         if long_ is not None:
             run = any(c.method == m for c in cfg.long_cells())
-            cells.append(_value(cfg, records, m, settings[1][0], True, "success_rate", long_) if run else "-")
+            cells.append(setting_value(cfg, records, m, settings[1][0], True, "success_rate", long_) if run else "-")
         kind = "hand-crafted" if m in _HAND_CRAFTED else "learned" if ":" not in m else "learned + hand-crafted filter"
         rows.append([LABELS[m], kind, *cells])
     scale = f"; N = {settings[1][0]}: {cfg.scale_agent_episodes} agent-episodes" if len(settings) > 1 else ""

@@ -10,19 +10,14 @@ with its 95 % interval (:class:`~egcbf.reproduce.stats.Stat`), ``pending`` where
 from __future__ import annotations
 
 from ..io.report import md_table
+from ..robots.quadrotor.dynamics import DEFAULT_MAX_STEPS
 from .paper import METHODS
 from .plan import Cell, SweepConfig
-from .stats import label, partial, scale_text, seed_rows, stat
+from .stats import label, scale_text, setting_value
 
 __all__ = ["horizon_markdown"]
 
 _METRICS = (("safe_rate", "Safe %"), ("reach_rate", "Reach %"), ("success_rate", "Succ %"))
-
-
-def _value(records: dict[Cell, dict], method: str, n: int, steps: int | None, metric: str, planned: int) -> str:
-    rows = seed_rows(records, method, 0, n, True, steps)
-    st = stat(rows, metric)
-    return st.text() + partial(len(rows), planned) if st else "pending"
 
 
 def horizon_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
@@ -30,15 +25,16 @@ def horizon_markdown(cfg: SweepConfig, records: dict[Cell, dict]) -> str:
     cells = cfg.long_cells()
     if not cells:
         return "Not run: the sweep has no second horizon (`--long-steps none`, or no scale size or long method).\n"
-    short, long_ = cfg.max_steps or 256, int(cfg.long_steps)
+    short, long_ = cfg.max_steps or DEFAULT_MAX_STEPS, int(cfg.long_steps)
     methods = [m for m in METHODS if any(c.method == m for c in cells)]
     head = ["N", "method"] + [f"{name} ({t} steps)" for _, name in _METRICS for t in (short, long_)]
     rows = []
     for n in cfg.scale_sizes:
         for m in methods:
-            planned = len(cfg.seeds_for(m))
             values = [
-                _value(records, m, int(n), steps, metric, planned) for metric, _ in _METRICS for steps in (None, long_)
+                setting_value(cfg, records, m, int(n), True, metric, steps)
+                for metric, _ in _METRICS
+                for steps in (None, long_)
             ]
             rows.append([f"{n} (l = {cfg.scale_area(int(n)):g} m)", label(cfg, m), *values])
     done = sum(c in records for c in cells)

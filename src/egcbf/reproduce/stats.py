@@ -29,6 +29,7 @@ __all__ = [
     "scale_text",
     "seed_rows",
     "setting_text",
+    "setting_value",
     "so_far",
     "stat",
 ]
@@ -111,6 +112,23 @@ def stat(rows: list[SeedRow], metric: str) -> Stat | None:
     episodes = [r.row.get("per_episode", {}).get(metric) for r in rows]
     runs = None if any(not e for e in episodes) else episodes
     return Stat([float(r.row[metric]) for r in rows], [r.train_seed for r in rows], runs)
+
+
+def setting_value(
+    cfg: SweepConfig,
+    records: dict[Cell, dict],
+    method: str,
+    num_agents: int,
+    scale: bool,
+    metric: str,
+    steps: int | None = None,
+) -> str:
+    """``metric`` of ``method`` at one setting without obstacles (``steps``: the long horizon, :func:`seed_rows`) as
+    :meth:`Stat.text`, ending in :func:`partial`'s note while some training seeds are pending; ``"pending"`` without
+    any cell."""
+    rows = seed_rows(records, method, 0, num_agents, scale, steps)
+    st = stat(rows, metric)
+    return "pending" if st is None else st.text() + partial(len(rows), len(cfg.seeds_for(method)))
 
 
 # ---------------------------------------------------------------------------------------------------- words

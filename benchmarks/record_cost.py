@@ -3,10 +3,11 @@
 Each controller runs the same episode (one environment, the evaluation's first seed, ``--steps`` steps, l = 4 m,
 8 obstacles, float32, one torch thread) twice in a row through :func:`egcbf.evaluate.episodes.run_episodes`: without
 ``on_step``, then with an :class:`egcbf.ros.record.EpisodeRecorder` (poses, goals, states, obstacle markers, the
-LiDAR cloud, the filter's activity, the learned CBF's value where the controller has one), ``close()`` included,
-after a warm-up that pays the recorder's imports once (reported apart). One episode per run is the recording's worst
-case; a last row runs the nominal controller as ``egcbf eval`` does at this size, 32 episodes together (of which the
-recorder writes environment 0). One run each, paired, so the ratio is the meaningful number on a shared machine.
+LiDAR cloud, the filter's activity: what ``--record`` writes), ``close()`` included, after a warm-up that pays the
+recorder's imports once (reported apart); the row ``egcbf+ --record-cbf`` also records the checkpoint's CBF value
+``h`` (one CBF forward per step). One episode per run is the recording's worst case; a last row runs the nominal
+controller as ``egcbf eval`` does at this size, 32 episodes together (of which the recorder writes environment 0).
+One run each, paired, so the ratio is the meaningful number on a shared machine.
 
     python benchmarks/record_cost.py                  # writes its section of docs/benchmarks.md
     python benchmarks/record_cost.py --steps 20 --no-write
@@ -30,20 +31,24 @@ from egcbf.io.report import cpu_name, replace_section
 from egcbf.ros.record import EpisodeRecorder
 
 ROOT = Path(__file__).resolve().parents[1]
-CONTROLLERS = ("nominal", "egcbf+", "egcbf+:dcbf")
+#: ``(controller, with the CBF's values (--record-cbf), episodes together)`` of each row (``None``: ``egcbf eval``'s
+#: batch at the size)
+ROWS = (("nominal", False, 1), ("egcbf+", False, 1), ("egcbf+", True, 1), ("egcbf+:dcbf", False, 1),
+        ("nominal", False, None))  # fmt: skip
 
 
-def _build(name: str):
-    """The controller and the learned CBF whose values `egcbf eval --record` records with it (``None``: none)."""
+def _build(name: str, with_cbf: bool = False):
+    """The controller and the learned CBF whose values the recording holds (``None``: none, as without
+    ``--record-cbf``)."""
     if name == "nominal":
         return resolve(name).controller, None
     kind = name.partition(":")[2] or "none"
-    built = resolve(name, ROOT / "checkpoints" / "egcbf+", with_cbf=True,
+    built = resolve(name, ROOT / "checkpoints" / "egcbf+", with_cbf=with_cbf,
                     filter_config=None if kind == "none" else FilterConfig.for_kind(kind))  # fmt: skip
     return built.controller, built.cbf
 
 
-def measure(name: str, n: int, steps: int, episodes: int = 1, seed: int = 0) -> dict:
+def measure(name: str, n: int, steps: int, episodes: int = 1, seed: int = 0, with_cbf: bool = False) -> dict:
     """Seconds of ``episodes`` episodes of ``name`` simulated together, without and with the recording (of the
     first), and the recording's size."""
     cfg = EnvConfig.for_robot("quadrotor", num_agents=n, area_size=4.0, num_obstacles=8, max_steps=steps)
@@ -52,7 +57,7 @@ def measure(name: str, n: int, steps: int, episodes: int = 1, seed: int = 0) -> 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "episode.mcap"
         for recorded in (False, True):
-            ctrl, cbf = _build(name)  # a fresh controller per run (the dcbf filter keeps the last velocities)
+            ctrl, cbf = _build(name, with_cbf)  # a fresh controller per run (the dcbf filter keeps the last velocities)
             rec = EpisodeRecorder(path, cbf=cbf) if recorded else None
             t0 = time.perf_counter()
             run_episodes(ctrl, cfg, seeds, on_step=rec)
@@ -80,10 +85,12 @@ def main(argv: list[str] | None = None) -> None:
     print(f"set-up (a 2-step recorded episode, imports included): {setup:.2f} s")
     rows = []
     batch = episode_batch(args.num_agents, 50)  # egcbf eval's batch at this size (50 episodes by default)
-    for name, episodes in (*((c, 1) for c in CONTROLLERS), ("nominal", batch)):
-        r = measure(name, args.num_agents, args.steps, episodes)
+    for name, with_cbf, episodes in ROWS:
+        episodes = episodes or batch
+        r = measure(name, args.num_agents, args.steps, episodes, with_cbf=with_cbf)
+        name = f"{name} --record-cbf" if with_cbf else name
         rows.append((name, episodes, r))
-        print(f"{name:14s} x{episodes:<3d} plain {r['plain_s']:7.2f} s  recorded {r['recorded_s']:7.2f} s  "
+        print(f"{name:27s} x{episodes:<3d} plain {r['plain_s']:7.2f} s  recorded {r['recorded_s']:7.2f} s  "
               f"ratio {r['ratio']:.2f}  {r['mb']:.1f} MB", flush=True)  # fmt: skip
     lines = [
         f"One episode of N = {args.num_agents} quadrotors, {args.steps} steps, l = 4 m, 8 obstacles, one "
@@ -91,7 +98,7 @@ def main(argv: list[str] | None = None) -> None:
         "`python benchmarks/record_cost.py` (one run each, paired: without, then with `--record`'s recorder; timed "
         "beside other jobs on a shared machine, so the ratio is the number to read).",
         "",
-        "| controller | episodes together | plain (s) | recorded (s) | ratio | file (MB) |",
+        "| controller (recording) | episodes together | plain (s) | recorded (s) | ratio | file (MB) |",
         "|---|---|---|---|---|---|",
         *(
             f"| `{name}` | {e} | {r['plain_s']:.2f} | {r['recorded_s']:.2f} | {r['ratio']:.2f}x | {r['mb']:.1f} |"

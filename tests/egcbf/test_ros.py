@@ -382,7 +382,7 @@ def test_eval_record_writes_an_mcap_of_the_first_episode(tmp_path):
     path = tmp_path / "episode.mcap"
     args = ["eval", "--num-agents", f"{n},5", "--episodes", "2", "--max-steps", str(steps), "--obstacles", "2",
             "--area", "2", "--checkpoint", str(CKPT), "--filter", "dcbf", "--no-progress"]  # fmt: skip
-    res = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "out"), "--record", str(path)])
+    res = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "out"), "--record", str(path), "--record-cbf"])
     assert res.exit_code == 0, res.output
     assert f"wrote {path}" in res.output and path.exists() and not list(tmp_path.glob(".*partial*"))
     with open(path, "rb") as f:
@@ -413,6 +413,21 @@ def test_eval_record_writes_an_mcap_of_the_first_episode(tmp_path):
         assert bag.message_count == sum(counts.values())
 
 
+def test_eval_record_writes_the_cbf_only_when_asked(tmp_path):
+    from typer.testing import CliRunner
+
+    from egcbf.cli import app
+    from egcbf.ros.record import TOPICS, read_recording
+
+    path = tmp_path / "episode.mcap"
+    args = ["eval", "--num-agents", "3", "--episodes", "1", "--max-steps", "2", "--area", "2", "--checkpoint",
+            str(CKPT), "--no-progress", "--out", str(tmp_path / "out"), "--record", str(path)]  # fmt: skip
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    rec = read_recording(path)
+    assert rec.h is None and TOPICS["cbf"][0] not in rec.counts and rec.counts[TOPICS["poses"][0]] == 3
+
+
 def test_eval_record_refuses_a_bad_name_and_a_missing_extra(tmp_path, monkeypatch):
     from typer.testing import CliRunner
 
@@ -423,6 +438,10 @@ def test_eval_record_refuses_a_bad_name_and_a_missing_extra(tmp_path, monkeypatc
             str(tmp_path / "out")]  # fmt: skip
     res = CliRunner().invoke(app, [*base, "--record", str(tmp_path / "episode.bag")])
     assert res.exit_code != 0 and "must end with .mcap" in res.output
+    res = CliRunner().invoke(app, [*base, "--record-cbf"])
+    assert res.exit_code != 0 and "pass --record FILE.mcap too" in res.output
+    res = CliRunner().invoke(app, [*base, "--record", str(tmp_path / "episode.mcap"), "--record-cbf"])
+    assert res.exit_code != 0 and "needs a --checkpoint" in res.output and not (tmp_path / "episode.mcap").exists()
 
     def missing(what="egcbf.ros"):
         raise messages.MissingExtraError(f"{what} needs the 'ros' extra (mcap missing): pip install 'egcbf[ros]'")

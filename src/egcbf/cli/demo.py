@@ -101,7 +101,8 @@ def run_demo(
     controller}``, the first is the demo's method) into ``OUT/<name>/``; print and write the table
     (``OUT/summary.md``), the comparison GIF (``OUT/compare_N<n>.gif``) and a top-down still of the first
     controller, and ``OUT/demo.json``; with ``record`` also ``OUT/<name>/episode.mcap`` (the first episode as ROS 2
-    messages, :mod:`egcbf.ros.record`). Inputs are checked by the caller. Returns the summary written to demo.json."""
+    messages, :mod:`egcbf.ros.record`, with a learned controller's CBF values). Inputs are checked by the caller.
+    Returns the summary written to demo.json."""
     from ..viz.render import render_comparison_gif, render_topdown
 
     t0 = time.time()
@@ -129,6 +130,7 @@ def run_demo(
             record=render,
             filter=filt,
             record_to=out_dir(out, name) / "episode.mcap" if record else None,
+            record_cbf=record and ckpt is not None,
         )
         rows[name] = _read_row(out_dir(out, name))
         if num_agents in recorded:

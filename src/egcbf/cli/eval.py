@@ -155,6 +155,7 @@ def run_eval(
     lidar_hits: str = "plane",
     record_to: Path | None = None,
     low_level: str = "attitude",
+    record_cbf: bool = False,
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -164,7 +165,8 @@ def run_eval(
     robot of a hand-crafted controller's swarm (a checkpoint's robot is its own; a different ``robot`` is an error).
     ``resume``: continue the interrupted run in ``out`` (same settings, checked against its ``run.json``): the swarm
     sizes it finished are kept, the others evaluated. ``record_to``: write the first episode of the first swarm size
-    evaluated to this ``.mcap`` file (:class:`egcbf.ros.record.EpisodeRecorder`; needs the ``ros`` extra).
+    evaluated to this ``.mcap`` file (:class:`egcbf.ros.record.EpisodeRecorder`; needs the ``ros`` extra);
+    ``record_cbf``: with it, the checkpoint's learned CBF value ``h`` too (one CBF forward per recorded step).
     ``low_level``: ``"attitude"`` (our attitude loop applies the controller's control) or ``"setpoint"`` (its
     acceleration command flown through the firmware-like setpoint tracker; :mod:`egcbf.evaluate.episodes`).
     """
@@ -185,6 +187,10 @@ def run_eval(
             require_extra("--record")
         except MissingExtraError as err:
             usage_error(str(err), err)
+    require(not record_cbf or record_to is not None, "--record-cbf adds the CBF's values to a recording: pass "
+            "--record FILE.mcap too")  # fmt: skip
+    require(not record_cbf or checkpoint is not None, "--record-cbf records a learned CBF's values: it needs a "
+            "--checkpoint (the hand-crafted controllers have none)")  # fmt: skip
     require(episodes >= 1, f"--episodes must be >= 1, got {episodes}")
     require(batch is None or batch >= 1, f"--batch must be >= 1 (episodes simulated together), got {batch}")
     require(filter in FILTERS, f"--filter must be one of {list(FILTERS)}, got {filter!r}")
@@ -237,7 +243,7 @@ def run_eval(
         if controller is not None:
             usage_error("--controller and --checkpoint exclude each other (the checkpoint's policy is the controller)")
         built = build_controller(join_method(POLICY, filter), checkpoint, filter_config=filter_config, device=dev,
-                                 dtype=DTYPES[dtype], with_cbf=record_to is not None)  # fmt: skip
+                                 dtype=DTYPES[dtype], with_cbf=record_cbf)  # fmt: skip
         require(
             robot in (None, built.robot),
             f"--robot {robot} but the checkpoint's policy drives a {built.robot}; drop --robot",
@@ -338,7 +344,7 @@ def run_eval(
     if record_to is not None:
         from ..ros.record import EpisodeRecorder
 
-        cbf = built.cbf if built.cbf is not None else getattr(built.controller, "cbf", None)  # (nominal:cbf's own)
+        cbf = built.cbf if record_cbf else None
         recorder = EpisodeRecorder(record_to, cbf=cbf, metadata={"command": meta["command"], "controller": controller})
     recorded: dict = {}
 
@@ -581,6 +587,14 @@ def eval_cmd(
             "ros2 bag; docs/ros.md); needs the ros extra",
         ),
     ] = None,
+    record_cbf: Annotated[
+        bool,
+        typer.Option(
+            "--record-cbf",
+            help="with --record and a --checkpoint: also record the checkpoint's learned CBF value h of every agent "
+            "at every step (/egcbf/cbf; one CBF forward per step, about as costly as the policy's: docs/ros.md)",
+        ),
+    ] = False,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)
@@ -616,4 +630,5 @@ def eval_cmd(
             lidar_hits=lidar_hits,
             record_to=record,
             low_level=low_level,
+            record_cbf=record_cbf,
         )

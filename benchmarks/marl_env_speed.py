@@ -15,7 +15,8 @@ A second table splits ``SwarmTask.step`` into its parts, timed inside the same s
 simulator's step (dynamics and masks: ``SwarmEnv.transition`` and ``SwarmEnv.info``, whose agent pairs are the
 neighbour search's), the LiDAR scan and the neighbour rows of the observation (the Verlet list's
 searches amortized over the steps they serve), and the rest (nominal command, reward, cost, the gathers). It says
-what bounds the ratio of any path that builds these observations to the bare simulator.
+what bounds the ratio of any path that builds these observations to the bare simulator; a note after it gives
+the share of the neighbour rows that the Verlet list's k-d tree searches take (their count over the timed steps).
 
 Settings: ``8 x 512`` at Table I's density (l = 4 m) without and with 8 obstacles, and ``1 x 4096`` at the same
 density (l = 8 m). Mean over ``--steps`` steps after ``--warmup`` (the rate a run sees: the neighbour list's
@@ -36,7 +37,7 @@ from pathlib import Path
 
 import torch
 
-from egcbf.env import EnvConfig, SwarmEnv
+from egcbf.env import EnvConfig, SwarmEnv, observations
 from egcbf.env.graph import build_graph
 from egcbf.env.task import SwarmTask
 from egcbf.io.report import cpu_name, quote_section, replace_section
@@ -82,7 +83,7 @@ def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int
     task.reset(seed)
     times["SwarmTask.step"] = _mean_step(lambda: task.step(robot.nominal_control(task.state.x, task.state.goals)),
                                            steps, warmup)  # fmt: skip
-    parts = _task_parts(cfg, seed, steps, warmup)
+    parts, searches = _task_parts(cfg, seed, steps, warmup)
     try:
         from egcbf.env.torchrl import SwarmTorchRLEnv
     except ImportError:
@@ -113,15 +114,17 @@ def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int
                 penv.step({a: u[i] for i, a in enumerate(penv.possible_agents)})
 
             times["PettingZoo"] = _mean_step(pettingzoo_step, steps, warmup)
-    return {"B": b, "N": n, "l": area, "obstacles": obstacles, "seconds": times, "parts": parts}
+    return {"B": b, "N": n, "l": area, "obstacles": obstacles, "seconds": times, "parts": parts, "searches": searches}
 
 
-def _task_parts(cfg: EnvConfig, seed: int, steps: int, warmup: int) -> dict[str, float]:
-    """Mean seconds per step of ``SwarmTask.step``'s parts (module doc), each part timed where the step calls it."""
+def _task_parts(cfg: EnvConfig, seed: int, steps: int, warmup: int) -> tuple[dict[str, float], tuple[float, int]]:
+    """Mean seconds per step of ``SwarmTask.step``'s parts (module doc), each part timed where the step calls it;
+    and, inside the neighbour rows, the Verlet list's searches: their mean seconds per step and their count."""
     task = SwarmTask(cfg, dtype=torch.float32)
     task.reset(seed)
     robot = task.robot
     spent = {"simulator step": [], "LiDAR scan": [], "neighbour rows": []}
+    searched = []
 
     def timed(name, fn):
         def run(*args, **kwargs):
@@ -136,18 +139,30 @@ def _task_parts(cfg: EnvConfig, seed: int, steps: int, warmup: int) -> dict[str,
     task.env.info = timed("simulator step", task.env.info)
     task.env.lidar = timed("LiDAR scan", task.env.lidar)
     task.neighbours.nearest = timed("neighbour rows", task.neighbours.nearest)
-    for _ in range(warmup):
-        task.step(robot.nominal_control(task.state.x, task.state.goals))
-    for v in spent.values():
-        v.clear()
-    total = []
-    for _ in range(steps):
+    search = observations.radius_pairs
+
+    def timed_search(*args, **kwargs):
         t0 = time.perf_counter()
-        task.step(robot.nominal_control(task.state.x, task.state.goals))
-        total.append(time.perf_counter() - t0)
+        out = search(*args, **kwargs)
+        searched.append(time.perf_counter() - t0)
+        return out
+
+    observations.radius_pairs = timed_search  # the neighbour list's searches (module global), for these steps only
+    try:
+        for _ in range(warmup):
+            task.step(robot.nominal_control(task.state.x, task.state.goals))
+        for v in (*spent.values(), searched):
+            v.clear()
+        total = []
+        for _ in range(steps):
+            t0 = time.perf_counter()
+            task.step(robot.nominal_control(task.state.x, task.state.goals))
+            total.append(time.perf_counter() - t0)
+    finally:
+        observations.radius_pairs = search
     out = {name: sum(v) / steps for name, v in spent.items()}
     out["rest"] = statistics.fmean(total) - sum(out.values())
-    return out
+    return out, (sum(searched) / steps, len(searched))
 
 
 def parts_table(rows: list[dict]) -> str:
@@ -160,6 +175,16 @@ def parts_table(rows: list[dict]) -> str:
         cells = " | ".join(f"{1e3 * p[k]:.1f}" for k in names)
         lines.append(f"| {r['B']} x {r['N']} | {r['l']:g} | {r['obstacles']} | {cells} | {ratio:.2f} |")
     return "\n".join(lines)
+
+
+def searches_note(rows: list[dict], steps: int) -> str:
+    """One sentence: the share of the neighbour rows that their Verlet list's k-d tree searches take."""
+    cells = []
+    for r in rows:
+        (seconds, count), where = r["searches"], f"{r['B']} x {r['N']}{', obstacles' if r['obstacles'] else ''}"
+        cells.append(f"{where}: {count} search{'' if count == 1 else 'es'}, {1e3 * seconds:.1f} ms per step")
+    return (f"Of the neighbour rows, the Verlet list's searches (a k-d tree's pairs within the radius plus the skin, "
+            f"around anchors that lead the agents; over the {steps} steps): " + "; ".join(cells) + ".")  # fmt: skip
 
 
 def table(rows: list[dict]) -> str:
@@ -200,7 +225,7 @@ def main(argv=None) -> int:
         "Where `SwarmTask.step`'s time goes (mean per step; the neighbour rows' Verlet searches amortized; `rest`: "
         "nominal command, reward, cost, the gathers; the simulator step's masks test the neighbour search's pairs, "
         "so it costs less than `SwarmEnv.step` alone, which searches). The last column is the observation's cost "
-        "over that simulator step's.\n\n" + parts_table(rows)
+        "over that simulator step's.\n\n" + parts_table(rows) + "\n\n" + searches_note(rows, args.steps)
     )
     print("\n" + body)
     if not args.no_write:

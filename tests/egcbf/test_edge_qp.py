@@ -43,7 +43,9 @@ def test_the_target_is_the_nominal_command_behind_the_learned_cbf_filter():
     cfg, itf = learner.config, learner.interface
     c_ref, stats = learner.reference(data)
     assert c_ref.shape == (len(data), cfg.num_agents, 3) and stats["num_failed"] == 0
-    ctrl = FilteredController(None, cfg.model, FilterConfig(kind="cbf", alpha=cfg.qp_edge_alpha), learner.cbf_target)
+    ctrl = FilteredController(
+        None, cfg.model, FilterConfig(kind="cbf", alpha=cfg.qp_edge_alpha, qp_solver="ipm"), learner.cbf_target
+    )  # the target's own solver
     state = data.state(learner.robot)
     _, info = ctrl(state, learner.env_config)
     assert (info["a_safe"] / itf.accel_unit - c_ref).abs().max() <= 1e-9
@@ -88,7 +90,9 @@ def test_the_target_is_equivariant(g, index):
     assert len(data) == 24  # 2 environments x 12 steps
     cfg = learner.config
     state = data[index : index + 1].state(learner.robot)
-    ctrl = FilteredController(None, cfg.model, FilterConfig(kind="cbf", alpha=cfg.qp_edge_alpha), learner.cbf_target)
+    ctrl = FilteredController(
+        None, cfg.model, FilterConfig(kind="cbf", alpha=cfg.qp_edge_alpha, qp_solver="ipm"), learner.cbf_target
+    )  # the target's own solver
     _, a = ctrl(state, learner.env_config)
     _, b = ctrl(state.transform(g), learner.env_config)
     rotate = FieldType(GROUP, [Vector(3)])

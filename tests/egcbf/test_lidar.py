@@ -195,3 +195,103 @@ def test_ray_faults_act_before_the_closest_hits_are_kept(scene, cut):
     if seen:  # each (agent, ray) at most once
         agent, ray = seen[0]
         assert torch.unique(agent * 1000 + ray).numel() == agent.numel()
+
+
+@st.composite
+def scenes_to_compare(draw):
+    """Scenes for :func:`test_scan_equals_the_previous_implementation`: spheres (3-D) or discs or rectangles (2-D),
+    ``K`` up to past the dense near-pair search, agents anywhere (some inside an obstacle, some on its surface, some
+    a hair outside it), headings of any yaw (and pitch, in 3-D), float32 or float64, any ray pattern and range."""
+    from egcbf.env.obstacles import sample_rectangle_obstacles
+
+    dim = draw(st.sampled_from([2, 3]))
+    rectangles = dim == 2 and draw(st.booleans())
+    b, n, k = draw(st.integers(1, 3)), draw(st.integers(1, 40)), draw(st.sampled_from([0, 1, 3, 8, 40]))
+    dtype = draw(st.sampled_from([torch.float32, F64]))
+    gen = torch.Generator().manual_seed(draw(st.integers(0, 2**31 - 1)))
+    side = draw(st.floats(0.5, 3.0))
+    if rectangles:
+        obs = sample_rectangle_obstacles(b, k, side, (0.05, 0.6), generator=gen, dtype=F64)
+    else:
+        centers = torch.rand(b, k, dim, generator=gen, dtype=F64) * side
+        obs = Obstacles(centers, 0.05 + 0.3 * torch.rand(b, k, generator=gen, dtype=F64))
+    pos = torch.rand(b, n, dim, generator=gen, dtype=F64) * side
+    if k and not rectangles:  # a third of the agents on (or a relative 1e-7 off) a sphere's surface
+        which = torch.randint(0, k, (b, n), generator=gen)
+        c = torch.gather(obs.centers, 1, which[..., None].expand(b, n, dim))
+        r = torch.gather(obs.radii, 1, which)
+        u = torch.randn(b, n, dim, generator=gen, dtype=F64)
+        s = 1 + (torch.randint(-1, 2, (b, n), generator=gen) * 1e-7)
+        on = c + u / u.norm(dim=-1, keepdim=True) * (r * s)[..., None]
+        pos = torch.where((torch.rand(b, n, 1, generator=gen) < 1 / 3), on, pos)
+    heading = torch.randn(b, n, dim, generator=gen, dtype=F64)
+    n_rays = draw(st.sampled_from([2, 4, 8, 16, 32]))
+    kw = {"n_rays": n_rays, "max_range": draw(st.floats(0.1, 1.5)), "max_hits": draw(st.sampled_from([1, 4, 16]))}
+    return pos.to(dtype), heading.to(dtype), obs.to(dtype), kw
+
+
+@settings(max_examples=150, deadline=None)
+@given(scene=scenes_to_compare(), faults=st.booleans())
+def test_scan_equals_the_previous_implementation(scene, faults):
+    """The scan (the angular-window candidates of each agent-sphere pair, the packed closest-hit sorts, the points
+    of the valid slots alone) equals the previous implementation's, which tests every ray of every pair
+    (``previous_env.lidar_scan``), bit for bit: points, validity and distances; also with ray faults."""
+    from previous_env import lidar_scan as previous_lidar_scan
+
+    pos, heading, obs, kw = scene
+
+    def drop_every_third(agent, ray, t):
+        return t * 0.9, (agent + ray) % 3 != 0
+
+    if faults:
+        kw = {**kw, "ray_faults": drop_every_third}
+    new, old = lidar_scan(pos, heading, obs, **kw), previous_lidar_scan(pos, heading, obs, **kw)
+    for a, b in ((new.points, old.points), (new.valid, old.valid), (new.distance, old.distance)):
+        assert a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b)
+
+
+@pytest.mark.parametrize("robot", ["quadrotor", "unicycle"])
+def test_scan_of_swarm_episodes_equals_the_previous_implementation(robot):
+    """Along episodes of the simulator (nominal controller, obstacles of Table I's density) the scan equals the
+    previous implementation's at every step, in float32 and float64."""
+    from previous_env import lidar_scan as previous_lidar_scan
+
+    from egcbf.env import EnvConfig, SwarmEnv
+
+    for dtype in (torch.float32, F64):
+        area = {"quadrotor": 2.0, "unicycle": 4.0}[robot]
+        cfg = EnvConfig.for_robot(robot, num_agents=64, num_envs=2, area_size=area, num_obstacles=6, max_steps=40)
+        env = SwarmEnv(cfg, dtype=dtype)
+        state = env.reset(3)
+        kw = {"n_rays": cfg.n_rays, "max_range": cfg.resolved_lidar_range, "max_hits": cfg.lidar_max_hits}
+        hits = 0
+        for _ in range(12):
+            state, _ = env.step(state, env.robot.nominal_control(state.x, state.goals))
+            args = (state.positions, env.robot.heading(state.x), state.obstacles)
+            new, old = lidar_scan(*args, **kw), previous_lidar_scan(*args, **kw)
+            assert torch.equal(new.points, old.points) and torch.equal(new.valid, old.valid)
+            assert torch.equal(new.distance, old.distance)
+            hits += int(new.valid.sum())
+        assert hits > 100  # the scenes are not empty
+
+
+def test_gradients_equal_the_previous_implementation():
+    """With autograd (positions or headings that require grad) the scan, and the gradients through its points and
+    distances, equal the previous implementation's."""
+    from previous_env import lidar_scan as previous_lidar_scan
+
+    gen = torch.Generator().manual_seed(7)
+    for dim in (2, 3):
+        centers = torch.rand(2, 5, dim, generator=gen, dtype=F64) * 1.5
+        obs = Obstacles(centers, 0.1 + 0.2 * torch.rand(2, 5, generator=gen, dtype=F64))
+        pos0 = torch.rand(2, 30, dim, generator=gen, dtype=F64) * 1.5
+        heading0 = torch.randn(2, 30, dim, generator=gen, dtype=F64)
+        grads = []
+        for scan_fn in (lidar_scan, previous_lidar_scan):
+            pos, heading = pos0.clone().requires_grad_(True), heading0.clone().requires_grad_(True)
+            scan = scan_fn(pos, heading, obs, n_rays=16, max_range=1.0, max_hits=8)
+            (scan.points.sum() + scan.distance[scan.valid].sum()).backward()
+            grads.append((scan.points.detach(), scan.valid, scan.distance.detach(), pos.grad, heading.grad))
+        assert grads[0][1].any()
+        for a, b in zip(*grads):
+            assert torch.equal(a, b)

@@ -59,6 +59,24 @@ def test_bipartite_search_equals_brute_force(a, b, k):
     assert torch.equal(got, torch.stack((j, i)))
 
 
+@given(data=point_sets(), search=st.sampled_from(["k-d tree", "cell list"]))
+def test_radius_pairs_hold_every_pair_once(data, search):
+    """``radius_pairs`` (the k-d tree on the CPU, or the cell list) returns every unordered pair of one batch id
+    closer than the reach, each once, and perhaps pairs at the reach up to rounding; nothing farther."""
+    pos, radius, batch = data
+    m = pos.shape[0]
+    batch = torch.zeros(m, dtype=torch.long) if batch is None else batch
+    pairs = neighbors._kd_tree_pairs if search == "k-d tree" else neighbors._cell_list_pairs
+    u, v = pairs(pos, batch, radius) if m >= 2 else neighbors.radius_pairs(pos, batch, radius)
+    got = sorted(zip(torch.minimum(u, v).tolist(), torch.maximum(u, v).tolist()))
+    assert len(got) == len(set(got)) and all(a != b and batch[a] == batch[b] for a, b in got)
+    d2 = (pos[:, None] - pos[None]).square().sum(-1)
+    same = batch[:, None] == batch[None]
+    want = {(a, b) for a, b in (torch.triu(same & (d2 < radius**2), 1)).nonzero().tolist()}
+    near = {(a, b) for a, b in (torch.triu(same & (d2 <= radius**2 * (1 + 1e-9)), 1)).nonzero().tolist()}
+    assert want <= set(got) <= near
+
+
 def test_sparse_occupancy_uses_binary_search_and_agrees():
     """Two far-apart clusters: the grid is too large for a cell table, the searchsorted path must agree."""
     gen = torch.Generator().manual_seed(1)

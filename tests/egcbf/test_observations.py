@@ -270,3 +270,105 @@ def test_the_task_masks_are_the_simulator_s(robot, dtype, comm_radius):
             assert torch.equal(out.info[key], getattr(info, key)), key
         seen += torch.stack((info.unsafe.sum(), info.agent_collision.sum()))
     assert (seen > 0).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    b=st.integers(1, 4),
+    n=st.integers(0, 60),
+    d=st.sampled_from([2, 3]),
+    dtype=st.sampled_from([torch.float32, F64]),
+    skin=st.sampled_from([0.0, 0.05, 0.2, 0.5]),
+    k=st.integers(1, 12),
+    speed=st.floats(0.0, 0.2),
+)
+def test_the_neighbour_list_equals_the_previous_implementation(seed, b, n, d, dtype, skin, k, speed):
+    """Over a walk that drifts (so that the leading anchors are used) and jitters (so that they sometimes miss),
+    the neighbour list's rows, masks and unsafe pairs equal the previous implementation's
+    (``previous_env.NeighbourList``: anchors at the positions, one sort of both directions' keys), bit for bit;
+    the pairs as a set (their order follows the search)."""
+    from previous_env import NeighbourList as PreviousNeighbourList
+
+    from egcbf.env.observations import NeighbourList
+
+    gen = torch.Generator().manual_seed(seed)
+    radius = 0.4
+    p = (torch.rand(b * n, d, generator=gen, dtype=F64) * 1.2).to(dtype)
+    batch = torch.arange(b).repeat_interleave(n)
+    velocity = (torch.randn(b * n, d, generator=gen, dtype=F64) * speed).to(dtype)
+    new, old = NeighbourList(radius, skin), PreviousNeighbourList(radius, skin)
+    for _ in range(10):
+        jitter = (torch.rand(b * n, d, generator=gen, dtype=F64) - 0.5).to(dtype) * 0.02
+        p = p + velocity + jitter
+        (index, mask), (ref_index, ref_mask) = new.nearest(p, batch, k), old.nearest(p, batch, k)
+        assert torch.equal(index, ref_index) and torch.equal(mask, ref_mask)
+        for distance in (0.1, radius):
+            u, v = new.pairs_within(distance)
+            ru, rv = old.pairs_within(distance)
+            assert sorted(zip(u.tolist(), v.tolist())) == sorted(zip(ru.tolist(), rv.tolist()))
+
+
+def test_leading_anchors_serve_steady_motion_longer():
+    """In steady motion a search anchored ahead of the agents serves about twice as many steps (the same answers:
+    the test above); a walk that turns every step is anchored at the positions."""
+    from previous_env import NeighbourList as PreviousNeighbourList
+
+    from egcbf.env.observations import NeighbourList
+
+    gen = torch.Generator().manual_seed(0)
+    p0 = torch.rand(200, 3, generator=gen, dtype=F64) * 2
+    velocity = torch.nn.functional.normalize(torch.randn(200, 3, generator=gen, dtype=F64), dim=-1) * 0.02
+    batch = torch.zeros(200, dtype=torch.long)
+    new, old = NeighbourList(0.5, 0.1), PreviousNeighbourList(0.5, 0.1)
+    for t in range(60):
+        for kept in (new, old):
+            kept.nearest(p0 + t * velocity, batch, 8)
+    assert old.searches == 20 and new.searches <= 13, (old.searches, new.searches)
+    zigzag = NeighbourList(0.5, 0.1)
+    for t in range(60):
+        zigzag.nearest(p0 + (t % 2) * velocity * 3, batch, 8)
+    assert zigzag._anchor is not None and torch.equal(zigzag._anchor, zigzag._last[-1])
+
+
+@pytest.mark.parametrize("robot", ["quadrotor", "unicycle"])
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_the_task_step_equals_the_previous_implementation(robot, dtype):
+    """SwarmTask's observations (neighbour rows, LiDAR hits), rewards and costs over an episode with random
+    controls and obstacles equal those of the previous implementation (``previous_env``'s neighbour list,
+    LiDAR and observation; the reward and cost by their formula, every term formed anew), bit for bit."""
+    from previous_env import NeighbourList as PreviousNeighbourList
+    from previous_env import agent_observations as previous_observations
+    from previous_env import lidar_scan as previous_lidar_scan
+
+    area = {"quadrotor": 2.0, "unicycle": 4.0}[robot]
+    cfg = EnvConfig.for_robot(robot, num_agents=48, num_envs=3, area_size=area, num_obstacles=5, max_steps=30)
+    task = SwarmTask(cfg, TaskConfig(deviation_weight=1.5, progress_weight=0.7), dtype=dtype)
+    task.reset(seed=4)
+    robot_ = task.robot
+    kept = PreviousNeighbourList(cfg.comm_radius, task.task.neighbour_skin * cfg.comm_radius)
+    gen = torch.Generator().manual_seed(2)
+    like = torch.zeros((), dtype=dtype)
+    lo, hi = robot_.control_bounds(like)
+    for _ in range(15):
+        before = task.state
+        nominal = robot_.clip_control(robot_.nominal_control(before.x, before.goals))
+        noise = torch.randn(nominal.shape, generator=gen, dtype=F64).to(dtype)
+        u = robot_.nominal_control(before.x, before.goals) + 0.2 * (hi - lo) * noise
+        out = task.step(u)
+        after = out.state
+        scan = previous_lidar_scan(after.positions, robot_.heading(after.x), after.obstacles, n_rays=cfg.n_rays,
+                                   max_range=cfg.resolved_lidar_range, max_hits=cfg.lidar_max_hits)  # fmt: skip
+        ref = previous_observations(after.x, after.goals, after.positions, scan, cfg.comm_radius,
+                                    task.task.max_neighbours, kept)  # fmt: skip
+        for key in OBSERVATION_KEYS:
+            assert out.observation[key].dtype == ref[key].dtype and torch.equal(out.observation[key], ref[key]), key
+        applied = robot_.clip_control(u)
+        reward = torch.zeros(before.x.shape[:2], dtype=dtype)
+        reward = reward - 1.5 * ((applied - nominal) / ((hi - lo) / 2).to(dtype)).square().mean(-1)
+        gap_before = torch.linalg.vector_norm(before.positions - before.goals, dim=-1)
+        gap_after = torch.linalg.vector_norm(after.positions - after.goals, dim=-1)
+        reward = reward + 0.7 * (gap_before - gap_after) / cfg.agent_radius
+        assert torch.equal(out.reward, reward)
+        assert torch.equal(out.cost, out.info["collision"].to(dtype) * 1.0)
+    assert any(bool(v.any()) for v in (out.observation["hit_mask"], out.observation["neighbour_mask"]))

@@ -812,7 +812,11 @@ def test_filtered_methods_follow_their_base_methods_seeds_and_checkpoints(checkp
     assert list(keys[Cell("egcbf+", 0, 2, 1)]) == [
         "method", "obstacles", "num_agents", "area", "episodes", "seed", "max_steps", "checkpoint_sha256"
     ]  # fmt: skip
-    assert keys[Cell("egcbf+:cbf", 0, 2, 0)]["filter_config"] == {"alpha": 1.0, "margin": 0.0}
+    assert keys[Cell("egcbf+:cbf", 0, 2, 0)]["filter_config"] == {
+        "alpha": 1.0,
+        "margin": 0.0,
+        "qp_solver": "active_set",
+    }
     # the learned-CBF filter needs the soft-min CBF head: refused before any cell runs
     plain = types.SimpleNamespace(model=types.SimpleNamespace(interface="accel", cbf_head="mlp", cbf_z_symmetric=False))
     import egcbf.train.checkpoint

@@ -11,9 +11,11 @@ the minimum), and it gives each agent one row per threat instead of one row for 
          the command box of the interface, in the agent's yaw frame;  s_i >= 0
 
 Pair rows are split in halves (the ``dCBF-QP``'s convention), so no agent needs another's command. All ``B N`` QPs
-are one batch of the dense interior-point solver (:func:`egcbf.qp.dense_qp.solve_dense_batch_ipm`); an agent
-whose QP fails or whose solution fails the check brakes. Used by the run-time filters
-(:mod:`egcbf.control.filters`, ``cbf`` and ``prior``) and by the learner's per-edge QP target
+are one batch of the dense interior-point solver (:func:`egcbf.qp.dense_qp.solve_dense_batch_ipm`, the learner's
+target) or of the exact batched dual active-set method
+(:func:`egcbf.qp.dense_active_set.solve_dense_batch_active_set`, the filters' default: ``solver`` of
+:func:`edge_qp_commands`); an agent whose QP fails or whose solution fails the check brakes. Used by the run-time
+filters (:mod:`egcbf.control.filters`, ``cbf`` and ``prior``) and by the learner's per-edge QP target
 (``TrainConfig.qp_constraints = "edges"``).
 
 Robots driven through their raw control (:class:`~egcbf.algo.interface.ControlInterface`: GCBF+'s double
@@ -36,6 +38,7 @@ from groupcanon.groups import Trivial
 from ..env.graph import KIND_AGENT, KIND_GOAL, SwarmGraph
 from ..nn.edge_min import EdgeMinHead, closest_approach
 from ..nn.models import CBFNet, frames_for
+from ..qp.dense_active_set import solve_dense_batch_active_set
 from ..qp.dense_qp import assemble_decentralized, solve_dense_batch_ipm, verified
 from ..qp.sparse_qp import SlackPenalty
 from ..robots.point_mass_qp import acceleration_affine, solve_own_qps
@@ -50,6 +53,8 @@ __all__ = ["BRAKE_GAIN", "SLACK_TOL", "EdgeBarriers", "EdgeRows", "edge_barriers
 BRAKE_GAIN = 4.0
 #: a solution "needs slack" above this (m/s^2); also the tolerance of the solution check
 SLACK_TOL = 1e-4
+#: the batched solvers of the per-agent QPs (:func:`edge_qp_commands`' ``solver``)
+SOLVERS = {"ipm": solve_dense_batch_ipm, "active_set": solve_dense_batch_active_set}
 
 
 @dataclass
@@ -189,16 +194,20 @@ def edge_qp_controls(
 def edge_qp_commands(
     graph: SwarmGraph, x: Tensor, itf: AccelInterface, a_ref: Tensor, *, alpha: float, margin: float,
     cbf: CBFNet | None, distance: float, horizon: float, penalty: SlackPenalty | None = None,
-    brake_gain: float = BRAKE_GAIN, slack_tol: float = SLACK_TOL,
+    brake_gain: float = BRAKE_GAIN, slack_tol: float = SLACK_TOL, solver: str = "ipm",
 ) -> tuple[Tensor, dict]:  # fmt: skip
     """Every agent's per-edge QP (module doc) around ``a_ref`` ``(B, N, 3)`` (world accelerations, m/s^2) for the
     swarm states ``x`` ``(B, N, 18)`` whose graph is ``graph``; rows from ``cbf``'s per-edge barriers, or from the
-    prior ``d_min - distance`` when ``cbf`` is None (:func:`edge_rows`).
+    prior ``d_min - distance`` when ``cbf`` is None (:func:`edge_rows`). ``solver`` (:data:`SOLVERS`): ``"ipm"``
+    (default: the learner's target, :func:`egcbf.qp.dense_qp.solve_dense_batch_ipm` on ``a_ref``'s device) or
+    ``"active_set"`` (exact, numpy: :func:`egcbf.qp.dense_active_set.solve_dense_batch_active_set`; the filters').
 
     Returns the accelerations ``(B, N, 3)`` float64 and counts: ``num_slack`` (agents whose QP needed slack above
     ``slack_tol``), ``num_failed`` (agents given the braking fallback ``a = -brake_gain v``), ``max_slack``,
     ``rows_dropped``, and per agent ``slack_mask`` / ``failed_mask`` ``(B, N)`` numpy bool (the agents counted in
     ``num_slack`` / ``num_failed``)."""
+    if solver not in SOLVERS:
+        raise ValueError(f"edge_qp_commands: solver must be one of {tuple(SOLVERS)}, got {solver!r}")
     penalty = penalty or SlackPenalty()
     b, n = x.shape[:2]
     m = b * n
@@ -210,7 +219,7 @@ def edge_qp_commands(
         a_ref.reshape(m, 3).detach().to(torch.float64).cpu().numpy(), rows.owner.cpu().numpy(),
         rows.normal.cpu().numpy(), rows.rhs.cpu().numpy(), bC, blo, bhi, penalty,
     )  # fmt: skip
-    z, ok, _ = solve_dense_batch_ipm(qps, device=a_ref.device)
+    z, ok, _ = SOLVERS[solver](qps, device=a_ref.device)
     good = verified(qps, z, ok, slack_tol)
     a, slack = z[:, :3].copy(), z[:, 3]
     if not good.all():

@@ -9,9 +9,11 @@ own graph neighbourhood, then solves one small QP over its own acceleration only
 
 and the attitude loop tracks the result. Nothing is exchanged between agents: each pair row is split in halves, each
 agent enforcing its own half (the ``dCBF-QP``'s convention), so the two halves add up to the pair's condition when
-both agents keep their halves. All ``B N`` QPs are one batch of the interior-point solver of the dCBF-QP
-(:func:`egcbf.qp.dense_qp.solve_dense_batch_ipm`); an agent whose QP fails (or whose solution fails the check)
-brakes. Three filters (``FILTERS``), each a :class:`SafetyFilter` registered under its kind (``FILTER_CLASSES``:
+both agents keep their halves. All ``B N`` QPs are one batch, solved (``cbf``, ``prior``) exactly by the batched dual
+active-set method (:func:`egcbf.qp.dense_active_set.solve_dense_batch_active_set`, ``FilterConfig.qp_solver``'s
+default) or by the interior-point solver of the dCBF-QP (:func:`egcbf.qp.dense_qp.solve_dense_batch_ipm`,
+``qp_solver = "ipm"``); an agent whose QP fails (or whose solution fails the check) brakes. Three filters
+(``FILTERS``), each a :class:`SafetyFilter` registered under its kind (``FILTER_CLASSES``:
 :class:`EdgeBarrierFilter`, :class:`PriorBarrierFilter`, :class:`BrakingBarrierFilter`):
 
 * ``"cbf"``: the checkpoint's **learned per-edge barriers**. The soft-min CBF head
@@ -79,6 +81,7 @@ from .names import FILTERS
 __all__ = [
     "FILTERS",
     "FILTER_CLASSES",
+    "QP_SOLVERS",
     "READS_SENSING",
     "BrakingBarrierFilter",
     "EdgeBarrierFilter",
@@ -100,6 +103,9 @@ __all__ = [
 DCBF_FILTER_BARRIER = BarrierConfig(margin=0.02, gamma=50.0, brake_accel=3.0)
 #: the ``dcbf`` filter's look-ahead (s) under the realized acceleration: the attitude loop's lag (docs)
 DCBF_FILTER_LOOKAHEAD = 0.05
+#: the per-agent QP solvers of the ``cbf`` and ``prior`` filters (``FilterConfig.qp_solver``), the default first: the
+#: exact batched dual active-set method and the interior-point method (:func:`~egcbf.algo.edge_qp.edge_qp_commands`)
+QP_SOLVERS = ("active_set", "ipm")
 
 
 @dataclass(frozen=True)
@@ -125,6 +131,13 @@ class FilterConfig:
         lidar_hits: with ``obstacle_sensing = "lidar"``, what each hit stands for in the ``dcbf`` filter's rows:
             ``"plane"`` (default, the plane through the hit normal to the ray) or ``"point"`` (a point obstacle)
             (:func:`~egcbf.robots.quadrotor.barriers.hit_constraints`; docs/safety_filters.md measures both).
+        qp_solver: how ``cbf`` and ``prior`` solve their per-agent QPs (:data:`QP_SOLVERS`): ``"active_set"``
+            (default; the exact batched dual active-set method,
+            :func:`egcbf.qp.dense_active_set.solve_dense_batch_active_set`) or ``"ipm"`` (the batched interior-point
+            method, :func:`egcbf.qp.dense_qp.solve_dense_batch_ipm`: within 1e-7 m/s^2 of it on most QPs, up to
+            about 1e-4 on degenerate ones, some of which it reports unsolved, so that the agent brakes; slower:
+            docs/benchmarks.md). ``None`` (the field's default) is the filter's default; the ``dcbf`` filter has its
+            own solver and refuses any other value (``SafetyFilter.qp_solvers``).
     """
 
     kind: str = "cbf"
@@ -138,6 +151,7 @@ class FilterConfig:
     lookahead: float = DCBF_FILTER_LOOKAHEAD
     obstacle_sensing: str = "map"
     lidar_hits: str = "plane"
+    qp_solver: str | None = None
 
     @classmethod
     def for_kind(
@@ -147,14 +161,18 @@ class FilterConfig:
         margin: float | None = None,
         obstacle_sensing: str = "map",
         lidar_hits: str = "plane",
+        qp_solver: str | None = None,
     ) -> FilterConfig:
         """The filter ``kind`` with its defaults, ``alpha`` and ``margin`` overriding its class-K gain and its
         clearance: ``alpha``, ``margin`` for ``cbf`` and ``prior``; the barrier's ``gamma``, ``margin`` for ``dcbf``;
         ``obstacle_sensing`` the ``dcbf`` filter's obstacle rows (``"map"`` or ``"lidar"``) and ``lidar_hits`` what
-        one LiDAR hit stands for in them (``"plane"`` or ``"point"``)."""
+        one LiDAR hit stands for in them (``"plane"`` or ``"point"``); ``qp_solver`` the QP solver of ``cbf`` and
+        ``prior`` (``None``: the filter's default)."""
         if kind not in FILTER_CLASSES:
             raise ValueError(f"FilterConfig.kind must be one of {FILTERS[1:]}, got {kind!r}")
         sensing = {"obstacle_sensing": obstacle_sensing, "lidar_hits": lidar_hits}
+        if qp_solver is not None:  # (only then: a filter without a choice of solver refuses the field)
+            sensing["qp_solver"] = qp_solver
         return FILTER_CLASSES[kind].make_config(cls, kind, alpha, margin, sensing)
 
     def settings(self) -> dict:
@@ -178,6 +196,17 @@ class FilterConfig:
         for name in ("brake_gain", "slack_tol", "active_tol"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"FilterConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        rows = FILTER_CLASSES.get(self.kind)
+        solvers = rows.qp_solvers if rows is not None else QP_SOLVERS
+        if self.qp_solver is None:
+            if solvers:  # the filter's default (frozen: set once, here)
+                object.__setattr__(self, "qp_solver", solvers[0])
+        elif not solvers:
+            raise ValueError(f"FilterConfig.qp_solver: the {self.kind!r} filter solves its QPs with its own solver; "
+                             f"leave qp_solver None, got {self.qp_solver!r}")  # fmt: skip
+        elif self.qp_solver not in solvers:
+            raise ValueError(f"FilterConfig.qp_solver must be one of {solvers} for the {self.kind!r} filter, got "
+                             f"{self.qp_solver!r}")  # fmt: skip
 
 
 class SafetyFilter:
@@ -200,6 +229,9 @@ class SafetyFilter:
     uses_lookahead: ClassVar[bool] = False
     #: the channels of ``state.sensing`` its rows perceive (:func:`egcbf.faults.sensing.unread_faults`)
     rows_read: ClassVar[Any] = True
+    #: the QP solvers it offers (``FilterConfig.qp_solver``), its default first; empty: it has its own solver and
+    #: refuses the setting (which then stays ``None`` and out of its :meth:`settings`)
+    qp_solvers: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, config: FilterConfig, model_config: ModelConfig, cbf: CBFNet | None = None):
         self.config, self.model_config, self.cbf = config, model_config, cbf
@@ -244,13 +276,20 @@ class EdgeBarrierFilter(SafetyFilter):
 
     kind = "cbf"
     needs_cbf = True
+    qp_solvers = QP_SOLVERS
+
+    @staticmethod
+    def settings(config: FilterConfig) -> dict:
+        """Its gain, clearance and QP solver (recorded so that the results of one are not reused for the other:
+        their commands differ by the IPM's tolerance, and where it gives up on a degenerate QP)."""
+        return {"alpha": config.alpha, "margin": config.margin, "qp_solver": config.qp_solver}
 
     def __call__(self, state, s, env_config, graph, itf, a_pi, accel):
         cfg, mc = self.config, self.model_config
         a, info = edge_qp_commands(
             graph, s.x, itf, a_pi, alpha=cfg.alpha, margin=cfg.margin, cbf=self.cbf, distance=mc.cbf_distance,
             horizon=mc.closest_approach_horizon, penalty=cfg.penalty, brake_gain=cfg.brake_gain,
-            slack_tol=cfg.slack_tol,
+            slack_tol=cfg.slack_tol, solver=cfg.qp_solver,
         )  # fmt: skip
         return a, None, info
 

@@ -27,12 +27,16 @@ a ray that hits nothing within ``max_range`` is invalid. Invalid slots hold the 
 
 Cost: rays are only traced for the agent–obstacle pairs within ``max_range + radius`` (found with
 :meth:`Obstacles.near_pairs`: dense for a few obstacles, cell list for many), so the work is linear in the number
-of agents and obstacles at fixed densities.
+of agents and obstacles at fixed densities. Of each sphere pair's rays only those within the sphere's angular
+window (its angular radius around the direction to its centre, widened far past rounding) are tested, on the values
+of the one ``(P, d) x (d, Rr)`` product, so the hits are the every-ray test's; without autograd the closest hits
+are kept by two sorts of packed integer keys and the points formed for the valid slots alone.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -163,18 +167,26 @@ def lidar_scan(
         raise ValueError(f"max_hits must be a positive integer, got {max_hits!r}")
     b, n, dim = positions.shape
     dtype, device = positions.dtype, positions.device
+    h = int(max_hits)
+    grad = positions.requires_grad or headings.requires_grad or obstacles.centers.requires_grad
+    grad = grad or obstacles.radii.requires_grad or (obstacles.boxes is not None and obstacles.boxes.requires_grad)
+    if (obstacles.num_obstacles == 0 or b * n == 0) and not grad:
+        # nothing to hit: every slot invalid, holding the agent's position (what the scan below gives)
+        invalid = torch.zeros(b, n, h, dtype=torch.bool, device=device)
+        distance = torch.full((b, n, h), math.inf, dtype=dtype, device=device)
+        return LidarScan(points=_repeat_rows(positions, h), valid=invalid, distance=distance)
     dirs = ray_directions(n_rays, dim=dim, dtype=dtype, device=device)  # (Rr, d)
     n_dirs = dirs.shape[0]
-    h = int(max_hits)
     m = b * n
     best = torch.full((m, h), math.inf, dtype=dtype, device=device)
     idx = torch.zeros(m, h, dtype=torch.long, device=device)
+    hit_agent = hit_rank = hit_t = hit_ray = None  # the kept hits, one entry per valid slot (for the points)
 
     if obstacles.num_obstacles > 0 and m > 0:
         centers = obstacles.centers.to(dtype)
         radii = obstacles.radii.to(dtype)
         # agent-obstacle pairs whose ray segments can reach the sphere (sparse: linear in N and K)
-        bi, ni, ki = obstacles.near_pairs(positions.detach(), max_range)
+        bi, ni, ki = _near_pairs(obstacles, positions.detach(), centers, radii, max_range)
         if bi.numel() > 0 and obstacles.is_rectangles:
             # ray x rectangle (slab method in the rectangle's axes), the rays turned into the world by the heading
             cs = planar_frame(headings[bi, ni])  # (P, 2)
@@ -185,15 +197,13 @@ def lidar_scan(
             t = t_all[pi, ri]
             keep = t <= max_range
             agent, ri, t = (bi * n + ni)[pi[keep]], ri[keep], t[keep]
-        elif bi.numel() > 0:
-            # ray x sphere (disc) in the agent's yaw frame: one (P, d) x (d, Rr) product gives every d . (p - c)
+        elif bi.numel() > 0 and grad:
+            # ray x sphere (disc) in the agent's yaw frame: one (P, d) x (d, Rr) product gives every d . (p - c);
+            # with autograd every ray of every pair is tested, as the gradients have always been formed
             cs = planar_frame(headings[bi, ni])  # (P, 2)
             oc = _yaw_rotate(cs * cs.new_tensor([1.0, -1.0]), positions[bi, ni] - centers[bi, ki])  # (P, d)
             proj = oc @ dirs.T  # (P, Rr)
             c0 = oc.square().sum(-1) - radii[bi, ki].square()  # (P,); <= 0: the agent is inside
-            # outside: the ray hits iff the line meets the sphere ahead (disc = proj^2 - c0 >= 0, that is proj^2 >=
-            # c0, and proj < 0); inside: every ray, at distance 0. A threshold a little above -sqrt(c0) keeps a
-            # superset of the hits; the exact test and disc are then formed on those alone.
             inside = c0 <= 0
             slack = 1 - 8 * torch.finfo(dtype).eps
             below = torch.where(inside, torch.inf, -torch.sqrt(c0.clamp(min=0.0)) * slack)
@@ -207,7 +217,35 @@ def lidar_scan(
             t = torch.where(inner, torch.zeros_like(near), -near - torch.sqrt(torch.clamp(disc, min=0.0)))
             keep = t <= max_range
             agent, ri, t = (bi * n + ni)[pi[keep]], ri[keep], t[keep]
-        if bi.numel() > 0:
+        elif bi.numel() > 0:
+            # ray x sphere (disc) in the agent's yaw frame: one (P, d) x (d, Rr) product gives every d . (p - c)
+            pa = bi * n + ni  # (P,) flat agents
+            ck = bi * obstacles.num_obstacles + ki  # (P,) flat obstacles
+            cs = planar_frame(headings.reshape(m, -1).index_select(0, pa))  # (P, 2)
+            offset = positions.reshape(m, dim).index_select(0, pa) - centers.reshape(-1, dim).index_select(0, ck)
+            oc = _yaw_rotate(cs * cs.new_tensor([1.0, -1.0]), offset)  # (P, d)
+            proj = torch.mm(oc, dirs.T, out=_scratch(oc.shape[0] * n_dirs, dtype, device).view(-1, n_dirs))
+            c0 = oc.square().sum(-1) - radii.reshape(-1).index_select(0, ck).square()  # (P,); <= 0: inside
+            # outside: the ray hits iff the line meets the sphere ahead (disc = proj^2 - c0 >= 0, that is proj^2 >=
+            # c0, and proj < 0); inside: every ray, at distance 0. A threshold a little above -sqrt(c0) keeps a
+            # superset of the hits; the exact test and disc are then formed on those alone. Only the rays within
+            # the sphere's angular window (widened far past rounding) can pass the threshold: those are the
+            # candidates, read from the product (so every value is the dense product's).
+            inside = c0 <= 0
+            slack = 1 - 8 * torch.finfo(dtype).eps
+            below = torch.where(inside, torch.inf, -torch.sqrt(c0.clamp(min=0.0)) * slack)
+            pc, flat = _window_rays(oc.detach(), below.detach(), n_rays, dim)
+            near = proj.view(-1).index_select(0, flat)
+            disc = near.square() - c0.index_select(0, pc)
+            inner = inside.index_select(0, pc)
+            t = torch.where(inner, torch.zeros_like(near), -near - torch.sqrt(torch.clamp(disc, min=0.0)))
+            hit = (near < below.index_select(0, pc)) & (inner | ((disc >= 0) & (near < 0))) & (t <= max_range)
+            keep = hit.nonzero().squeeze(1)
+            pc, flat, t = pc.index_select(0, keep), flat.index_select(0, keep), t.index_select(0, keep)
+            agent, ri = pa.index_select(0, pc), flat - pc * n_dirs
+        if bi.numel() > 0 and ray_faults is None and not grad and _packs_hits(t, m, n_dirs):
+            hit_agent, hit_rank, hit_t, hit_ray = _closest_hits_packed(agent, ri, t, m, n_dirs, h)
+        elif bi.numel() > 0:
             # closest obstacle per (agent, ray): sort by t, then (stably) by (agent, ray), keep the first of each
             perm = _sort_by(agent * n_dirs + ri, t, m * n_dirs)
             key = (agent * n_dirs + ri)[perm]
@@ -226,16 +264,160 @@ def lidar_scan(
             start[1:] = agent[1:] != agent[:-1]
             rank = pos_in - torch.cummax(torch.where(start, pos_in, torch.zeros_like(pos_in)), 0).values
             keep = rank < h
-            best = best.index_put((agent[keep], rank[keep]), t[keep])
-            idx = idx.index_put((agent[keep], rank[keep]), ri[keep])
+            hit_agent, hit_rank, hit_t, hit_ray = agent[keep], rank[keep], t[keep], ri[keep]
+        if hit_agent is not None and not grad:
+            best.index_put_((hit_agent, hit_rank), hit_t)
+            idx.index_put_((hit_agent, hit_rank), hit_ray)
+        elif hit_agent is not None:
+            best = best.index_put((hit_agent, hit_rank), hit_t)
+            idx = idx.index_put((hit_agent, hit_rank), hit_ray)
 
     best, idx = best.view(b, n, h), idx.view(b, n, h)
     valid = torch.isfinite(best)
-    if not (positions.requires_grad or headings.requires_grad) and not bool(valid.any()):
-        # no ray hit (no obstacle in range): every slot holds the agent's position, as p + d * 0 below would
-        return LidarScan(points=positions[:, :, None, :].expand(b, n, h, dim).clone(), valid=valid, distance=best)
+    if hit_agent is None or not hit_agent.numel():
+        if not (positions.requires_grad or headings.requires_grad):
+            # no ray hit (no obstacle in range): every slot holds the agent's position, as p + d * 0 below would
+            return LidarScan(points=_repeat_rows(positions, h), valid=valid, distance=best)
+    elif not grad:
+        # the points of the valid slots alone (each as p + d * t below forms it); the others hold the position
+        cs = planar_frame(headings).reshape(m, 2).index_select(0, hit_agent)  # (Q, 2)
+        d = _yaw_rotate(cs, dirs.index_select(0, hit_ray))  # (Q, d)
+        at = hit_agent * h + hit_rank
+        points = _repeat_rows(positions, h).view(m * h, dim)
+        points.index_copy_(0, at, positions.reshape(m, dim).index_select(0, hit_agent) + d * hit_t[:, None])
+        return LidarScan(points=points.view(b, n, h, dim), valid=valid, distance=best)
     cs = planar_frame(headings)  # (B, N, 2)
     d = _yaw_rotate(cs[:, :, None, :], dirs[idx])  # (B, N, H, d)
     step = torch.where(valid, best, torch.zeros_like(best))
     points = positions[:, :, None, :] + d * step[..., None]
     return LidarScan(points=points, valid=valid, distance=best)
+
+
+_SCRATCH = threading.local()
+#: the largest buffer (elements) :func:`_scratch` keeps; a larger product is allocated afresh
+_SCRATCH_MAX = 2**24
+
+
+def _scratch(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """A flat buffer of ``size`` elements for a scan's ``(P, Rr)`` product, which is only read inside that scan: on
+    the CPU, up to ``_SCRATCH_MAX`` elements, this thread's own buffer kept between scans (a fresh one would be new
+    memory, page faults and all, every step); otherwise a new tensor."""
+    if device.type != "cpu" or size > _SCRATCH_MAX:
+        return torch.empty(size, dtype=dtype, device=device)
+    cache = getattr(_SCRATCH, "buffers", None)
+    if cache is None:
+        cache = _SCRATCH.buffers = {}
+    buf = cache.get(dtype)
+    if buf is None or buf.numel() < size:
+        buf = cache[dtype] = torch.empty(min(max(size, 2 * (0 if buf is None else buf.numel())), _SCRATCH_MAX),
+                                         dtype=dtype)  # fmt: skip
+    return buf[:size]
+
+
+def _near_pairs(obstacles: Obstacles, positions: Tensor, centers: Tensor, radii: Tensor, margin: float):
+    """:meth:`Obstacles.near_pairs` of ``positions`` ``(B, N, d)`` (``centers``, ``radii``: the obstacles' in the
+    positions' dtype): for a few round obstacles (its dense case) the same distances, formed without gathering
+    the obstacles per agent, so the same triples in the same order; otherwise :meth:`Obstacles.near_pairs` itself."""
+    if obstacles.is_rectangles or obstacles.num_obstacles > Obstacles.DENSE_MAX_OBSTACLES:
+        return obstacles.near_pairs(positions, margin)
+    sd = (positions[:, :, None, :] - centers[:, None, :, :]).norm(dim=-1) - radii[:, None, :]  # (B, N, K)
+    return (sd < margin).nonzero(as_tuple=True)
+
+
+def _repeat_rows(positions: Tensor, h: int) -> Tensor:
+    """``(B, N, h, d)``: each agent's position in each of its ``h`` slots, a new tensor (a contiguous copy: faster
+    than cloning the expanded view, which keeps its layout)."""
+    b, n, d = positions.shape
+    return positions[:, :, None, :].expand(b, n, h, d).clone(memory_format=torch.contiguous_format)
+
+
+def _window_rays(oc: Tensor, below: Tensor, n_rays: int, dim: int) -> tuple[Tensor, Tensor]:
+    """``pair, flat`` ``(C,)``: for each agent-sphere pair (``oc`` ``(P, d)``, the agent's offset from the centre in
+    its yaw frame; ``below`` ``(P,)``, :func:`lidar_scan`'s threshold, ``inf`` inside) the rays of
+    :func:`ray_directions` that may have ``d . oc < below``, as flat indices ``pair * Rr + ray`` into the ``(P, Rr)``
+    product: those within the angle ``acos(-below / |oc|)`` of the direction to the centre (the sphere's angular
+    radius), widened by ``1e-5`` in its cosine and by ``0.01`` rad (far past the rounding of the product, of the
+    float directions and of this function), found as a band of elevations and, in it, a band of azimuths (all of
+    them around a pole), plus up and down when they are within the angle; every ray from inside. Grouped by pair,
+    in no other promised order."""
+    device, dt = oc.device, oc.dtype
+    n = int(n_rays)
+    n_dirs = n * (n // 2) + 2 if dim == 3 else n
+    step = 2 * math.pi / n
+    w = (-oc).t().contiguous()  # toward the centre, one row per coordinate
+    flat_dist = torch.hypot(w[0], w[1])
+    dist = flat_dist if dim == 2 else torch.hypot(flat_dist, w[2])
+    cos = -below / dist.clamp(min=torch.finfo(dt).tiny)
+    alpha = torch.acos((cos - 1e-5).clamp(-1.0, 1.0)) + 0.01  # inside (below = inf): cos = -inf, alpha > pi
+    phi = torch.atan2(w[1], w[0])
+    pairs = torch.arange(oc.shape[0], device=device)
+    if dim == 3:
+        theta_c = torch.atan2(w[2], flat_dist)
+        theta = torch.linspace(-math.pi / 2 + step, math.pi / 2 - step, n // 2, dtype=torch.float64).to(dt)
+        lo = torch.searchsorted(theta.to(device), theta_c - alpha)
+        rows = (torch.searchsorted(theta.to(device), theta_c + alpha, right=True) - lo).clamp(min=0)
+        ratio = (torch.sin(alpha) / torch.cos(theta_c).clamp(min=torch.finfo(dt).tiny)).clamp(max=1.0)
+        half = torch.where(theta_c.abs() + alpha >= math.pi / 2, math.pi, torch.asin(ratio))  # a pole: all
+        up = (math.pi / 2 - theta_c <= alpha).nonzero().squeeze(1)
+        down = (theta_c + math.pi / 2 <= alpha).nonzero().squeeze(1)
+        rp = torch.repeat_interleave(pairs, rows)  # one entry per (pair, elevation row)
+        row = lo.index_select(0, rp) + torch.arange(rp.shape[0], device=device)
+        row = row - (torch.cumsum(rows, 0) - rows).index_select(0, rp)
+    else:
+        half, rp, row = alpha, pairs, torch.zeros_like(pairs)
+    first = torch.ceil((phi - half + math.pi) / step).long()
+    cols = torch.floor((phi + half + math.pi) / step).long() - first + 1
+    whole = (half >= math.pi) | (cols >= n)
+    first = torch.where(whole, 0, first % n).index_select(0, rp)
+    cols = torch.where(whole, n, cols.clamp(min=0)).index_select(0, rp)
+    # each (pair, row) band of azimuths as one or two runs of flat indices (two where it wraps past azimuth n - 1)
+    base = rp * n_dirs + row * n
+    head = torch.minimum(cols, n - first)
+    starts, lens, owner = [base + first, base], [head, cols - head], [rp, rp]
+    if dim == 3:
+        for extra, ray in ((up, n * (n // 2)), (down, n * (n // 2) + 1)):
+            starts.append(extra * n_dirs + ray)
+            lens.append(torch.ones_like(extra))
+            owner.append(extra)
+    starts, lens, owner = torch.cat(starts), torch.cat(lens), torch.cat(owner)
+    total = int(lens.sum())
+    flat = torch.repeat_interleave(starts - (torch.cumsum(lens, 0) - lens), lens, output_size=total)
+    flat = flat + torch.arange(total, device=device)
+    return torch.repeat_interleave(owner, lens, output_size=total), flat
+
+
+def _packs_hits(t: Tensor, m: int, n_dirs: int) -> bool:
+    """Whether :func:`_closest_hits_packed` takes these hits: float32 distances without autograd on the CPU, their
+    keys within 63 bits."""
+    fits = (m - 1).bit_length() + 32 + (n_dirs - 1).bit_length() <= 63
+    return t.dtype == torch.float32 and t.device.type == "cpu" and not t.requires_grad and fits
+
+
+def _closest_hits_packed(agent: Tensor, ray: Tensor, t: Tensor, m: int, n_dirs: int, h: int):
+    """``agent, rank, t, ray`` of the kept hits: the closest obstacle of each ``(agent, ray)``, then each agent's
+    ``h`` closest rays, ``rank`` their order; what the two stable sorts of :func:`lidar_scan` keep, by two sorts of
+    packed ``int64`` keys whose values carry every field (``(agent, ray, t)``, then ``(agent, t, ray)``, ``t`` as its
+    ordered IEEE bits: ties in ``t`` then go by ray, as the stable sorts leave them)."""
+    rbits = max((n_dirs - 1).bit_length(), 1)
+    bits = (t + 0.0).view(torch.int32).to(torch.int64)  # + 0.0: -0.0 becomes 0.0, which it equals
+    order = (bits ^ ((bits >> 31) & 0x7FFFFFFF)) + 2**31  # ordered as the floats, in [0, 2**32)
+    key = _sorted(((agent << (rbits + 32)) | (ray << 32)) | order)
+    pair = key >> 32  # (agent, ray)
+    first = torch.ones_like(pair, dtype=torch.bool)
+    torch.ne(pair[1:], pair[:-1], out=first[1:])
+    key = key.index_select(0, first.nonzero().squeeze(1))
+    ray = (key >> 32) & ((1 << rbits) - 1)
+    key = _sorted(((key >> (rbits + 32)) << (rbits + 32)) | ((key & 0xFFFFFFFF) << rbits) | ray)
+    agent = key >> (32 + rbits)
+    rank = torch.arange(agent.shape[0]) - torch.searchsorted(agent, agent)  # place in its agent's run
+    keep = (rank < h).nonzero().squeeze(1)
+    key, agent, rank = key.index_select(0, keep), agent.index_select(0, keep), rank.index_select(0, keep)
+    order = ((key >> rbits) & 0xFFFFFFFF) - 2**31
+    t = (order ^ ((order >> 31) & 0x7FFFFFFF)).to(torch.int32).view(torch.float32)
+    return agent, rank, t, key & ((1 << rbits) - 1)
+
+
+def _sorted(key: Tensor) -> Tensor:
+    """``key`` (a CPU ``int64`` tensor of the caller's own) sorted in place by NumPy's sort."""
+    key.numpy().sort()
+    return key

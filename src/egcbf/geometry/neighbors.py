@@ -240,7 +240,8 @@ def _kd_tree_pairs(positions: Tensor, batch: Tensor, reach: float) -> tuple[Tens
     if bool((batch != batch[0]).any()):
         span = float(pts[:, 0].max() - pts[:, 0].min()) + 2 * reach + 1.0
         pts[:, 0] += batch.numpy() * span
-    pairs = cKDTree(pts).query_pairs(reach, output_type="ndarray")
+    # a sliding-midpoint tree without the compaction pass: faster to build and to query here, the same pairs
+    pairs = cKDTree(pts, balanced_tree=False, compact_nodes=False).query_pairs(reach, output_type="ndarray")
     uv = torch.from_numpy(pairs.astype(np.int64, copy=False).T.copy())
     return uv[0], uv[1]
 

@@ -186,7 +186,7 @@ def lidar_scan(
         centers = obstacles.centers.to(dtype)
         radii = obstacles.radii.to(dtype)
         # agent-obstacle pairs whose ray segments can reach the sphere (sparse: linear in N and K)
-        bi, ni, ki = _near_pairs(obstacles, positions.detach(), centers, radii, max_range)
+        bi, ni, ki = obstacles.near_pairs(positions.detach(), max_range)
         if bi.numel() > 0 and obstacles.is_rectangles:
             # ray x rectangle (slab method in the rectangle's axes), the rays turned into the world by the heading
             cs = planar_frame(headings[bi, ni])  # (P, 2)
@@ -312,16 +312,6 @@ def _scratch(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
         buf = cache[dtype] = torch.empty(min(max(size, 2 * (0 if buf is None else buf.numel())), _SCRATCH_MAX),
                                          dtype=dtype)  # fmt: skip
     return buf[:size]
-
-
-def _near_pairs(obstacles: Obstacles, positions: Tensor, centers: Tensor, radii: Tensor, margin: float):
-    """:meth:`Obstacles.near_pairs` of ``positions`` ``(B, N, d)`` (``centers``, ``radii``: the obstacles' in the
-    positions' dtype): for a few round obstacles (its dense case) the same distances, formed without gathering
-    the obstacles per agent, so the same triples in the same order; otherwise :meth:`Obstacles.near_pairs` itself."""
-    if obstacles.is_rectangles or obstacles.num_obstacles > Obstacles.DENSE_MAX_OBSTACLES:
-        return obstacles.near_pairs(positions, margin)
-    sd = (positions[:, :, None, :] - centers[:, None, :, :]).norm(dim=-1) - radii[:, None, :]  # (B, N, K)
-    return (sd < margin).nonzero(as_tuple=True)
 
 
 def _repeat_rows(positions: Tensor, h: int) -> Tensor:

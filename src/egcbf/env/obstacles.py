@@ -238,6 +238,14 @@ class Obstacles:
         ``points`` ``(B, M, d)``, sorted by (b, m, k). Linear in ``M`` (see :meth:`near_pairs_flat`)."""
         self._check_points(points, batched=True)
         b, m, d = points.shape
+        k = self.num_obstacles
+        dense = method == "dense" or (method == "auto" and k <= self.DENSE_MAX_OBSTACLES)
+        if dense and not self.is_rectangles and k > 0 and b * m > 0:
+            # the dense case of near_pairs_flat without gathering the obstacles per point: the same distances
+            centers = self.centers.to(device=points.device, dtype=points.dtype)
+            radii = self.radii.to(device=points.device, dtype=points.dtype)
+            sd = (points[:, :, None, :] - centers[:, None, :, :]).norm(dim=-1) - radii[:, None, :]  # (B, M, K)
+            return (sd < margin).nonzero(as_tuple=True)
         env = torch.arange(b, device=points.device).repeat_interleave(m)
         pi, k = self.near_pairs_flat(points.reshape(b * m, d), env, margin, method)
         return pi // max(m, 1), pi % max(m, 1), k

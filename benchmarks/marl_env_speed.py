@@ -19,12 +19,14 @@ what bounds the ratio of any path that builds these observations to the bare sim
 the share of the neighbour rows that the Verlet list's k-d tree searches take (their count over the timed steps).
 
 Settings: ``8 x 512`` at Table I's density (l = 4 m) without and with 8 obstacles, and ``1 x 4096`` at the same
-density (l = 8 m). Mean over ``--steps`` steps after ``--warmup`` (the rate a run sees: the neighbour list's
-searches, every few steps, included), float32, one torch thread; the paths are timed in turn within one process,
-so their ratios share the machine's state.
+density (l = 8 m). Each path's time per step is the median over ``--rounds`` rounds of the mean of a block of
+``--steps`` steps (the rate a run sees: the neighbour list's searches, every few steps, included), after
+``--warmup`` steps; within a round the paths run their blocks in turn, each path's episode going on from round to
+round, so that a slow spell of the machine falls on every path alike and their ratios share its state. float32,
+one torch thread.
 
     python benchmarks/marl_env_speed.py            # writes its section of docs/benchmarks.md and docs/marl.md
-    python benchmarks/marl_env_speed.py --steps 3 --warmup 1 --no-write
+    python benchmarks/marl_env_speed.py --rounds 1 --steps 3 --warmup 1 --no-write
 """
 
 from __future__ import annotations
@@ -45,52 +47,55 @@ from egcbf.io.report import cpu_name, quote_section, replace_section
 SETTINGS = ((8, 512, 4.0, 0), (8, 512, 4.0, 8), (1, 4096, 8.0, 0))
 
 
-def _mean_step(step, steps: int, warmup: int) -> float:
-    for _ in range(warmup):
-        step()
-    times = []
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        step()
-        times.append(time.perf_counter() - t0)
-    return statistics.fmean(times)  # the rate a run sees: the Verlet searches of a few steps included
+def _interleaved(paths: dict, rounds: int, steps: int, warmup: int) -> dict[str, float]:
+    """Seconds per step of each of ``paths`` (name -> a function making one step): the median over ``rounds`` of
+    the mean of a block of ``steps`` steps, the paths' blocks run in turn within each round (module doc)."""
+    for step in paths.values():
+        for _ in range(warmup):
+            step()
+    blocks = {name: [] for name in paths}
+    for _ in range(rounds):
+        for name, step in paths.items():
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                step()
+            blocks[name].append((time.perf_counter() - t0) / steps)  # the Verlet searches of the block included
+    return {name: statistics.median(times) for name, times in blocks.items()}
 
 
-def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int, seed: int = 0) -> dict:
+def measure(b: int, n: int, area: float, obstacles: int, rounds: int, steps: int, warmup: int, seed: int = 0) -> dict:
     """Seconds per step of every path (module doc) for ``b`` scenes of ``n`` agents."""
     horizon = 10**6  # no truncation inside the timed steps
     cfg = EnvConfig(num_agents=n, num_envs=b, area_size=area, num_obstacles=obstacles, max_steps=horizon)
     env = SwarmEnv(cfg, dtype=torch.float32)
     start = env.reset(seed)
     robot = env.robot
-    times = {}
-    box = {"state": start}
+    paths = {}
+    simulator = {"state": start}
 
     def env_step():
-        s = box["state"]
-        box["state"], _ = env.step(s, robot.nominal_control(s.x, s.goals))
+        s = simulator["state"]
+        simulator["state"], _ = env.step(s, robot.nominal_control(s.x, s.goals))
 
-    times["SwarmEnv.step"] = _mean_step(env_step, steps, warmup)
-    box["state"] = start
+    paths["SwarmEnv.step"] = env_step
+    graphed = {"state": start}
 
     def env_graph_step():
-        s = box["state"]
-        box["state"], _ = env.step(s, robot.nominal_control(s.x, s.goals))
-        build_graph(box["state"], cfg)
+        s = graphed["state"]
+        graphed["state"], _ = env.step(s, robot.nominal_control(s.x, s.goals))
+        build_graph(graphed["state"], cfg)
 
-    times["SwarmEnv.step + build_graph"] = _mean_step(env_graph_step, steps, warmup)
+    paths["SwarmEnv.step + build_graph"] = env_graph_step
     task = SwarmTask(cfg, dtype=torch.float32)
     task.reset(seed)
-    times["SwarmTask.step"] = _mean_step(lambda: task.step(robot.nominal_control(task.state.x, task.state.goals)),
-                                           steps, warmup)  # fmt: skip
-    parts, searches = _task_parts(cfg, seed, steps, warmup)
+    paths["SwarmTask.step"] = lambda: task.step(robot.nominal_control(task.state.x, task.state.goals))
     try:
         from egcbf.env.torchrl import SwarmTorchRLEnv
     except ImportError:
         SwarmTorchRLEnv = None
     if SwarmTorchRLEnv is not None:
         tenv = SwarmTorchRLEnv(cfg, dtype=torch.float32, seed=seed)
-        box["td"] = tenv.reset()
+        box = {"td": tenv.reset()}
 
         def torchrl_step():
             td = box["td"]
@@ -98,7 +103,7 @@ def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int
             td["agents", "action"] = robot.nominal_control(obs["state"], obs["goal"])
             box["td"] = tenv.step(td)["next"]
 
-        times["TorchRL"] = _mean_step(torchrl_step, steps, warmup)
+        paths["TorchRL"] = torchrl_step
     if b == 1:
         try:
             from egcbf.env.pettingzoo import parallel_env
@@ -113,7 +118,9 @@ def measure(b: int, n: int, area: float, obstacles: int, steps: int, warmup: int
                 u = robot.nominal_control(s.x, s.goals)[0].numpy()
                 penv.step({a: u[i] for i, a in enumerate(penv.possible_agents)})
 
-            times["PettingZoo"] = _mean_step(pettingzoo_step, steps, warmup)
+            paths["PettingZoo"] = pettingzoo_step
+    times = _interleaved(paths, rounds, steps, warmup)
+    parts, searches = _task_parts(cfg, seed, rounds * steps, warmup)
     return {"B": b, "N": n, "l": area, "obstacles": obstacles, "seconds": times, "parts": parts, "searches": searches}
 
 
@@ -204,7 +211,8 @@ def table(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--steps", type=int, default=10, help="steps per path in each round")
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"))
     ap.add_argument("--no-write", action="store_true")
@@ -212,20 +220,21 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     rows = []
     for b, n, area, obstacles in SETTINGS:
-        row = measure(b, n, area, obstacles, args.steps, args.warmup)
+        row = measure(b, n, area, obstacles, args.rounds, args.steps, args.warmup)
         print(f"{b} x {n}, l = {area:g}, {obstacles} obstacles: "
               + ", ".join(f"{p} {1e3 * t:.1f} ms" for p, t in row["seconds"].items()), flush=True)  # fmt: skip
         rows.append(row)
     body = (
-        f"`python benchmarks/marl_env_speed.py`: {cpu_name()}, 1 thread, torch {torch.__version__}, float32, mean of "
-        f"{args.steps} steps after {args.warmup}; each cell agent-steps per second and, in brackets, its ratio to "
+        f"`python benchmarks/marl_env_speed.py`: {cpu_name()}, 1 thread, torch {torch.__version__}, float32; per path "
+        f"the median over {args.rounds} rounds of a {args.steps}-step block's mean, the paths' blocks in turn within "
+        f"each round, after {args.warmup} steps; each cell agent-steps per second and, in brackets, its ratio to "
         "`SwarmEnv.step` alone measured in the same run. Paths (the script's docstring): the simulator alone; with "
         "the graph the repository's learners build; `SwarmTask` (observations, rewards, costs as tensors); the "
         "TorchRL environment; the PettingZoo environment (one scene only).\n\n" + table(rows) + "\n\n"
         "Where `SwarmTask.step`'s time goes (mean per step; the neighbour rows' Verlet searches amortized; `rest`: "
         "nominal command, reward, cost, the gathers; the simulator step's masks test the neighbour search's pairs, "
         "so it costs less than `SwarmEnv.step` alone, which searches). The last column is the observation's cost "
-        "over that simulator step's.\n\n" + parts_table(rows) + "\n\n" + searches_note(rows, args.steps)
+        "over that simulator step's.\n\n" + parts_table(rows) + "\n\n" + searches_note(rows, args.rounds * args.steps)
     )
     print("\n" + body)
     if not args.no_write:

@@ -78,8 +78,9 @@ def test_marl_interface_benchmark_quick_run():
 
     pytest.importorskip("torchrl")
     pytest.importorskip("pettingzoo")
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "marl_env_speed.py"), "--steps", "1", "--warmup",
-                           "1", "--no-write"], capture_output=True, text=True, timeout=600, cwd=ROOT)  # fmt: skip
+    quick = ["--rounds", "2", "--steps", "1", "--warmup", "1", "--no-write"]
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "marl_env_speed.py"), *quick],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)  # fmt: skip
     assert proc.returncode == 0, f"marl_env_speed.py exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
     lines = proc.stdout.splitlines()
     rows = [line for line in lines if line.startswith("| 8 x 512 |") or line.startswith("| 1 x")]

@@ -228,7 +228,33 @@ def test_eval_filter_refuses_what_it_cannot_do(tiny_checkpoint, tmp_path):
     res = CliRunner().invoke(app, [*base, "--checkpoint", str(tiny_checkpoint), "--filter-alpha", "2"],
                              env={"COLUMNS": "200"})  # fmt: skip
     assert res.exit_code == 2 and "pass --filter KIND too" in res.output
+    for kind, solver in (("none", "ipm"), ("dcbf", "ipm"), ("cbf", "simplex")):  # no choice, or not one offered
+        res = CliRunner().invoke(app, [*base, "--checkpoint", str(tiny_checkpoint), "--filter", kind,
+                                       "--filter-qp-solver", solver], env={"COLUMNS": "200"})  # fmt: skip
+        assert res.exit_code == 2 and "--filter-qp-solver" in res.output, (kind, res.output)
     assert not (tmp_path / "o").exists()
+
+
+def test_eval_filter_qp_solver_is_used_and_recorded(tiny_checkpoint, tmp_path):
+    """``--filter-qp-solver ipm`` runs the prior filter on the interior-point method and run.json says so; without
+    it, the filter's default (the active set) is recorded."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from egcbf.cli import app
+    from egcbf.control.filters import QP_SOLVERS
+
+    for solver in (None, "ipm"):
+        out = tmp_path / str(solver)
+        args = ["eval", "--checkpoint", str(tiny_checkpoint), "--filter", "prior", "--num-agents", "3", "--area",
+                "1.5", "--episodes", "1", "--max-steps", "4", "--no-progress", "--out", str(out)]  # fmt: skip
+        if solver is not None:
+            args += ["--filter-qp-solver", solver]
+        res = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+        assert res.exit_code == 0, res.output
+        run = json.loads((out / "run.json").read_text())
+        assert run["filter_config"]["qp_solver"] == (solver or QP_SOLVERS[0])
 
 
 def test_lookahead_reads_the_predicted_state():

@@ -156,6 +156,7 @@ def run_eval(
     record_to: Path | None = None,
     low_level: str = "attitude",
     record_cbf: bool = False,
+    filter_qp_solver: str | None = None,
 ) -> dict:
     """The body of ``egcbf eval`` (and of each run of ``egcbf demo``), with torch's threads already set.
 
@@ -167,11 +168,13 @@ def run_eval(
     sizes it finished are kept, the others evaluated. ``record_to``: write the first episode of the first swarm size
     evaluated to this ``.mcap`` file (:class:`egcbf.ros.record.EpisodeRecorder`; needs the ``ros`` extra);
     ``record_cbf``: with it, the checkpoint's learned CBF value ``h`` too (one CBF forward per recorded step).
+    ``filter_qp_solver``: the ``cbf`` and ``prior`` filters' QP solver (``FilterConfig.qp_solver``; ``None``: their
+    default).
     ``low_level``: ``"attitude"`` (our attitude loop applies the controller's control) or ``"setpoint"`` (its
     acceleration command flown through the firmware-like setpoint tracker; :mod:`egcbf.evaluate.episodes`).
     """
     from ..control.controllers import CONTROLLERS
-    from ..control.filters import FILTERS, FilterConfig
+    from ..control.filters import FILTER_CLASSES, FILTERS, FilterConfig
     from ..control.names import join_method, split_method
     from ..control.resolve import POLICY
     from ..evaluate.episodes import LOW_LEVELS, evaluate, fault_support_error
@@ -203,6 +206,10 @@ def run_eval(
     filter_config = None
     require(filter != "none" or (filter_alpha is None and filter_margin is None),
             "--filter-alpha and --filter-margin set a run-time filter's barrier: pass --filter KIND too")  # fmt: skip
+    choices = () if filter == "none" else FILTER_CLASSES[filter].qp_solvers
+    require(filter_qp_solver is None or filter_qp_solver in choices,
+            f"--filter-qp-solver chooses a filter's QP solver: --filter {filter} offers "
+            f"{list(choices) if choices else 'no choice'}, got {filter_qp_solver!r}")  # fmt: skip
     from ..robots.quadrotor.cbf_qp import LIDAR_HITS, OBSTACLE_SENSING
 
     require(obstacle_sensing in OBSTACLE_SENSING,
@@ -212,10 +219,11 @@ def run_eval(
             f"--lidar-hits {lidar_hits} reads LiDAR hits: pass --obstacle-sensing lidar too")  # fmt: skip
     if filter != "none":
         try:
-            filter_config = FilterConfig.for_kind(filter, filter_alpha, filter_margin, obstacle_sensing, lidar_hits)
+            filter_config = FilterConfig.for_kind(filter, filter_alpha, filter_margin, obstacle_sensing, lidar_hits,
+                                                  filter_qp_solver)  # fmt: skip
         except ValueError as err:
             usage_error(str(err).replace("FilterConfig.alpha", "--filter-alpha").replace("FilterConfig.margin",
-                        "--filter-margin"), err)  # fmt: skip
+                        "--filter-margin").replace("FilterConfig.qp_solver", "--filter-qp-solver"), err)  # fmt: skip
     from ..faults import parse_faults
 
     try:
@@ -595,6 +603,13 @@ def eval_cmd(
             "at every step (/egcbf/cbf; one CBF forward per step, about as costly as the policy's: docs/ros.md)",
         ),
     ] = False,
+    filter_qp_solver: Annotated[
+        str | None,
+        typer.Option(
+            help="active_set | ipm: how the cbf and prior filters solve their per-agent QPs: the exact batched "
+            "active-set method (their default) or the interior-point method (docs/safety_filters.md)"
+        ),
+    ] = None,
 ) -> None:
     """Evaluate a controller at several swarm sizes; print a table and write OUT/metrics.json (after each size)."""
     n_threads, reason = _threads(threads)
@@ -631,4 +646,5 @@ def eval_cmd(
             record_to=record,
             low_level=low_level,
             record_cbf=record_cbf,
+            filter_qp_solver=filter_qp_solver,
         )

@@ -600,7 +600,8 @@ def eval_cmd(
         typer.Option(
             "--record-cbf",
             help="with --record and a --checkpoint: also record the checkpoint's learned CBF value h of every agent "
-            "at every step (/egcbf/cbf; one CBF forward per step, about as costly as the policy's: docs/ros.md)",
+            "at every step (/egcbf/cbf; one more network evaluation per step, the larger part of such a recording's "
+            "cost: docs/ros.md)",
         ),
     ] = False,
     filter_qp_solver: Annotated[
